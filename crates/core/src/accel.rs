@@ -1,0 +1,246 @@
+//! Ray queries through an obvhs CWBVH over a set of triangles.
+//!
+//! The BVH is built over padded triangle boxes (see [`Accel::build`]) and
+//! its primitive order is mapped back to global triangle ids, which stay the
+//! identity of a triangle everywhere in locus. Closest hits at equal
+//! distance resolve to the smaller global id, so the answer does not depend
+//! on BVH layout, and therefore not on which worker traced the ray.
+
+use crate::geometry::{Ray, TriHit, WatertightRay};
+use crate::octree::Octree;
+use crate::stats::TraceStats;
+use glam::{UVec2, Vec3, Vec3A};
+use obvhs::BvhBuildParams;
+use obvhs::aabb::Aabb;
+use obvhs::cwbvh::CwBvh;
+use obvhs::cwbvh::builder::build_cwbvh;
+use std::ops::ControlFlow;
+use std::time::Duration;
+
+/// A closest hit: global triangle id plus distance and barycentrics.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    pub tri: u32,
+    pub t: f32,
+    pub b1: f32,
+    pub b2: f32,
+}
+
+pub struct Accel {
+    bvh: CwBvh,
+    /// Triangle vertices in BVH primitive order, so leaf visits read
+    /// contiguous memory.
+    verts: Vec<[Vec3; 3]>,
+    /// Global triangle id of each BVH primitive.
+    ids: Vec<u32>,
+}
+
+/// obvhs stores 1/d clamped at 1/f32::EPSILON, which shrinks slab
+/// intervals of near-parallel rays; a much larger clamp keeps the slabs
+/// conservative without creating inf * 0.
+#[inline(always)]
+fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
+    let inv = |x: f32| {
+        if x.abs() < 1e-30 {
+            1e30f32.copysign(x)
+        } else {
+            1.0 / x
+        }
+    };
+    obvhs::ray::Ray {
+        origin: Vec3A::from(ray.origin),
+        direction: Vec3A::from(ray.dir),
+        inv_direction: Vec3A::new(inv(ray.dir.x), inv(ray.dir.y), inv(ray.dir.z)),
+        tmin: 0.0,
+        tmax,
+    }
+}
+
+impl Accel {
+    /// Builds over the triangles `ids` of `all`. Each triangle's box is
+    /// padded by 2^-18 of `magnitude` (the largest coordinate the rays and
+    /// the scene reach), because obvhs's slab test rounds in f32 and could
+    /// otherwise reject a box that a ray grazes at a vertex or an edge.
+    pub fn build(all: &[[Vec3; 3]], ids: &[u32], magnitude: f32) -> Self {
+        let pad = Vec3A::splat(magnitude * crate::geometry::SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
+        let boxes: Vec<Aabb> = ids
+            .iter()
+            .map(|&i| {
+                let t = &all[i as usize];
+                let mut b = Aabb::from_points(&[t[0].into(), t[1].into(), t[2].into()]);
+                b.min -= pad;
+                b.max += pad;
+                b
+            })
+            .collect();
+        let mut core = Duration::default();
+        let bvh = if boxes.is_empty() {
+            CwBvh::default()
+        } else {
+            build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut core)
+        };
+        let verts = bvh
+            .primitive_indices
+            .iter()
+            .map(|&p| all[ids[p as usize] as usize])
+            .collect();
+        let ids = bvh
+            .primitive_indices
+            .iter()
+            .map(|&p| ids[p as usize])
+            .collect();
+        Self { bvh, verts, ids }
+    }
+
+    pub fn triangle_count(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// Closest hit with `t0 <= t < t1`; ties in t go to the smaller global id.
+    #[inline]
+    pub fn intersect(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<Hit> {
+        if self.ids.is_empty() {
+            return None;
+        }
+        let w = WatertightRay::new(ray);
+        let mut r = bvh_ray(ray, t1);
+        let mut best: Option<Hit> = None;
+        let mut state = self.bvh.new_traversal(r.direction);
+        let mut node;
+        let mut nodes = 0u64;
+        let mut tests = 0u64;
+        obvhs::traverse!(
+            self.bvh,
+            node,
+            state,
+            {
+                nodes += 1;
+                node.intersect_ray(&r, state.oct_inv4)
+            },
+            {
+                let p = state.primitive_id as usize;
+                tests += 1;
+                if let Some(TriHit { t, b1, b2 }) = w.intersect(&self.verts[p], t0, t1) {
+                    let id = self.ids[p];
+                    let better = match best {
+                        None => true,
+                        Some(b) => t < b.t || (t == b.t && id < b.tri),
+                    };
+                    if better {
+                        best = Some(Hit { tri: id, t, b1, b2 });
+                        // Equal-t primitives in other nodes are still
+                        // visited: obvhs keeps nodes with entry <= tmax.
+                        r.tmax = t;
+                    }
+                }
+            }
+        );
+        stats.bvh_nodes += nodes;
+        stats.tri_tests += tests;
+        best
+    }
+
+    /// Whether anything blocks `[t0, t1)`.
+    #[inline]
+    pub fn occluded(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> bool {
+        if self.ids.is_empty() {
+            return false;
+        }
+        let w = WatertightRay::new(ray);
+        let r = bvh_ray(ray, t1);
+        let mut state = self.bvh.new_traversal(r.direction);
+        let mut node;
+        let mut nodes = 0u64;
+        let mut tests = 0u64;
+        let mut hit = false;
+        'outer: {
+            obvhs::traverse!(
+                self.bvh,
+                node,
+                state,
+                {
+                    nodes += 1;
+                    node.intersect_ray(&r, state.oct_inv4)
+                },
+                {
+                    tests += 1;
+                    if w.intersect(&self.verts[state.primitive_id as usize], t0, t1)
+                        .is_some()
+                    {
+                        hit = true;
+                        break 'outer;
+                    }
+                }
+            );
+        }
+        stats.bvh_nodes += nodes;
+        stats.tri_tests += tests;
+        hit
+    }
+
+    /// Closest hit restricted to the leaves for which `selected(leaf)` is
+    /// true: the octree is walked along the ray and each maximal run of
+    /// selected leaves is traced with the ray clipped to the run's interval,
+    /// exactly as a worker traces its own region.
+    pub fn intersect_in_leaves(
+        &self,
+        octree: &Octree,
+        selected: &dyn Fn(u32) -> bool,
+        ray: &Ray,
+        t0: f32,
+        t1: f32,
+        stats: &mut TraceStats,
+    ) -> Option<Hit> {
+        let mut run: Option<(f32, f32)> = None;
+        let mut found = None;
+        let flow = octree.walk(ray, t0, t1, |leaf, a, b| {
+            if selected(leaf) {
+                run = Some(match run {
+                    Some((s, _)) => (s, b),
+                    None => (a, b),
+                });
+                return ControlFlow::Continue(());
+            }
+            if let Some((s, e)) = run.take()
+                && let Some(h) = self.intersect(ray, s, e, stats)
+            {
+                found = Some(h);
+                return ControlFlow::Break(());
+            }
+            ControlFlow::Continue(())
+        });
+        if flow.is_continue()
+            && let Some((s, e)) = run
+        {
+            found = self.intersect(ray, s, e, stats);
+        }
+        found
+    }
+
+    /// Raw obvhs traversal with obvhs's own triangle test, for measuring
+    /// this module's overhead against the library (see `locus bench`).
+    pub fn raw_obvhs_closest(&self, tris: &[obvhs::triangle::Triangle], ray: &Ray) -> f32 {
+        let r = obvhs::ray::Ray::new_inf(ray.origin.into(), ray.dir.into());
+        let mut hit = obvhs::ray::RayHit::none();
+        self.bvh
+            .ray_traverse(r, &mut hit, |r, id| tris[id].intersect(r));
+        hit.t
+    }
+
+    /// The triangles in BVH primitive order as obvhs triangles, for
+    /// [`Self::raw_obvhs_closest`].
+    pub fn obvhs_triangles(&self) -> Vec<obvhs::triangle::Triangle> {
+        self.verts
+            .iter()
+            .map(|v| obvhs::triangle::Triangle {
+                v0: v[0].into(),
+                v1: v[1].into(),
+                v2: v[2].into(),
+            })
+            .collect()
+    }
+}
+
+// obvhs's traverse! macro names UVec2 unqualified.
+#[allow(dead_code)]
+type _UseUVec2 = UVec2;

@@ -1,0 +1,120 @@
+//! Measurements shared by `locus bench` and the divan benchmarks: BVH build
+//! time, incoherent ray throughput of [`Accel`] against raw obvhs traversal
+//! on the same rays, and path-traced samples per second. Ratios are taken
+//! within one run because the machines are shared and noisy.
+
+use crate::accel::Accel;
+use crate::geometry::Ray;
+use crate::render::{Prepared, RenderOptions, render};
+use crate::sampler::SampleKey;
+use crate::stats::TraceStats;
+use glam::Vec3;
+use serde::Serialize;
+use std::time::Instant;
+
+/// Rays with origins uniform in the scene bounds (shrunk by 5%) and
+/// uniform directions: the incoherent case of diffuse interreflection.
+pub fn incoherent_rays(prep: &Prepared, n: usize, seed: u64) -> Vec<Ray> {
+    let b = crate::geometry::Bounds::from_points(
+        &prep
+            .scene
+            .tris
+            .iter()
+            .flatten()
+            .copied()
+            .collect::<Vec<_>>(),
+    );
+    let c = b.center();
+    let e = b.extent() * 0.45;
+    (0..n)
+        .map(|i| {
+            let k = SampleKey::new(i as u64, 0, seed);
+            let o = c + e * (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0);
+            let z = 1.0 - 2.0 * k.get1d(3);
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = std::f32::consts::TAU * k.get1d(4);
+            Ray::new(o, Vec3::new(r * phi.cos(), r * phi.sin(), z))
+        })
+        .collect()
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct TraceBench {
+    pub triangles: usize,
+    pub bvh_build_s: f64,
+    pub rays: usize,
+    pub locus_mrays_per_s: f64,
+    pub obvhs_mrays_per_s: f64,
+    /// locus time / obvhs time - 1.
+    pub overhead: f64,
+    pub hits_agree: usize,
+    pub samples_per_s: f64,
+    pub spp: u32,
+    pub threads: usize,
+}
+
+/// Runs the measurements on one thread for the ray part (so the ratio is
+/// not disturbed by scheduling) and `threads` for the render part.
+pub fn run(prep: &Prepared, rays: usize, rounds: usize, spp: u32, threads: usize) -> TraceBench {
+    let t = Instant::now();
+    let ids: Vec<u32> = (0..prep.scene.tris.len() as u32).collect();
+    let accel = Accel::build(&prep.scene.tris, &ids, prep.scene.magnitude());
+    let bvh_build_s = t.elapsed().as_secs_f64();
+    let rs = incoherent_rays(prep, rays, 12345);
+    let tris = accel.obvhs_triangles();
+    let mut agree = 0;
+    for r in &rs {
+        let mut st = TraceStats::default();
+        let a = accel
+            .intersect(r, 0.0, f32::INFINITY, &mut st)
+            .map(|h| h.t)
+            .unwrap_or(f32::INFINITY);
+        let b = accel.raw_obvhs_closest(&tris, r);
+        if (a == b) || (a - b).abs() <= 1e-4 * a.abs().max(1.0) {
+            agree += 1;
+        }
+    }
+    // Interleave the two loops round by round so drifts in machine load hit
+    // both alike; keep the best round of each.
+    let (mut best_ours, mut best_raw) = (f64::INFINITY, f64::INFINITY);
+    let mut sink = 0f32;
+    for _ in 0..rounds.max(1) {
+        let t = Instant::now();
+        let mut st = TraceStats::default();
+        for r in &rs {
+            if let Some(h) = accel.intersect(r, 0.0, f32::INFINITY, &mut st) {
+                sink += h.t;
+            }
+        }
+        best_ours = best_ours.min(t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        for r in &rs {
+            let d = accel.raw_obvhs_closest(&tris, r);
+            if d.is_finite() {
+                sink += d;
+            }
+        }
+        best_raw = best_raw.min(t.elapsed().as_secs_f64());
+    }
+    std::hint::black_box(sink);
+    let mut opts = RenderOptions::from_scene(&prep.scene);
+    opts.spp = spp;
+    opts.threads = threads;
+    let out = render(prep, &opts, &|_, _| {});
+    TraceBench {
+        triangles: prep.scene.tris.len(),
+        bvh_build_s,
+        rays,
+        locus_mrays_per_s: rays as f64 / best_ours / 1e6,
+        obvhs_mrays_per_s: rays as f64 / best_raw / 1e6,
+        overhead: best_ours / best_raw - 1.0,
+        hits_agree: agree,
+        samples_per_s: out.stats.samples as f64 / out.render_s,
+        spp,
+        threads: if threads == 0 {
+            rayon::current_num_threads()
+        } else {
+            threads
+        },
+    }
+}

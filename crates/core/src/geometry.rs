@@ -1,0 +1,382 @@
+//! Rays, bounds, the watertight ray/triangle test and robust ray spawning.
+//!
+//! The triangle test is Woop, Benthin and Wald, "Watertight Ray/Triangle
+//! Intersection" (JCGT 2013): vertices are translated to the ray origin and
+//! sheared so the ray runs along +z; the three 2D edge functions are then
+//! computed from transformed vertices that neighbouring triangles share bit
+//! for bit, so a ray through a shared edge or vertex hits at least one of the
+//! triangles. Edge functions that round to exactly zero are recomputed in f64.
+
+use glam::{DVec3, Vec3};
+
+/// A ray with origin and unit direction. The parameter interval is passed
+/// separately to every query, because the farm clips one ray to many
+/// intervals (one per run of octree leaves).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Ray {
+    pub origin: Vec3,
+    pub dir: Vec3,
+}
+
+impl Ray {
+    pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        Self { origin, dir }
+    }
+    #[inline(always)]
+    pub fn at(&self, t: f32) -> Vec3 {
+        self.origin + self.dir * t
+    }
+}
+
+/// Axis-aligned bounds.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Bounds {
+    pub min: Vec3,
+    pub max: Vec3,
+}
+
+impl Bounds {
+    pub const EMPTY: Bounds = Bounds {
+        min: Vec3::splat(f32::INFINITY),
+        max: Vec3::splat(f32::NEG_INFINITY),
+    };
+    pub fn new(min: Vec3, max: Vec3) -> Self {
+        Self { min, max }
+    }
+    pub fn from_points(pts: &[Vec3]) -> Self {
+        let mut b = Self::EMPTY;
+        for &p in pts {
+            b.grow(p);
+        }
+        b
+    }
+    pub fn grow(&mut self, p: Vec3) {
+        self.min = self.min.min(p);
+        self.max = self.max.max(p);
+    }
+    pub fn union(&self, o: &Bounds) -> Bounds {
+        Bounds::new(self.min.min(o.min), self.max.max(o.max))
+    }
+    pub fn is_empty(&self) -> bool {
+        self.min.cmpgt(self.max).any()
+    }
+    pub fn extent(&self) -> Vec3 {
+        self.max - self.min
+    }
+    pub fn center(&self) -> Vec3 {
+        (self.min + self.max) * 0.5
+    }
+    pub fn surface_area(&self) -> f32 {
+        let e = self.extent().max(Vec3::ZERO);
+        2.0 * (e.x * e.y + e.y * e.z + e.z * e.x)
+    }
+    /// Largest absolute coordinate: the magnitude that float rounding
+    /// errors in this box scale with.
+    pub fn max_abs(&self) -> f32 {
+        self.min.abs().max(self.max.abs()).max_element()
+    }
+    pub fn contains(&self, p: Vec3) -> bool {
+        p.cmpge(self.min).all() && p.cmple(self.max).all()
+    }
+    /// Parametric entry and exit of the ray, computed in f64 so the result
+    /// is exact to well below the f32 spacing of the inputs. `None` when the
+    /// ray misses or the overlap with [t0, t1) is empty.
+    pub fn clip(&self, ray: &Ray, t0: f32, t1: f32) -> Option<(f32, f32)> {
+        let mut lo = t0 as f64;
+        let mut hi = t1 as f64;
+        for a in 0..3 {
+            let o = ray.origin[a] as f64;
+            let d = ray.dir[a] as f64;
+            let (bmin, bmax) = (self.min[a] as f64, self.max[a] as f64);
+            if d == 0.0 {
+                if o < bmin || o > bmax {
+                    return None;
+                }
+                continue;
+            }
+            let (mut ta, mut tb) = ((bmin - o) / d, (bmax - o) / d);
+            if ta > tb {
+                std::mem::swap(&mut ta, &mut tb);
+            }
+            lo = lo.max(ta);
+            hi = hi.min(tb);
+        }
+        (lo < hi).then_some((lo as f32, hi as f32))
+    }
+}
+
+/// A ray/triangle hit: distance and the barycentric weights of v1 and v2.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TriHit {
+    pub t: f32,
+    pub b1: f32,
+    pub b2: f32,
+}
+
+/// Per-ray constants of the watertight test (the shear that maps the ray
+/// to +z). Computing them once per ray rather than per triangle is the
+/// point of the precomputation.
+#[derive(Clone, Copy, Debug)]
+pub struct WatertightRay {
+    pub origin: Vec3,
+    kx: usize,
+    ky: usize,
+    kz: usize,
+    sx: f32,
+    sy: f32,
+    sz: f32,
+}
+
+impl WatertightRay {
+    #[inline(always)]
+    pub fn new(ray: &Ray) -> Self {
+        let a = ray.dir.abs();
+        let kz = if a.x > a.y {
+            if a.x > a.z { 0 } else { 2 }
+        } else if a.y > a.z {
+            1
+        } else {
+            2
+        };
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
+        // Keep the winding of the projected triangle independent of the sign of
+        // the dominant direction component.
+        if ray.dir[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        let dz = ray.dir[kz];
+        Self {
+            origin: ray.origin,
+            kx,
+            ky,
+            kz,
+            sx: ray.dir[kx] / dz,
+            sy: ray.dir[ky] / dz,
+            sz: 1.0 / dz,
+        }
+    }
+
+    /// Intersects the triangle (v0, v1, v2); a hit is reported only for
+    /// `t0 <= t < t1`. Both faces are hit (no culling).
+    #[inline(always)]
+    pub fn intersect(&self, v: &[Vec3; 3], t0: f32, t1: f32) -> Option<TriHit> {
+        let a = v[0] - self.origin;
+        let b = v[1] - self.origin;
+        let c = v[2] - self.origin;
+        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
+        let ax = a[kx] - self.sx * a[kz];
+        let ay = a[ky] - self.sy * a[kz];
+        let bx = b[kx] - self.sx * b[kz];
+        let by = b[ky] - self.sy * b[kz];
+        let cx = c[kx] - self.sx * c[kz];
+        let cy = c[ky] - self.sy * c[kz];
+        let mut u = cx * by - cy * bx;
+        let mut vv = ax * cy - ay * cx;
+        let mut w = bx * ay - by * ax;
+        if u == 0.0 || vv == 0.0 || w == 0.0 {
+            // The f32 products cancelled exactly: decide the sign in f64,
+            // where the products of f32 values are exact.
+            let (ax, ay, bx, by, cx, cy) = (
+                ax as f64, ay as f64, bx as f64, by as f64, cx as f64, cy as f64,
+            );
+            u = (cx * by - cy * bx) as f32;
+            vv = (ax * cy - ay * cx) as f32;
+            w = (bx * ay - by * ax) as f32;
+        }
+        if (u < 0.0 || vv < 0.0 || w < 0.0) && (u > 0.0 || vv > 0.0 || w > 0.0) {
+            return None;
+        }
+        let det = u + vv + w;
+        if det == 0.0 {
+            return None;
+        }
+        let az = self.sz * a[kz];
+        let bz = self.sz * b[kz];
+        let cz = self.sz * c[kz];
+        let tt = u * az + vv * bz + w * cz;
+        let inv = 1.0 / det;
+        let t = tt * inv;
+        if !(t >= t0 && t < t1) {
+            return None;
+        }
+        Some(TriHit {
+            t,
+            b1: vv * inv,
+            b2: w * inv,
+        })
+    }
+}
+
+/// Unnormalised geometric normal (cross product of the edges); its length is
+/// twice the area.
+#[inline(always)]
+pub fn tri_cross(v: &[Vec3; 3]) -> Vec3 {
+    (v[1] - v[0]).cross(v[2] - v[0])
+}
+
+/// Area computed in f64 so that slivers are measured, not rounded to zero
+/// or inflated by cancellation.
+pub fn tri_area_f64(v: &[Vec3; 3]) -> f64 {
+    let a = v[0].as_dvec3();
+    let e1 = v[1].as_dvec3() - a;
+    let e2 = v[2].as_dvec3() - a;
+    0.5 * e1.cross(e2).length()
+}
+
+/// Relative size of the spawn offset: 2^-18 of the coordinate magnitude is
+/// about 32 f32 ulps, well above the error of a barycentric hit point and far
+/// below any feature of a scene expressed in that magnitude.
+pub const SPAWN_OFFSET_REL: f32 = 1.0 / (1u32 << 18) as f32;
+
+/// Offset for a point on triangle `v`: proportional to the largest vertex
+/// coordinate, so the same relative safety holds at 1e-3 and at 1e5.
+#[inline(always)]
+pub fn spawn_offset(v: &[Vec3; 3]) -> f32 {
+    let m = v[0].abs().max(v[1].abs()).max(v[2].abs()).max_element();
+    m * SPAWN_OFFSET_REL + f32::MIN_POSITIVE
+}
+
+/// Moves `p` off its surface along the geometric normal `n` (unit), to the
+/// side that `towards` points into.
+#[inline(always)]
+pub fn offset_point(p: Vec3, n: Vec3, towards: Vec3, offset: f32) -> Vec3 {
+    if n.dot(towards) >= 0.0 {
+        p + n * offset
+    } else {
+        p - n * offset
+    }
+}
+
+/// Barycentric interpolation of the hit point: more accurate than
+/// `o + t d` because its error scales with the triangle's coordinates,
+/// not with the distance travelled.
+#[inline(always)]
+pub fn hit_point(v: &[Vec3; 3], b1: f32, b2: f32) -> Vec3 {
+    let b0 = 1.0 - b1 - b2;
+    v[0] * b0 + v[1] * b1 + v[2] * b2
+}
+
+/// An orthonormal basis around unit `n` (Duff et al. 2017, branchless).
+#[inline(always)]
+pub fn basis(n: Vec3) -> (Vec3, Vec3) {
+    let s = 1.0f32.copysign(n.z);
+    let a = -1.0 / (s + n.z);
+    let b = n.x * n.y * a;
+    (
+        Vec3::new(1.0 + s * n.x * n.x * a, s * b, -s * n.x),
+        Vec3::new(b, s + n.y * n.y * a, -n.y),
+    )
+}
+
+/// Cosine-weighted direction around unit `n`; pdf is cos(theta) / pi.
+#[inline(always)]
+pub fn cosine_hemisphere(n: Vec3, u: [f32; 2]) -> Vec3 {
+    let r = u[0].sqrt();
+    let phi = 2.0 * std::f32::consts::PI * u[1];
+    let (s, c) = phi.sin_cos();
+    let z = (1.0 - u[0]).max(0.0).sqrt();
+    let (t, b) = basis(n);
+    (t * (r * c) + b * (r * s) + n * z).normalize()
+}
+
+/// Uniform point on a triangle as barycentrics (b1, b2) (the square-root
+/// warp of Osada et al.).
+#[inline(always)]
+pub fn uniform_triangle(u: [f32; 2]) -> (f32, f32) {
+    let su = u[0].sqrt();
+    (u[1] * su, 1.0 - su)
+}
+
+/// Brute-force reference: f64 barycentric test used only by tests.
+pub fn intersect_f64(ray: &Ray, v: &[Vec3; 3]) -> Option<f64> {
+    let o: DVec3 = ray.origin.as_dvec3();
+    let d: DVec3 = ray.dir.as_dvec3();
+    let p0 = v[0].as_dvec3();
+    let e1 = v[1].as_dvec3() - p0;
+    let e2 = v[2].as_dvec3() - p0;
+    let pv = d.cross(e2);
+    let det = e1.dot(pv);
+    if det.abs() < 1e-300 {
+        return None;
+    }
+    let inv = 1.0 / det;
+    let tv = o - p0;
+    let u = tv.dot(pv) * inv;
+    let qv = tv.cross(e1);
+    let w = d.dot(qv) * inv;
+    if u < 0.0 || w < 0.0 || u + w > 1.0 {
+        return None;
+    }
+    Some(e2.dot(qv) * inv)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hits_and_misses_simple_triangle() {
+        let tri = [Vec3::ZERO, Vec3::X, Vec3::Y];
+        let ray = Ray::new(Vec3::new(0.25, 0.25, 1.0), -Vec3::Z);
+        let h = WatertightRay::new(&ray)
+            .intersect(&tri, 0.0, f32::INFINITY)
+            .unwrap();
+        assert!((h.t - 1.0).abs() < 1e-6);
+        assert!((h.b1 - 0.25).abs() < 1e-6 && (h.b2 - 0.25).abs() < 1e-6);
+        let miss = Ray::new(Vec3::new(0.75, 0.75, 1.0), -Vec3::Z);
+        assert!(
+            WatertightRay::new(&miss)
+                .intersect(&tri, 0.0, f32::INFINITY)
+                .is_none()
+        );
+        // Interval is half-open: a hit at exactly t1 is not reported.
+        assert!(WatertightRay::new(&ray).intersect(&tri, 0.0, 1.0).is_none());
+        assert!(WatertightRay::new(&ray).intersect(&tri, 1.0, 2.0).is_some());
+    }
+
+    #[test]
+    fn shared_edge_hits_one_of_two() {
+        // Two triangles sharing the diagonal of a unit square; rays aimed at
+        // points exactly on the diagonal must hit at least one of them.
+        let a = [Vec3::ZERO, Vec3::X, Vec3::ONE.with_z(0.0)];
+        let b = [Vec3::ZERO, Vec3::ONE.with_z(0.0), Vec3::Y];
+        // The end points are outer corners of the square, where a ray may
+        // legitimately pass outside; every interior point must be hit.
+        for i in 1..1000 {
+            let s = i as f32 / 1000.0;
+            let target = Vec3::new(s, s, 0.0);
+            let origin = Vec3::new(0.3, -0.7, 2.1);
+            let ray = Ray::new(origin, (target - origin).normalize());
+            let w = WatertightRay::new(&ray);
+            let hit = w.intersect(&a, 0.0, f32::INFINITY).is_some()
+                || w.intersect(&b, 0.0, f32::INFINITY).is_some();
+            assert!(hit, "ray through diagonal point {s} escaped");
+        }
+    }
+
+    #[test]
+    fn cosine_hemisphere_is_unit_and_upper() {
+        let n = Vec3::new(0.3, -0.5, 0.8).normalize();
+        for i in 0..1000 {
+            let u = [
+                (i as f32 + 0.5) / 1000.0,
+                ((i * 7919) % 1000) as f32 / 1000.0,
+            ];
+            let w = cosine_hemisphere(n, u);
+            assert!((w.length() - 1.0).abs() < 1e-5);
+            assert!(w.dot(n) >= -1e-6);
+        }
+    }
+
+    #[test]
+    fn box_clip_matches_slabs() {
+        let b = Bounds::new(Vec3::ZERO, Vec3::ONE);
+        let r = Ray::new(Vec3::new(-1.0, 0.5, 0.5), Vec3::X);
+        assert_eq!(b.clip(&r, 0.0, f32::INFINITY), Some((1.0, 2.0)));
+        let along_face = Ray::new(Vec3::new(-1.0, 1.0, 0.5), Vec3::X);
+        assert_eq!(b.clip(&along_face, 0.0, f32::INFINITY), Some((1.0, 2.0)));
+        let outside = Ray::new(Vec3::new(-1.0, 1.5, 0.5), Vec3::X);
+        assert!(b.clip(&outside, 0.0, f32::INFINITY).is_none());
+    }
+}

@@ -1,0 +1,502 @@
+//! Mesh file loaders: OBJ/MTL (tobj), PLY (ply-rs-bw) and glTF 2.0 (gltf).
+//!
+//! Each returns a [`MeshData`]: shared vertex positions, triangles as
+//! vertex indices, and per-triangle file material. Positions stay shared
+//! so that neighbouring triangles carry bit-identical vertices, which the
+//! watertight triangle test relies on. Every loader checks coordinates
+//! for NaN/inf and indices for range, and reports the line (OBJ, ASCII
+//! PLY) or element (binary PLY, glTF) of the first offence.
+
+use crate::error::{Location, SceneError};
+use glam::Vec3;
+use std::path::{Path, PathBuf};
+
+/// A material as a mesh file describes it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FileMaterial {
+    pub name: String,
+    pub albedo: Vec3,
+    pub emission: Vec3,
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct MeshData {
+    pub positions: Vec<Vec3>,
+    pub triangles: Vec<[u32; 3]>,
+    /// Index into `materials` per triangle, if the file assigns one.
+    pub tri_material: Vec<Option<u32>>,
+    pub materials: Vec<FileMaterial>,
+}
+
+pub fn load(path: &Path) -> Result<MeshData, SceneError> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .unwrap_or_default();
+    match ext.as_str() {
+        "obj" => load_obj(path),
+        "ply" => load_ply(path),
+        "gltf" | "glb" => load_gltf(path),
+        _ => Err(SceneError::Invalid {
+            file: path.to_path_buf(),
+            location: Location::Element("file name".into()),
+            message: format!("unknown mesh format '.{ext}' (expected .obj, .ply, .gltf or .glb)"),
+        }),
+    }
+}
+
+fn read_text(path: &Path) -> Result<String, SceneError> {
+    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+        file: path.to_path_buf(),
+        source,
+    })?;
+    String::from_utf8(bytes).map_err(|e| {
+        let off = e.utf8_error().valid_up_to();
+        SceneError::Syntax {
+            file: path.to_path_buf(),
+            location: Location::Element(format!("byte {off}")),
+            message: "file is not valid UTF-8 text".into(),
+        }
+    })
+}
+
+/// tobj reports what went wrong but not where, so the text is first checked
+/// line by line for the errors a user can make: unparsable or non-finite
+/// positions, face indices that are malformed or out of range, and missing
+/// material libraries.
+fn validate_obj(path: &Path, text: &str) -> Result<(), SceneError> {
+    let file = || path.to_path_buf();
+    let mut nv: i64 = 0;
+    for (i, raw) in text.lines().enumerate() {
+        let loc = || Location::line(i + 1);
+        let line = raw.split('#').next().unwrap_or("").trim();
+        let mut it = line.split_whitespace();
+        match it.next() {
+            Some("v") => {
+                let comps: Vec<&str> = it.collect();
+                if comps.len() < 3 {
+                    return Err(SceneError::Syntax {
+                        file: file(),
+                        location: loc(),
+                        message: format!("vertex needs 3 coordinates, found {}", comps.len()),
+                    });
+                }
+                for c in &comps[..3] {
+                    let x: f32 = c.parse().map_err(|_| SceneError::Syntax {
+                        file: file(),
+                        location: loc(),
+                        message: format!("'{c}' is not a number"),
+                    })?;
+                    if !x.is_finite() {
+                        return Err(SceneError::NonFinite {
+                            file: file(),
+                            location: loc(),
+                            what: format!("vertex coordinate {c}"),
+                        });
+                    }
+                }
+                nv += 1;
+            }
+            Some("f") => {
+                let mut count = 0;
+                for v in it {
+                    let idx = v.split('/').next().unwrap_or("");
+                    let k: i64 = idx.parse().map_err(|_| SceneError::Syntax {
+                        file: file(),
+                        location: loc(),
+                        message: format!("face vertex '{v}' is not an index"),
+                    })?;
+                    let resolved = if k < 0 { nv + k } else { k - 1 };
+                    if k == 0 || resolved < 0 || resolved >= nv {
+                        return Err(SceneError::IndexOutOfRange {
+                            file: file(),
+                            location: loc(),
+                            index: k,
+                            count: nv as usize,
+                        });
+                    }
+                    count += 1;
+                }
+                if count < 3 {
+                    return Err(SceneError::Syntax {
+                        file: file(),
+                        location: loc(),
+                        message: format!("face needs at least 3 vertices, found {count}"),
+                    });
+                }
+            }
+            Some("mtllib") => {
+                let name = line["mtllib".len()..].trim();
+                let p = path.parent().unwrap_or(Path::new(".")).join(name);
+                if !p.is_file() {
+                    return Err(SceneError::MissingFile {
+                        file: file(),
+                        location: loc(),
+                        missing: p,
+                    });
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
+    let text = read_text(path)?;
+    validate_obj(path, &text)?;
+    let opts = tobj::LoadOptions {
+        triangulate: true,
+        single_index: false,
+        ignore_points: true,
+        ignore_lines: true,
+    };
+    let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let mtl_error: std::cell::RefCell<Option<SceneError>> = Default::default();
+    let (models, _) = tobj::load_obj_buf(&mut text.as_bytes(), &opts, |p| {
+        let full = dir.join(p);
+        match std::fs::read_to_string(&full) {
+            Ok(t) => tobj::load_mtl_buf(&mut t.as_bytes()),
+            Err(source) => {
+                *mtl_error.borrow_mut() = Some(SceneError::Io { file: full, source });
+                Err(tobj::LoadError::OpenFileFailed)
+            }
+        }
+    })
+    .map_err(|e| SceneError::Syntax {
+        file: path.to_path_buf(),
+        location: Location::Element("file".into()),
+        message: e.to_string(),
+    })?;
+    if let Some(e) = mtl_error.into_inner() {
+        return Err(e);
+    }
+    // Materials come back from the callback above through tobj's result;
+    // parse them again here in file order to keep our own names and Ke.
+    let materials = obj_materials(path, &text)?;
+    let mut out = MeshData {
+        materials: materials.clone(),
+        ..Default::default()
+    };
+    // tobj splits models per object/material; positions are per model.
+    for m in models {
+        let base = out.positions.len() as u32;
+        for p in m.mesh.positions.chunks_exact(3) {
+            out.positions.push(Vec3::new(p[0], p[1], p[2]));
+        }
+        let mat = m
+            .mesh
+            .material_id
+            .map(|i| i as u32)
+            .filter(|&i| (i as usize) < materials.len());
+        for t in m.mesh.indices.chunks_exact(3) {
+            out.triangles.push([base + t[0], base + t[1], base + t[2]]);
+            out.tri_material.push(mat);
+        }
+    }
+    Ok(out)
+}
+
+fn validate_mtl(path: &Path, text: &str) -> Result<(), SceneError> {
+    for (i, raw) in text.lines().enumerate() {
+        let line = raw.split('#').next().unwrap_or("").trim();
+        let mut it = line.split_whitespace();
+        if let Some(k @ ("Kd" | "Ke")) = it.next() {
+            let comps: Vec<&str> = it.collect();
+            if comps.len() != 3 {
+                return Err(SceneError::Syntax {
+                    file: path.to_path_buf(),
+                    location: Location::line(i + 1),
+                    message: format!("{k} needs 3 components, found {}", comps.len()),
+                });
+            }
+            for c in comps {
+                match c.parse::<f32>() {
+                    Ok(x) if x.is_finite() => {}
+                    Ok(_) => {
+                        return Err(SceneError::NonFinite {
+                            file: path.to_path_buf(),
+                            location: Location::line(i + 1),
+                            what: format!("{k} {c}"),
+                        });
+                    }
+                    Err(_) => {
+                        return Err(SceneError::Syntax {
+                            file: path.to_path_buf(),
+                            location: Location::line(i + 1),
+                            message: format!("'{c}' is not a number"),
+                        });
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Kd and Ke of every material in the OBJ's material libraries, in the order
+/// tobj numbers them (libraries in file order, materials in library order).
+fn obj_materials(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let mut out = Vec::new();
+    for raw in text.lines() {
+        let line = raw.split('#').next().unwrap_or("").trim();
+        if let Some(name) = line.strip_prefix("mtllib") {
+            let p = dir.join(name.trim());
+            let t = std::fs::read_to_string(&p).map_err(|source| SceneError::Io {
+                file: p.clone(),
+                source,
+            })?;
+            validate_mtl(&p, &t)?;
+            let mut cur: Option<FileMaterial> = None;
+            for l in t.lines() {
+                let l = l.split('#').next().unwrap_or("").trim();
+                let mut it = l.split_whitespace();
+                let rgb = |it: std::str::SplitWhitespace| {
+                    // validate_mtl guarantees three finite numbers.
+                    let v: Vec<f32> = it.filter_map(|c| c.parse().ok()).collect();
+                    if v.len() == 3 {
+                        Vec3::new(v[0], v[1], v[2])
+                    } else {
+                        Vec3::ZERO
+                    }
+                };
+                match it.next() {
+                    Some("newmtl") => {
+                        if let Some(m) = cur.take() {
+                            out.push(m);
+                        }
+                        cur = Some(FileMaterial {
+                            name: l["newmtl".len()..].trim().to_string(),
+                            albedo: Vec3::splat(0.8),
+                            emission: Vec3::ZERO,
+                        });
+                    }
+                    Some("Kd") => {
+                        if let Some(m) = cur.as_mut() {
+                            m.albedo = rgb(it);
+                        }
+                    }
+                    Some("Ke") => {
+                        if let Some(m) = cur.as_mut() {
+                            m.emission = rgb(it);
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            if let Some(m) = cur.take() {
+                out.push(m);
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
+    use ply_rs_bw::parser::Parser;
+    use ply_rs_bw::ply::{DefaultElement, Property};
+    let file = || path.to_path_buf();
+    let f = std::fs::File::open(path).map_err(|source| SceneError::Io {
+        file: file(),
+        source,
+    })?;
+    let mut r = std::io::BufReader::new(f);
+    let ply = Parser::<DefaultElement>::new()
+        .read_ply(&mut r)
+        .map_err(|e| {
+            let msg = e.to_string();
+            // ply-rs-bw prefixes ASCII errors with "Line N: ".
+            let (location, message) =
+                match msg.strip_prefix("Line ").and_then(|s| s.split_once(": ")) {
+                    Some((n, rest)) if n.parse::<usize>().is_ok() => {
+                        (Location::line(n.parse().unwrap_or(0)), rest.to_string())
+                    }
+                    _ => (Location::Element("file".into()), msg),
+                };
+            SceneError::Syntax {
+                file: file(),
+                location,
+                message,
+            }
+        })?;
+    let empty = Vec::new();
+    let verts = ply.payload.get("vertex").unwrap_or(&empty);
+    let faces = ply.payload.get("face").unwrap_or(&empty);
+    let mut out = MeshData::default();
+    for (i, v) in verts.iter().enumerate() {
+        let mut c = [0f32; 3];
+        for (k, name) in ["x", "y", "z"].iter().enumerate() {
+            let x = v
+                .get(*name)
+                .and_then(Property::to_f32_lossy)
+                .ok_or_else(|| SceneError::Invalid {
+                    file: file(),
+                    location: Location::Element(format!("vertex {i}")),
+                    message: format!("missing scalar property '{name}'"),
+                })?;
+            if !x.is_finite() {
+                return Err(SceneError::NonFinite {
+                    file: file(),
+                    location: Location::Element(format!("vertex {i}")),
+                    what: format!("{name} = {x}"),
+                });
+            }
+            c[k] = x;
+        }
+        out.positions.push(Vec3::from(c));
+    }
+    let n = out.positions.len();
+    for (i, f) in faces.iter().enumerate() {
+        let idx = f
+            .get("vertex_indices")
+            .or_else(|| f.get("vertex_index"))
+            .and_then(|p| match p {
+                Property::ListInt(v) => Some(v.iter().map(|&x| x as i64).collect::<Vec<_>>()),
+                Property::ListUInt(v) => Some(v.iter().map(|&x| x as i64).collect()),
+                Property::ListShort(v) => Some(v.iter().map(|&x| x as i64).collect()),
+                Property::ListUShort(v) => Some(v.iter().map(|&x| x as i64).collect()),
+                Property::ListChar(v) => Some(v.iter().map(|&x| x as i64).collect()),
+                Property::ListUChar(v) => Some(v.iter().map(|&x| x as i64).collect()),
+                _ => None,
+            })
+            .ok_or_else(|| SceneError::Invalid {
+                file: file(),
+                location: Location::Element(format!("face {i}")),
+                message: "missing integer list 'vertex_indices'".into(),
+            })?;
+        if idx.len() < 3 {
+            return Err(SceneError::Invalid {
+                file: file(),
+                location: Location::Element(format!("face {i}")),
+                message: format!("face has {} vertices", idx.len()),
+            });
+        }
+        for &k in &idx {
+            if k < 0 || k as usize >= n {
+                return Err(SceneError::IndexOutOfRange {
+                    file: file(),
+                    location: Location::Element(format!("face {i}")),
+                    index: k,
+                    count: n,
+                });
+            }
+        }
+        for j in 1..idx.len() - 1 {
+            out.triangles
+                .push([idx[0] as u32, idx[j] as u32, idx[j + 1] as u32]);
+            out.tri_material.push(None);
+        }
+    }
+    Ok(out)
+}
+
+fn load_gltf(path: &Path) -> Result<MeshData, SceneError> {
+    let file = || path.to_path_buf();
+    let syntax = |e: gltf::Error| SceneError::Syntax {
+        file: file(),
+        location: Location::Element("document".into()),
+        message: e.to_string(),
+    };
+    let doc = gltf::Gltf::open(path).map_err(|e| match e {
+        gltf::Error::Io(source) => SceneError::Io {
+            file: file(),
+            source,
+        },
+        e => syntax(e),
+    })?;
+    let base = path.parent().map(Path::to_path_buf);
+    // Check external buffers up front so a missing .bin is named as such.
+    for b in doc.buffers() {
+        if let gltf::buffer::Source::Uri(uri) = b.source()
+            && !uri.starts_with("data:")
+        {
+            let p: PathBuf = base.clone().unwrap_or_default().join(uri);
+            if !p.is_file() {
+                return Err(SceneError::MissingFile {
+                    file: file(),
+                    location: Location::Element(format!("buffers[{}].uri", b.index())),
+                    missing: p,
+                });
+            }
+        }
+    }
+    let buffers = gltf::import_buffers(&doc, base.as_deref(), doc.blob.clone()).map_err(syntax)?;
+    let mut out = MeshData::default();
+    for m in doc.materials() {
+        let pbr = m.pbr_metallic_roughness();
+        let c = pbr.base_color_factor();
+        let e = m.emissive_factor();
+        out.materials.push(FileMaterial {
+            name: m
+                .name()
+                .map(str::to_string)
+                .unwrap_or_else(|| format!("material{}", m.index().unwrap_or(0))),
+            albedo: Vec3::new(c[0], c[1], c[2]),
+            emission: Vec3::from(e),
+        });
+    }
+    // Meshes are placed by the node hierarchy of the default scene (or of
+    // every node when there is no scene), with each node's world matrix.
+    let mut stack: Vec<(gltf::Node, glam::Mat4)> =
+        match doc.default_scene().or_else(|| doc.scenes().next()) {
+            Some(s) => s.nodes().map(|n| (n, glam::Mat4::IDENTITY)).collect(),
+            None => doc.nodes().map(|n| (n, glam::Mat4::IDENTITY)).collect(),
+        };
+    while let Some((node, parent)) = stack.pop() {
+        let world = parent * glam::Mat4::from_cols_array_2d(&node.transform().matrix());
+        for c in node.children() {
+            stack.push((c, world));
+        }
+        let Some(mesh) = node.mesh() else { continue };
+        for prim in mesh.primitives() {
+            let elem = || format!("meshes[{}].primitives[{}]", mesh.index(), prim.index());
+            if prim.mode() != gltf::mesh::Mode::Triangles {
+                tracing::warn!(file = %path.display(), element = elem(), "skipping non-triangle primitive");
+                continue;
+            }
+            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+            let pos: Vec<Vec3> = reader
+                .read_positions()
+                .ok_or_else(|| SceneError::Invalid {
+                    file: file(),
+                    location: Location::Element(elem()),
+                    message: "no POSITION attribute".into(),
+                })?
+                .map(|p| world.transform_point3(Vec3::from(p)))
+                .collect();
+            for (i, p) in pos.iter().enumerate() {
+                if !p.is_finite() {
+                    return Err(SceneError::NonFinite {
+                        file: file(),
+                        location: Location::Element(format!("{} POSITION[{i}]", elem())),
+                        what: format!("{p}"),
+                    });
+                }
+            }
+            let idx: Vec<u32> = match reader.read_indices() {
+                Some(r) => r.into_u32().collect(),
+                None => (0..pos.len() as u32).collect(),
+            };
+            let base = out.positions.len() as u32;
+            for (k, t) in idx.chunks_exact(3).enumerate() {
+                for &i in t {
+                    if i as usize >= pos.len() {
+                        return Err(SceneError::IndexOutOfRange {
+                            file: file(),
+                            location: Location::Element(format!("{} indices[{}]", elem(), 3 * k)),
+                            index: i as i64,
+                            count: pos.len(),
+                        });
+                    }
+                }
+                out.triangles.push([base + t[0], base + t[1], base + t[2]]);
+                out.tri_material
+                    .push(prim.material().index().map(|i| i as u32));
+            }
+            out.positions.extend(pos);
+        }
+    }
+    Ok(out)
+}

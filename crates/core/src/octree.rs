@@ -1,0 +1,426 @@
+//! The octree the farm partitions: leaves are the unit of ownership.
+//!
+//! Leaves hold at most `max_leaf_tris` triangle references or stop at
+//! `max_depth`. A triangle is referenced by every leaf whose (slightly
+//! inflated) box it overlaps, so a point anywhere inside a leaf finds every
+//! triangle through it in that leaf's list. Empty leaves are kept: rays
+//! cross them and regions own them.
+//!
+//! [`Octree::walk`] enumerates the leaves along a ray front to back as
+//! half-open parameter intervals `[ta, tb)` that exactly partition the
+//! clipped ray, which is what a processor vector (paper 003, section 3.3)
+//! is made of.
+
+use crate::geometry::{Bounds, Ray};
+use glam::{DVec3, Vec3};
+use std::ops::ControlFlow;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct OctreeParams {
+    pub max_leaf_tris: usize,
+    pub max_depth: u32,
+}
+
+impl Default for OctreeParams {
+    fn default() -> Self {
+        Self {
+            max_leaf_tris: 512,
+            max_depth: 7,
+        }
+    }
+}
+
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct Leaf {
+    pub bounds: Bounds,
+    pub depth: u32,
+    /// Global triangle ids, ascending.
+    pub tris: Vec<u32>,
+}
+
+#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize)]
+enum Node {
+    /// Index of the first of eight consecutive children; child `i` has
+    /// bit 0 = upper x half, bit 1 = upper y, bit 2 = upper z.
+    Interior {
+        first_child: u32,
+    },
+    Leaf {
+        leaf: u32,
+    },
+}
+
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct Octree {
+    pub bounds: Bounds,
+    nodes: Vec<Node>,
+    node_bounds: Vec<Bounds>,
+    pub leaves: Vec<Leaf>,
+    pub params: OctreeParams,
+}
+
+impl Octree {
+    /// Builds over `tris`. The root is a cube around the scene bounds,
+    /// enlarged by 1% so that no geometry touches the root's faces, where a
+    /// clip computed in a different precision could cut it off.
+    pub fn build(tris: &[[Vec3; 3]], params: OctreeParams) -> Self {
+        let mut sb = Bounds::EMPTY;
+        for t in tris {
+            for &p in t {
+                sb.grow(p);
+            }
+        }
+        if sb.is_empty() {
+            sb = Bounds::new(Vec3::splat(-1.0), Vec3::splat(1.0));
+        }
+        let c = sb.center();
+        let half = (sb.extent().max_element() * 0.5)
+            .max(sb.max_abs() * 1e-6)
+            .max(1e-30)
+            * 1.01;
+        let bounds = Bounds::new(c - Vec3::splat(half), c + Vec3::splat(half));
+        let mut tree = Octree {
+            bounds,
+            nodes: vec![Node::Leaf { leaf: 0 }],
+            node_bounds: vec![bounds],
+            leaves: Vec::new(),
+            params,
+        };
+        let all: Vec<u32> = (0..tris.len() as u32).collect();
+        tree.subdivide(0, bounds, all, 0, tris);
+        tree
+    }
+
+    fn subdivide(
+        &mut self,
+        node: usize,
+        b: Bounds,
+        refs: Vec<u32>,
+        depth: u32,
+        tris: &[[Vec3; 3]],
+    ) {
+        if refs.len() <= self.params.max_leaf_tris || depth >= self.params.max_depth {
+            let leaf = self.leaves.len() as u32;
+            self.leaves.push(Leaf {
+                bounds: b,
+                depth,
+                tris: refs,
+            });
+            self.nodes[node] = Node::Leaf { leaf };
+            return;
+        }
+        let first = self.nodes.len() as u32;
+        self.nodes[node] = Node::Interior { first_child: first };
+        let children: Vec<Bounds> = (0..8).map(|i| child_bounds(&b, i)).collect();
+        for cb in &children {
+            self.nodes.push(Node::Leaf { leaf: u32::MAX });
+            self.node_bounds.push(*cb);
+        }
+        for (i, cb) in children.into_iter().enumerate() {
+            let inflated = inflate(&cb);
+            let sub: Vec<u32> = refs
+                .iter()
+                .copied()
+                .filter(|&t| tri_box_overlap(&tris[t as usize], &inflated))
+                .collect();
+            self.subdivide(first as usize + i, cb, sub, depth + 1, tris);
+        }
+    }
+
+    pub fn leaf_count(&self) -> usize {
+        self.leaves.len()
+    }
+
+    /// Total triangle references over all leaves (a triangle overlapping k
+    /// leaves counts k times).
+    pub fn reference_count(&self) -> usize {
+        self.leaves.iter().map(|l| l.tris.len()).sum()
+    }
+
+    /// The leaf containing `p` (upper halves win ties, as in [`Self::walk`]).
+    pub fn leaf_at(&self, p: Vec3) -> Option<u32> {
+        if !self.bounds.contains(p) {
+            return None;
+        }
+        let mut n = 0usize;
+        loop {
+            match self.nodes[n] {
+                Node::Leaf { leaf } => return Some(leaf),
+                Node::Interior { first_child } => {
+                    let m = self.node_bounds[n].center();
+                    let i = (p.x >= m.x) as usize
+                        | ((p.y >= m.y) as usize) << 1
+                        | ((p.z >= m.z) as usize) << 2;
+                    n = first_child as usize + i;
+                }
+            }
+        }
+    }
+
+    /// Visits the leaves along `ray` within `[t0, t1)`, front to back, as
+    /// half-open intervals that partition the part of `[t0, t1)` inside the
+    /// root. A ray lying exactly in a splitting plane is assigned to the
+    /// upper side, so every point of the ray belongs to exactly one leaf.
+    pub fn walk<F>(&self, ray: &Ray, t0: f32, t1: f32, mut f: F) -> ControlFlow<()>
+    where
+        F: FnMut(u32, f32, f32) -> ControlFlow<()>,
+    {
+        let Some((a, b)) = self.bounds.clip(ray, t0, t1) else {
+            return ControlFlow::Continue(());
+        };
+        self.walk_node(0, ray, a, b, &mut f)
+    }
+
+    fn walk_node<F>(&self, n: usize, ray: &Ray, ta: f32, tb: f32, f: &mut F) -> ControlFlow<()>
+    where
+        F: FnMut(u32, f32, f32) -> ControlFlow<()>,
+    {
+        match self.nodes[n] {
+            Node::Leaf { leaf } => f(leaf, ta, tb),
+            Node::Interior { first_child } => {
+                let m = self.node_bounds[n].center();
+                let mut cuts = [tb; 3];
+                let mut k = 0;
+                for a in 0..3 {
+                    if ray.dir[a] != 0.0 {
+                        let t = ((m[a] as f64 - ray.origin[a] as f64) / ray.dir[a] as f64) as f32;
+                        if t > ta && t < tb {
+                            cuts[k] = t;
+                            k += 1;
+                        }
+                    }
+                }
+                cuts[..k].sort_by(f32::total_cmp);
+                let mut start = ta;
+                for i in 0..=k {
+                    let end = if i < k { cuts[i] } else { tb };
+                    if end > start {
+                        let tm = 0.5 * (start as f64 + end as f64);
+                        let mut oct = 0usize;
+                        for a in 0..3 {
+                            let upper = if ray.dir[a] == 0.0 {
+                                ray.origin[a] >= m[a]
+                            } else {
+                                ray.origin[a] as f64 + tm * ray.dir[a] as f64 >= m[a] as f64
+                            };
+                            oct |= (upper as usize) << a;
+                        }
+                        self.walk_node(first_child as usize + oct, ray, start, end, f)?;
+                    }
+                    start = end;
+                }
+                ControlFlow::Continue(())
+            }
+        }
+    }
+
+    /// Leaves along the ray as `(leaf, ta, tb)`.
+    pub fn leaves_along(&self, ray: &Ray, t0: f32, t1: f32) -> Vec<(u32, f32, f32)> {
+        let mut v = Vec::new();
+        let _ = self.walk(ray, t0, t1, |l, a, b| {
+            v.push((l, a, b));
+            ControlFlow::Continue(())
+        });
+        v
+    }
+
+    /// Leaves whose boxes share a face with leaf `l` (adjacency for region
+    /// growing). Quadratic in the leaf count; built once per job.
+    pub fn face_neighbours(&self) -> Vec<Vec<u32>> {
+        let n = self.leaves.len();
+        let mut adj = vec![Vec::new(); n];
+        for i in 0..n {
+            for j in i + 1..n {
+                if share_face(&self.leaves[i].bounds, &self.leaves[j].bounds) {
+                    adj[i].push(j as u32);
+                    adj[j].push(i as u32);
+                }
+            }
+        }
+        adj
+    }
+}
+
+fn share_face(a: &Bounds, b: &Bounds) -> bool {
+    let mut touching = 0;
+    for k in 0..3 {
+        if a.max[k] == b.min[k] || b.max[k] == a.min[k] {
+            touching += 1;
+        } else if a.max[k] <= b.min[k] || b.max[k] <= a.min[k] {
+            return false;
+        }
+    }
+    touching == 1
+}
+
+fn child_bounds(b: &Bounds, i: usize) -> Bounds {
+    // The midpoint is computed once per node so siblings share their faces
+    // bit for bit.
+    let m = b.center();
+    let mut lo = b.min;
+    let mut hi = m;
+    for a in 0..3 {
+        if i >> a & 1 == 1 {
+            lo[a] = m[a];
+            hi[a] = b.max[a];
+        }
+    }
+    Bounds::new(lo, hi)
+}
+
+/// The box a triangle must overlap to be referenced by a leaf: grown by a
+/// margin far above f32 rounding of a point computed on the ray, so a hit
+/// that rounds across a face is still found in either leaf.
+fn inflate(b: &Bounds) -> (DVec3, DVec3) {
+    let margin = (b.extent().max_element() as f64) * 1e-4 + (b.max_abs() as f64) * 1e-6;
+    (b.min.as_dvec3() - margin, b.max.as_dvec3() + margin)
+}
+
+/// Triangle/box overlap by the separating axis theorem (Akenine-Möller
+/// 2001), in f64.
+pub fn tri_box_overlap(tri: &[Vec3; 3], b: &(DVec3, DVec3)) -> bool {
+    let c = (b.0 + b.1) * 0.5;
+    let h = (b.1 - b.0) * 0.5;
+    let v = [
+        tri[0].as_dvec3() - c,
+        tri[1].as_dvec3() - c,
+        tri[2].as_dvec3() - c,
+    ];
+    // Box face normals.
+    for a in 0..3 {
+        let lo = v[0][a].min(v[1][a]).min(v[2][a]);
+        let hi = v[0][a].max(v[1][a]).max(v[2][a]);
+        if lo > h[a] || hi < -h[a] {
+            return false;
+        }
+    }
+    let e = [v[1] - v[0], v[2] - v[1], v[0] - v[2]];
+    // Triangle normal.
+    let n = e[0].cross(e[1]);
+    let r = h.x * n.x.abs() + h.y * n.y.abs() + h.z * n.z.abs();
+    let s = n.dot(v[0]);
+    if s.abs() > r {
+        return false;
+    }
+    // Edge cross box axes.
+    let axes = [DVec3::X, DVec3::Y, DVec3::Z];
+    for ed in &e {
+        for ax in &axes {
+            let a = ed.cross(*ax);
+            if a.length_squared() == 0.0 {
+                continue;
+            }
+            let p = [a.dot(v[0]), a.dot(v[1]), a.dot(v[2])];
+            let lo = p[0].min(p[1]).min(p[2]);
+            let hi = p[0].max(p[1]).max(p[2]);
+            let r = h.x * a.x.abs() + h.y * a.y.abs() + h.z * a.z.abs();
+            if lo > r || hi < -r {
+                return false;
+            }
+        }
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grid_tris(n: usize) -> Vec<[Vec3; 3]> {
+        let mut v = Vec::new();
+        for i in 0..n {
+            for j in 0..n {
+                let p = Vec3::new(i as f32, j as f32, (i * j % 5) as f32);
+                v.push([p, p + Vec3::X * 0.9, p + Vec3::Y * 0.9]);
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn leaves_respect_limits() {
+        let tris = grid_tris(40);
+        let p = OctreeParams {
+            max_leaf_tris: 16,
+            max_depth: 6,
+        };
+        let o = Octree::build(&tris, p);
+        for l in &o.leaves {
+            assert!(l.tris.len() <= 16 || l.depth == 6);
+        }
+        // Every triangle is referenced somewhere.
+        let mut seen = vec![false; tris.len()];
+        for l in &o.leaves {
+            for &t in &l.tris {
+                seen[t as usize] = true;
+            }
+        }
+        assert!(seen.iter().all(|&s| s));
+    }
+
+    #[test]
+    fn walk_partitions_the_ray() {
+        let tris = grid_tris(30);
+        let o = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 8,
+                max_depth: 5,
+            },
+        );
+        let c = o.bounds.center();
+        // Rays along the root's splitting planes and through node corners.
+        let rays = [
+            Ray::new(Vec3::new(o.bounds.min.x - 1.0, c.y, c.z), Vec3::X),
+            Ray::new(o.bounds.min - Vec3::ONE, Vec3::ONE.normalize()),
+            Ray::new(Vec3::new(c.x, c.y, o.bounds.max.z + 1.0), -Vec3::Z),
+            Ray::new(
+                Vec3::new(0.1, 0.2, 0.3),
+                Vec3::new(0.3, 0.5, 0.1).normalize(),
+            ),
+        ];
+        for r in rays {
+            let segs = o.leaves_along(&r, 0.0, f32::INFINITY);
+            assert!(!segs.is_empty());
+            let (a, b) = o.bounds.clip(&r, 0.0, f32::INFINITY).unwrap();
+            assert_eq!(segs[0].1, a);
+            assert_eq!(segs.last().unwrap().2, b);
+            for w in segs.windows(2) {
+                assert_eq!(w[0].2, w[1].1, "segments must be contiguous");
+            }
+            for &(l, ta, tb) in &segs {
+                assert!(ta < tb);
+                let m = r.at(0.5 * (ta + tb));
+                let lb = o.leaves[l as usize].bounds;
+                let tol = lb.extent().max_element() * 1e-4;
+                assert!(m.cmpge(lb.min - tol).all() && m.cmple(lb.max + tol).all());
+                // Away from faces, f32 rounding of the midpoint cannot move
+                // it into a neighbour, so the point lookup must agree.
+                if m.cmpgt(lb.min + tol).all() && m.cmplt(lb.max - tol).all() {
+                    assert_eq!(o.leaf_at(m), Some(l));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn sat_rejects_and_accepts() {
+        let b = (DVec3::ZERO, DVec3::ONE);
+        let inside = [Vec3::splat(0.2), Vec3::splat(0.3), Vec3::new(0.2, 0.5, 0.4)];
+        assert!(tri_box_overlap(&inside, &b));
+        // A big triangle whose bounding box covers the unit box but whose
+        // plane passes beside it.
+        let beside = [
+            Vec3::new(3.5, 0.0, 0.0),
+            Vec3::new(0.0, 3.5, 0.0),
+            Vec3::new(0.0, 0.0, 3.5),
+        ];
+        assert!(!tri_box_overlap(&beside, &b));
+        let touching = [
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(1.0, 0.0, 1.0),
+        ];
+        assert!(tri_box_overlap(&touching, &b));
+    }
+}

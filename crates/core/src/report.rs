@@ -1,0 +1,42 @@
+//! The JSON report written beside every image.
+
+use crate::metrics::ErrorMetrics;
+use crate::render::RenderOptions;
+use crate::scene::LoadStats;
+use crate::stats::TraceStats;
+use serde::Serialize;
+
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct PhaseTimes {
+    pub load_s: f64,
+    pub octree_s: f64,
+    pub bvh_s: f64,
+    pub render_s: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct RenderReport {
+    pub scene: String,
+    pub image: String,
+    pub width: u32,
+    pub height: u32,
+    pub options: RenderOptions,
+    pub threads_used: usize,
+    pub triangles: usize,
+    pub load: LoadStats,
+    pub octree_leaves: usize,
+    pub octree_references: usize,
+    pub emitters: usize,
+    pub times: PhaseTimes,
+    pub stats: TraceStats,
+    pub samples_per_second: f64,
+    pub rays_per_second: f64,
+    pub error_vs_reference: Option<ErrorMetrics>,
+}
+
+impl RenderReport {
+    pub fn write(&self, path: &std::path::Path) -> std::io::Result<()> {
+        let s = serde_json::to_string_pretty(self).map_err(std::io::Error::other)?;
+        std::fs::write(path, s)
+    }
+}

@@ -1,0 +1,590 @@
+//! The scene: its TOML description, and the flat triangle soup the renderer
+//! and the farm work on.
+//!
+//! A scene file names a camera, materials, area lights, meshes (by path
+//! relative to the scene file, with an optional transform) and render
+//! settings; see the README for a complete example. Loading resolves every
+//! mesh into global triangles with a material id each. Degenerate
+//! (zero-area) triangles are dropped and counted.
+
+use crate::error::{Location, SceneError};
+use crate::geometry::{Ray, tri_area_f64};
+use crate::mesh_io;
+use crate::octree::OctreeParams;
+use glam::{Mat4, Quat, Vec3};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// The one reflectance model locus needs for its scenes: Lambertian
+/// diffuse with an optional diffuse area emission (one-sided, on the side
+/// the geometric normal points to, i.e. counter-clockwise winding).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Material {
+    pub name: String,
+    pub albedo: Vec3,
+    pub emission: Vec3,
+}
+
+impl Material {
+    pub fn is_emissive(&self) -> bool {
+        self.emission.max_element() > 0.0
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Camera {
+    pub position: Vec3,
+    pub look_at: Vec3,
+    pub up: Vec3,
+    /// Vertical field of view in degrees.
+    pub fov_y: f32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Camera {
+    /// The ray through film position (x + u, y + v), with y down the image.
+    #[inline]
+    pub fn ray(&self, x: u32, y: u32, u: [f32; 2]) -> Ray {
+        let fwd = (self.look_at - self.position).normalize();
+        let right = fwd.cross(self.up).normalize();
+        let up = right.cross(fwd);
+        let tan = (self.fov_y.to_radians() * 0.5).tan();
+        let aspect = self.width as f32 / self.height as f32;
+        let sx = ((x as f32 + u[0]) / self.width as f32 * 2.0 - 1.0) * tan * aspect;
+        let sy = (1.0 - (y as f32 + u[1]) / self.height as f32 * 2.0) * tan;
+        Ray::new(self.position, (fwd + right * sx + up * sy).normalize())
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RenderSettings {
+    pub spp: u32,
+    pub max_depth: u32,
+    pub seed: u64,
+    pub octree: OctreeParams,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        Self {
+            spp: 16,
+            max_depth: 8,
+            seed: 0,
+            octree: OctreeParams::default(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LoadStats {
+    pub meshes: usize,
+    pub triangles_read: usize,
+    pub degenerate_dropped: usize,
+}
+
+/// A loaded scene: triangles with global ids (their index here).
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub path: PathBuf,
+    pub camera: Camera,
+    pub settings: RenderSettings,
+    pub materials: Vec<Material>,
+    pub tris: Vec<[Vec3; 3]>,
+    pub tri_material: Vec<u32>,
+    pub load_stats: LoadStats,
+}
+
+// ---- the TOML file -------------------------------------------------------
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneFile {
+    camera: toml::Spanned<CameraDesc>,
+    #[serde(default)]
+    render: RenderDesc,
+    #[serde(default)]
+    octree: Option<OctreeDesc>,
+    #[serde(default)]
+    materials: BTreeMap<String, toml::Spanned<MaterialDesc>>,
+    #[serde(default)]
+    light: Vec<toml::Spanned<QuadLightDesc>>,
+    #[serde(default)]
+    mesh: Vec<toml::Spanned<MeshDesc>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CameraDesc {
+    position: [f32; 3],
+    look_at: [f32; 3],
+    #[serde(default = "default_up")]
+    up: [f32; 3],
+    fov_y: f32,
+    resolution: [u32; 2],
+}
+
+fn default_up() -> [f32; 3] {
+    [0.0, 1.0, 0.0]
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RenderDesc {
+    #[serde(default = "d_spp")]
+    spp: u32,
+    #[serde(default = "d_depth")]
+    max_depth: u32,
+    #[serde(default)]
+    seed: u64,
+}
+fn d_spp() -> u32 {
+    16
+}
+fn d_depth() -> u32 {
+    8
+}
+impl Default for RenderDesc {
+    fn default() -> Self {
+        Self {
+            spp: d_spp(),
+            max_depth: d_depth(),
+            seed: 0,
+        }
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct OctreeDesc {
+    max_leaf_tris: Option<usize>,
+    max_depth: Option<u32>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MaterialDesc {
+    #[serde(default = "d_albedo")]
+    albedo: [f32; 3],
+    #[serde(default)]
+    emission: [f32; 3],
+}
+fn d_albedo() -> [f32; 3] {
+    [0.8, 0.8, 0.8]
+}
+
+/// A rectangular area light: the parallelogram `corner + s*edge_a +
+/// t*edge_b`, emitting to the side of `edge_a x edge_b`.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct QuadLightDesc {
+    corner: [f32; 3],
+    edge_a: [f32; 3],
+    edge_b: [f32; 3],
+    emission: [f32; 3],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MeshDesc {
+    file: String,
+    material: Option<String>,
+    #[serde(default)]
+    transform: TransformDesc,
+}
+
+/// Applied as scale, then rotation, then translation.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct TransformDesc {
+    translate: Option<[f32; 3]>,
+    scale: Option<Scale>,
+    /// Axis (x, y, z) and angle in degrees.
+    rotate: Option<[f32; 4]>,
+}
+
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum Scale {
+    Uniform(f32),
+    Axes([f32; 3]),
+}
+
+impl TransformDesc {
+    fn matrix(&self) -> Mat4 {
+        let s = match self.scale {
+            None => Vec3::ONE,
+            Some(Scale::Uniform(k)) => Vec3::splat(k),
+            Some(Scale::Axes(a)) => Vec3::from(a),
+        };
+        let r = match self.rotate {
+            Some([x, y, z, deg]) => {
+                Quat::from_axis_angle(Vec3::new(x, y, z).normalize(), deg.to_radians())
+            }
+            None => Quat::IDENTITY,
+        };
+        Mat4::from_scale_rotation_translation(s, r, Vec3::from(self.translate.unwrap_or([0.0; 3])))
+    }
+    fn values(&self) -> Vec<f32> {
+        let mut v = Vec::new();
+        v.extend(self.translate.iter().flatten());
+        v.extend(self.rotate.iter().flatten());
+        match self.scale {
+            Some(Scale::Uniform(k)) => v.push(k),
+            Some(Scale::Axes(a)) => v.extend(a),
+            None => {}
+        }
+        v
+    }
+}
+
+fn check_finite(
+    file: &Path,
+    text: &str,
+    span: std::ops::Range<usize>,
+    what: &str,
+    vals: &[f32],
+) -> Result<(), SceneError> {
+    if vals.iter().all(|v| v.is_finite()) {
+        return Ok(());
+    }
+    Err(SceneError::NonFinite {
+        file: file.to_path_buf(),
+        location: Location::of_offset(text, span.start),
+        what: what.into(),
+    })
+}
+
+impl Scene {
+    /// Loads a scene file and every mesh it references.
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            file: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml(path, &text)
+    }
+
+    /// Parses scene text; mesh paths resolve relative to `path`'s folder.
+    pub fn from_toml(path: &Path, text: &str) -> Result<Scene, SceneError> {
+        let file = || path.to_path_buf();
+        let desc: SceneFile = toml::from_str(text).map_err(|e| SceneError::Syntax {
+            file: file(),
+            location: e
+                .span()
+                .map(|s| Location::of_offset(text, s.start))
+                .unwrap_or(Location::Element("document".into())),
+            message: e.message().to_string(),
+        })?;
+        let cam_span = desc.camera.span();
+        let c = desc.camera.into_inner();
+        let vals: Vec<f32> = c
+            .position
+            .iter()
+            .chain(&c.look_at)
+            .chain(&c.up)
+            .chain([&c.fov_y])
+            .copied()
+            .collect();
+        check_finite(path, text, cam_span.clone(), "camera", &vals)?;
+        let invalid = |span: std::ops::Range<usize>, message: String| SceneError::Invalid {
+            file: file(),
+            location: Location::of_offset(text, span.start),
+            message,
+        };
+        if c.resolution[0] == 0
+            || c.resolution[1] == 0
+            || c.resolution[0] > 1 << 15
+            || c.resolution[1] > 1 << 15
+        {
+            return Err(invalid(
+                cam_span,
+                format!(
+                    "camera resolution {:?} must be between 1 and 32768",
+                    c.resolution
+                ),
+            ));
+        }
+        if !(c.fov_y > 0.0 && c.fov_y < 180.0) {
+            return Err(invalid(
+                cam_span,
+                format!("camera fov_y {} must be in (0, 180) degrees", c.fov_y),
+            ));
+        }
+        let fwd = Vec3::from(c.look_at) - Vec3::from(c.position);
+        if fwd.length_squared() == 0.0 || fwd.cross(Vec3::from(c.up)).length_squared() == 0.0 {
+            return Err(invalid(
+                cam_span,
+                "camera look_at must differ from position and not be parallel to up".into(),
+            ));
+        }
+        let camera = Camera {
+            position: c.position.into(),
+            look_at: c.look_at.into(),
+            up: c.up.into(),
+            fov_y: c.fov_y,
+            width: c.resolution[0],
+            height: c.resolution[1],
+        };
+        let mut octree = OctreeParams::default();
+        if let Some(o) = desc.octree {
+            if let Some(m) = o.max_leaf_tris {
+                octree.max_leaf_tris = m.max(1);
+            }
+            if let Some(d) = o.max_depth {
+                octree.max_depth = d.min(16);
+            }
+        }
+        let settings = RenderSettings {
+            spp: desc.render.spp.max(1),
+            max_depth: desc.render.max_depth,
+            seed: desc.render.seed,
+            octree,
+        };
+
+        let mut b = Builder::default();
+        for (name, m) in &desc.materials {
+            let span = m.span();
+            let m = m.get_ref();
+            let vals: Vec<f32> = m.albedo.iter().chain(&m.emission).copied().collect();
+            check_finite(
+                path,
+                text,
+                span.clone(),
+                &format!("material '{name}'"),
+                &vals,
+            )?;
+            if m.albedo.iter().any(|&a| !(0.0..=1.0).contains(&a))
+                || m.emission.iter().any(|&e| e < 0.0)
+            {
+                return Err(invalid(
+                    span,
+                    format!("material '{name}': albedo must lie in [0, 1] and emission be >= 0"),
+                ));
+            }
+            b.add_material(
+                Material {
+                    name: name.clone(),
+                    albedo: m.albedo.into(),
+                    emission: m.emission.into(),
+                },
+                true,
+            );
+        }
+        for (i, l) in desc.light.iter().enumerate() {
+            let span = l.span();
+            let l = l.get_ref();
+            let vals: Vec<f32> = l
+                .corner
+                .iter()
+                .chain(&l.edge_a)
+                .chain(&l.edge_b)
+                .chain(&l.emission)
+                .copied()
+                .collect();
+            check_finite(path, text, span.clone(), &format!("light[{i}]"), &vals)?;
+            if l.emission.iter().any(|&e| e < 0.0) {
+                return Err(invalid(span, format!("light[{i}]: emission must be >= 0")));
+            }
+            let m = b.add_material(
+                Material {
+                    name: format!("light{i}"),
+                    albedo: Vec3::ZERO,
+                    emission: l.emission.into(),
+                },
+                false,
+            );
+            let (p, ea, eb) = (
+                Vec3::from(l.corner),
+                Vec3::from(l.edge_a),
+                Vec3::from(l.edge_b),
+            );
+            b.add_tri([p, p + ea, p + ea + eb], m);
+            b.add_tri([p, p + ea + eb, p + eb], m);
+        }
+        let dir = path.parent().unwrap_or(Path::new("."));
+        for (i, m) in desc.mesh.iter().enumerate() {
+            let span = m.span();
+            let m = m.get_ref();
+            check_finite(
+                path,
+                text,
+                span.clone(),
+                &format!("mesh[{i}].transform"),
+                &m.transform.values(),
+            )?;
+            let mp = dir.join(&m.file);
+            if !mp.is_file() {
+                return Err(SceneError::MissingFile {
+                    file: file(),
+                    location: Location::of_offset(text, span.start),
+                    missing: mp,
+                });
+            }
+            let override_mat = match &m.material {
+                Some(name) => Some(b.material_id(name).ok_or_else(|| {
+                    invalid(
+                        span.clone(),
+                        format!("mesh[{i}]: unknown material '{name}'"),
+                    )
+                })?),
+                None => None,
+            };
+            let data = mesh_io::load(&mp)?;
+            let xf = m.transform.matrix();
+            let file_mats: Vec<u32> = data
+                .materials
+                .iter()
+                .map(|fm| {
+                    b.add_material(
+                        Material {
+                            name: fm.name.clone(),
+                            albedo: fm.albedo,
+                            emission: fm.emission,
+                        },
+                        false,
+                    )
+                })
+                .collect();
+            let default_mat = b.default_material();
+            let pos: Vec<Vec3> = data
+                .positions
+                .iter()
+                .map(|&p| xf.transform_point3(p))
+                .collect();
+            if let Some(p) = pos.iter().find(|p| !p.is_finite()) {
+                return Err(invalid(
+                    span,
+                    format!("mesh[{i}]: transform makes a vertex non-finite ({p})"),
+                ));
+            }
+            for (t, fm) in data.triangles.iter().zip(&data.tri_material) {
+                let mat = override_mat
+                    .or(fm.map(|k| file_mats[k as usize]))
+                    .unwrap_or(default_mat);
+                b.add_tri(
+                    [pos[t[0] as usize], pos[t[1] as usize], pos[t[2] as usize]],
+                    mat,
+                );
+            }
+            b.stats.meshes += 1;
+        }
+        Ok(b.finish(path, camera, settings))
+    }
+
+    /// Builds a scene from triangles already in memory (generators, tests).
+    pub fn from_triangles(
+        path: PathBuf,
+        camera: Camera,
+        settings: RenderSettings,
+        materials: Vec<Material>,
+        tris: Vec<([Vec3; 3], u32)>,
+    ) -> Scene {
+        let mut b = Builder {
+            materials,
+            ..Default::default()
+        };
+        for (t, m) in tris {
+            b.add_tri(t, m);
+        }
+        b.finish(&path, camera, settings)
+    }
+
+    /// The largest coordinate among geometry and camera: the magnitude that
+    /// rounding errors of ray queries scale with.
+    pub fn magnitude(&self) -> f32 {
+        let g = self
+            .tris
+            .iter()
+            .flatten()
+            .fold(0f32, |m, p| m.max(p.abs().max_element()));
+        g.max(self.camera.position.abs().max_element())
+    }
+
+    /// Applies `f` to every vertex and the camera (used by the scale tests).
+    pub fn transformed(&self, m: Mat4) -> Scene {
+        let mut s = self.clone();
+        for t in &mut s.tris {
+            for p in t.iter_mut() {
+                *p = m.transform_point3(*p);
+            }
+        }
+        s.camera.position = m.transform_point3(s.camera.position);
+        s.camera.look_at = m.transform_point3(s.camera.look_at);
+        s
+    }
+}
+
+#[derive(Default)]
+struct Builder {
+    materials: Vec<Material>,
+    by_name: BTreeMap<String, u32>,
+    /// Names defined in the scene file: they win over mesh-file materials of
+    /// the same name, so a user can retune a model's reflectances.
+    pinned: std::collections::BTreeSet<String>,
+    tris: Vec<[Vec3; 3]>,
+    tri_material: Vec<u32>,
+    stats: LoadStats,
+}
+
+impl Builder {
+    fn add_material(&mut self, m: Material, pinned: bool) -> u32 {
+        if let Some(&id) = self.by_name.get(&m.name) {
+            if self.pinned.contains(&m.name) {
+                return id;
+            }
+            self.materials[id as usize] = m;
+            return id;
+        }
+        let id = self.materials.len() as u32;
+        self.by_name.insert(m.name.clone(), id);
+        if pinned {
+            self.pinned.insert(m.name.clone());
+        }
+        self.materials.push(m);
+        id
+    }
+    fn material_id(&self, name: &str) -> Option<u32> {
+        self.by_name.get(name).copied()
+    }
+    fn default_material(&mut self) -> u32 {
+        match self.material_id("default") {
+            Some(id) => id,
+            None => self.add_material(
+                Material {
+                    name: "default".into(),
+                    albedo: Vec3::splat(0.8),
+                    emission: Vec3::ZERO,
+                },
+                false,
+            ),
+        }
+    }
+    fn add_tri(&mut self, t: [Vec3; 3], m: u32) {
+        self.stats.triangles_read += 1;
+        // Zero area in f64, or a normal that does not survive f32: neither
+        // can be hit or sampled meaningfully.
+        let n = crate::geometry::tri_cross(&t);
+        if tri_area_f64(&t) == 0.0 || !n.is_finite() || n.length_squared() == 0.0 {
+            self.stats.degenerate_dropped += 1;
+            return;
+        }
+        self.tris.push(t);
+        self.tri_material.push(m);
+    }
+    fn finish(self, path: &Path, camera: Camera, settings: RenderSettings) -> Scene {
+        if self.stats.degenerate_dropped > 0 {
+            tracing::info!(file = %path.display(), dropped = self.stats.degenerate_dropped, "dropped degenerate (zero-area) triangles");
+        }
+        Scene {
+            path: path.to_path_buf(),
+            camera,
+            settings,
+            materials: self.materials,
+            tris: self.tris,
+            tri_material: self.tri_material,
+            load_stats: self.stats,
+        }
+    }
+}
