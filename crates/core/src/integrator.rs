@@ -56,10 +56,7 @@ impl Integrator<'_> {
         let mut prev_pdf: Option<f32> = None;
         let mut vertex = 0u32;
         stats.camera_rays += 1;
-        loop {
-            let Some(h) = self.accel.intersect(&ray, 0.0, f32::INFINITY, stats) else {
-                break;
-            };
+        while let Some(h) = self.accel.intersect(&ray, 0.0, f32::INFINITY, stats) {
             let v = &scene.tris[h.tri as usize];
             let mat = &scene.materials[scene.tri_material[h.tri as usize] as usize];
             let ng = tri_cross(v).normalize();
@@ -119,7 +116,7 @@ impl Integrator<'_> {
             // Continue the path by cosine sampling: f cos / pdf = albedo.
             let wi = cosine_hemisphere(n, key.get2d(base + 3));
             let pdf_b = n.dot(wi) / PI;
-            if !(pdf_b > 0.0) {
+            if pdf_b.is_nan() || pdf_b <= 0.0 {
                 break;
             }
             beta *= mat.albedo;

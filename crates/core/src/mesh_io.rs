@@ -153,27 +153,38 @@ fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
         ignore_lines: true,
     };
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let mtl_error: std::cell::RefCell<Option<SceneError>> = Default::default();
-    let (models, _) = tobj::load_obj_buf(&mut text.as_bytes(), &opts, |p| {
+    // tobj is only asked for geometry and the material *names* (so it can
+    // number `usemtl` groups): Kd and Ke are read by `obj_materials`, which
+    // validates them with line numbers, whereas tobj's own MTL parser panics
+    // on a colour with fewer than three components.
+    let names_only = |p: &Path| -> tobj::MTLLoadResult {
         let full = dir.join(p);
-        match std::fs::read_to_string(&full) {
-            Ok(t) => tobj::load_mtl_buf(&mut t.as_bytes()),
-            Err(source) => {
-                *mtl_error.borrow_mut() = Some(SceneError::Io { file: full, source });
-                Err(tobj::LoadError::OpenFileFailed)
-            }
-        }
-    })
-    .map_err(|e| SceneError::Syntax {
+        let t = std::fs::read_to_string(&full).map_err(|_| tobj::LoadError::OpenFileFailed)?;
+        let names: String = t
+            .lines()
+            .filter_map(|l| {
+                l.trim()
+                    .strip_prefix("newmtl")
+                    .map(|n| format!("newmtl {}\n", n.trim()))
+            })
+            .collect();
+        tobj::load_mtl_buf(&mut names.as_bytes())
+    };
+    // A panic inside the parser must not take the process down with it.
+    let parsed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        tobj::load_obj_buf(&mut text.as_bytes(), &opts, names_only)
+    }))
+    .map_err(|_| SceneError::Syntax {
+        file: path.to_path_buf(),
+        location: Location::Element("file".into()),
+        message: "OBJ parser failed on this input".into(),
+    })?;
+    let (models, _) = parsed.map_err(|e| SceneError::Syntax {
         file: path.to_path_buf(),
         location: Location::Element("file".into()),
         message: e.to_string(),
     })?;
-    if let Some(e) = mtl_error.into_inner() {
-        return Err(e);
-    }
-    // Materials come back from the callback above through tobj's result;
-    // parse them again here in file order to keep our own names and Ke.
+    // In file order, as tobj numbers them.
     let materials = obj_materials(path, &text)?;
     let mut out = MeshData {
         materials: materials.clone(),

@@ -192,8 +192,7 @@ impl Octree {
                 }
                 cuts[..k].sort_by(f32::total_cmp);
                 let mut start = ta;
-                for i in 0..=k {
-                    let end = if i < k { cuts[i] } else { tb };
+                for end in cuts[..k].iter().copied().chain([tb]) {
                     if end > start {
                         let tm = 0.5 * (start as f64 + end as f64);
                         let mut oct = 0usize;

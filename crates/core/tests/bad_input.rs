@@ -1,0 +1,243 @@
+//! Bad input: every malformed file in `tests/corpus` yields its own error,
+//! naming the offending file and the line or element, and nothing panics.
+//! Truncations of valid files at many points must not panic either.
+
+mod common;
+use locus_core::error::{Location, SceneError};
+use locus_core::scene::Scene;
+use std::path::{Path, PathBuf};
+
+fn corpus() -> PathBuf {
+    common::repo_root().join("tests/corpus")
+}
+
+fn load(name: &str) -> Result<Scene, SceneError> {
+    Scene::load(&corpus().join(name))
+}
+
+fn line(n: usize) -> Location {
+    Location::Line {
+        line: n,
+        column: None,
+    }
+}
+
+fn file_name(e: &SceneError) -> String {
+    e.file().file_name().unwrap().to_string_lossy().into_owned()
+}
+
+/// (scene, file named by the error, variant name, location check)
+type Case = (
+    &'static str,
+    &'static str,
+    &'static str,
+    fn(&Location) -> bool,
+);
+
+#[test]
+fn each_corpus_file_gets_its_error() {
+    let cases: Vec<Case> = vec![
+        ("toml_syntax.toml", "toml_syntax.toml", "Syntax", |l| {
+            matches!(l, Location::Line { line: 8, .. })
+        }),
+        (
+            "toml_unknown_key.toml",
+            "toml_unknown_key.toml",
+            "Syntax",
+            |l| matches!(l, Location::Line { line: 8, .. }),
+        ),
+        (
+            "toml_nan_camera.toml",
+            "toml_nan_camera.toml",
+            "NonFinite",
+            |l| matches!(l, Location::Line { line: 1, .. }),
+        ),
+        (
+            "toml_bad_resolution.toml",
+            "toml_bad_resolution.toml",
+            "Invalid",
+            |l| matches!(l, Location::Line { line: 1, .. }),
+        ),
+        (
+            "toml_missing_mesh.toml",
+            "toml_missing_mesh.toml",
+            "MissingFile",
+            |l| matches!(l, Location::Line { line: 7, .. }),
+        ),
+        (
+            "toml_unknown_material.toml",
+            "toml_unknown_material.toml",
+            "Invalid",
+            |l| matches!(l, Location::Line { line: 7, .. }),
+        ),
+        (
+            "toml_inf_light.toml",
+            "toml_inf_light.toml",
+            "NonFinite",
+            |l| matches!(l, Location::Line { line: 7, .. }),
+        ),
+        ("obj_syntax.toml", "obj_syntax.obj", "Syntax", |l| {
+            *l == line(3)
+        }),
+        ("obj_nan.toml", "obj_nan.obj", "NonFinite", |l| {
+            *l == line(3)
+        }),
+        ("obj_inf.toml", "obj_inf.obj", "NonFinite", |l| {
+            *l == line(2)
+        }),
+        ("obj_index.toml", "obj_index.obj", "IndexOutOfRange", |l| {
+            *l == line(5)
+        }),
+        (
+            "obj_missing_mtl.toml",
+            "obj_missing_mtl.obj",
+            "MissingFile",
+            |l| *l == line(1),
+        ),
+        ("obj_bad_mtl.toml", "obj_bad_mtl.mtl", "Syntax", |l| {
+            *l == line(2)
+        }),
+        ("obj_binary.toml", "obj_binary.obj", "Syntax", |l| {
+            matches!(l, Location::Element(_))
+        }),
+        ("ply_syntax.toml", "ply_syntax.ply", "Syntax", |l| {
+            matches!(l, Location::Line { .. })
+        }),
+        ("ply_index.toml", "ply_index.ply", "IndexOutOfRange", |l| {
+            *l == Location::Element("face 0".into())
+        }),
+        ("ply_nan.toml", "ply_nan.ply", "NonFinite", |l| {
+            *l == Location::Element("vertex 1".into())
+        }),
+        (
+            "gltf_index.toml",
+            "gltf_index.gltf",
+            "IndexOutOfRange",
+            |l| matches!(l, Location::Element(e) if e.contains("meshes[0].primitives[0]")),
+        ),
+        (
+            "gltf_missing_bin.toml",
+            "gltf_missing_bin.gltf",
+            "MissingFile",
+            |l| matches!(l, Location::Element(e) if e == "buffers[0].uri"),
+        ),
+        ("gltf_syntax.toml", "gltf_syntax.gltf", "Syntax", |_| true),
+    ];
+    let mut failures = Vec::new();
+    for (scene, file, variant, loc_ok) in cases {
+        let err = match load(scene) {
+            Ok(_) => {
+                failures.push(format!("{scene}: loaded without error"));
+                continue;
+            }
+            Err(e) => e,
+        };
+        let msg = err.to_string();
+        let (v, loc) = match &err {
+            SceneError::Io { .. } => ("Io", None),
+            SceneError::Syntax { location, .. } => ("Syntax", Some(location)),
+            SceneError::MissingFile { location, .. } => ("MissingFile", Some(location)),
+            SceneError::NonFinite { location, .. } => ("NonFinite", Some(location)),
+            SceneError::IndexOutOfRange { location, .. } => ("IndexOutOfRange", Some(location)),
+            SceneError::Invalid { location, .. } => ("Invalid", Some(location)),
+        };
+        eprintln!("{scene}: {msg}");
+        if v != variant
+            || file_name(&err) != file
+            || !loc.is_some_and(loc_ok)
+            || !msg.contains(file)
+        {
+            failures.push(format!(
+                "{scene}: expected {variant} in {file}, got {v} in {} at {loc:?}: {msg}",
+                file_name(&err)
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn degenerate_triangles_are_dropped_and_counted() {
+    let s = load("obj_degenerate.toml").unwrap();
+    assert_eq!(s.load_stats.triangles_read, 3);
+    assert_eq!(s.load_stats.degenerate_dropped, 2);
+    assert_eq!(s.tris.len(), 1);
+}
+
+#[test]
+fn obj_ply_and_gltf_load_with_materials_and_transforms() {
+    let s = load("good_all_formats.toml").unwrap();
+    assert_eq!(s.tris.len(), 3);
+    assert_eq!(s.load_stats.meshes, 3);
+    // The PLY triangle takes the override material, scaled by 2, rotated 90
+    // degrees about y and moved to z = 1: (1, 0, 0) -> (0, 0, -2) + (0, 0, 1).
+    let ply = s.tris[1];
+    assert!(
+        (ply[1] - glam::Vec3::new(0.0, 0.0, -1.0)).length() < 1e-5,
+        "{ply:?}"
+    );
+    assert_eq!(s.materials[s.tri_material[1] as usize].name, "m");
+    // glTF base colour becomes the albedo.
+    let g = &s.materials[s.tri_material[2] as usize];
+    assert_eq!(g.albedo, glam::Vec3::splat(0.5));
+}
+
+/// Loads `text` written to `name` in a scratch folder with the corpus's
+/// helper files, returning whether it panicked.
+fn survives(dir: &Path, name: &str, bytes: &[u8], scene: &str) -> bool {
+    std::fs::write(dir.join(name), bytes).unwrap();
+    std::fs::write(dir.join("s.toml"), scene).unwrap();
+    std::panic::catch_unwind(|| {
+        let _ = Scene::load(&dir.join("s.toml"));
+    })
+    .is_ok()
+}
+
+#[test]
+fn truncated_files_never_panic() {
+    let dir = std::env::temp_dir().join(format!("locus-trunc-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cb = common::repo_root().join("scenes/cornell-box");
+    std::fs::copy(cb.join("cornell.mtl"), dir.join("cornell.mtl")).unwrap();
+    let scene_text = std::fs::read_to_string(cb.join("cornell.toml")).unwrap();
+    let obj = std::fs::read(cb.join("cornell.obj")).unwrap();
+    let ply = std::fs::read(corpus().join("ply_good.ply")).unwrap();
+    let gltf = std::fs::read(corpus().join("gltf_good.gltf")).unwrap();
+    let mut cuts = 0;
+    for n in (0..obj.len()).step_by(37) {
+        assert!(
+            survives(&dir, "cornell.obj", &obj[..n], &scene_text),
+            "obj cut at {n}"
+        );
+        cuts += 1;
+    }
+    for n in (0..scene_text.len()).step_by(7) {
+        std::fs::write(dir.join("cornell.obj"), &obj).unwrap();
+        assert!(
+            std::panic::catch_unwind(
+                || Scene::from_toml(&dir.join("t.toml"), &scene_text[..n]).is_ok()
+            )
+            .is_ok(),
+            "toml cut at {n}"
+        );
+        cuts += 1;
+    }
+    let ply_scene = "[camera]\nposition = [0.0, 0.0, 5.0]\nlook_at = [0.0, 0.0, 0.0]\nfov_y = 45.0\nresolution = [8, 8]\n[[mesh]]\nfile = \"m.ply\"\n";
+    for n in 0..ply.len() {
+        assert!(
+            survives(&dir, "m.ply", &ply[..n], ply_scene),
+            "ply cut at {n}"
+        );
+        cuts += 1;
+    }
+    let gltf_scene = ply_scene.replace("m.ply", "m.gltf");
+    for n in (0..gltf.len()).step_by(11) {
+        assert!(
+            survives(&dir, "m.gltf", &gltf[..n], &gltf_scene),
+            "gltf cut at {n}"
+        );
+        cuts += 1;
+    }
+    std::fs::remove_dir_all(&dir).ok();
+    assert!(cuts > 300);
+}

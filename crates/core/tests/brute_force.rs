@@ -1,0 +1,220 @@
+//! The BVH and the octree against brute force on many deterministic random
+//! rays (after obvhs's own tests): closest hits over the whole scene, over
+//! clipped intervals [t0, t1), and restricted to subsets of octree leaves;
+//! and the octree walk against per-leaf slab tests.
+
+mod common;
+use glam::Vec3;
+use locus_core::accel::{Accel, Hit};
+use locus_core::geometry::{Ray, WatertightRay, intersect_f64};
+use locus_core::octree::{Octree, OctreeParams};
+use locus_core::sampler::SampleKey;
+use locus_core::stats::TraceStats;
+
+/// Random triangles of mixed sizes plus an axis-aligned grid whose faces lie
+/// on the octree's splitting planes (the root is a cube around [-10, 10]^3,
+/// so x = 0 and friends are planes of the tree).
+fn scene() -> Vec<[Vec3; 3]> {
+    let mut tris = Vec::new();
+    for i in 0..3000u64 {
+        let k = SampleKey::new(i, 0, 1);
+        let c = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 10.0;
+        let s = if i % 10 == 0 { 4.0 } else { 0.6 };
+        let p = |d: u32| (Vec3::new(k.get1d(d), k.get1d(d + 1), k.get1d(d + 2)) * 2.0 - 1.0) * s;
+        tris.push([c + p(3), c + p(6), c + p(9)]);
+    }
+    for i in 0..10 {
+        for j in 0..10 {
+            let (a, b) = (-10.0 + 2.0 * i as f32, -10.0 + 2.0 * j as f32);
+            tris.push([
+                Vec3::new(0.0, a, b),
+                Vec3::new(0.0, a + 2.0, b),
+                Vec3::new(0.0, a, b + 2.0),
+            ]);
+            tris.push([
+                Vec3::new(a, 0.0, b),
+                Vec3::new(a, 0.0, b + 2.0),
+                Vec3::new(a + 2.0, 0.0, b),
+            ]);
+        }
+    }
+    tris
+}
+
+fn rays(n: u64, seed: u64) -> Vec<Ray> {
+    (0..n)
+        .map(|i| {
+            let k = SampleKey::new(i, 0, seed);
+            let o = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 12.0;
+            let mut d = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 2.0 - 1.0;
+            // Every 7th ray runs exactly along an axis, many of them inside
+            // the splitting planes x = 0 or y = 0.
+            if i % 7 == 0 {
+                let a = (i / 7 % 3) as usize;
+                d = Vec3::ZERO;
+                d[a] = if i % 2 == 0 { 1.0 } else { -1.0 };
+                let mut o2 = o;
+                o2[(a + 1) % 3] = 0.0;
+                return Ray::new(o2, d);
+            }
+            Ray::new(o, d.normalize())
+        })
+        .collect()
+}
+
+fn brute(
+    tris: &[[Vec3; 3]],
+    ray: &Ray,
+    t0: f32,
+    t1: f32,
+    keep: impl Fn(u32, f32) -> bool,
+) -> Option<Hit> {
+    let w = WatertightRay::new(ray);
+    let mut best: Option<Hit> = None;
+    for (i, t) in tris.iter().enumerate() {
+        if let Some(h) = w.intersect(t, t0, t1) {
+            if !keep(i as u32, h.t) {
+                continue;
+            }
+            let better = best.is_none_or(|b| h.t < b.t || (h.t == b.t && (i as u32) < b.tri));
+            if better {
+                best = Some(Hit {
+                    tri: i as u32,
+                    t: h.t,
+                    b1: h.b1,
+                    b2: h.b2,
+                });
+            }
+        }
+    }
+    best
+}
+
+#[test]
+fn bvh_matches_brute_force_with_and_without_clipping() {
+    let tris = scene();
+    let ids: Vec<u32> = (0..tris.len() as u32).collect();
+    let accel = Accel::build(&tris, &ids, 12.0);
+    let mut st = TraceStats::default();
+    let mut hits = 0;
+    for (i, r) in rays(4000, 3).iter().enumerate() {
+        let k = SampleKey::new(i as u64, 1, 3);
+        let (t0, t1) = if i % 2 == 0 {
+            (0.0, f32::INFINITY)
+        } else {
+            (k.get1d(0) * 10.0, 10.0 + k.get1d(1) * 20.0)
+        };
+        let a = accel.intersect(r, t0, t1, &mut st);
+        let b = brute(&tris, r, t0, t1, |_, _| true);
+        assert_eq!(a, b, "ray {i} {r:?} [{t0}, {t1})");
+        assert_eq!(
+            accel.occluded(r, t0, t1, &mut st),
+            b.is_some(),
+            "occlusion of ray {i}"
+        );
+        if let Some(h) = a {
+            hits += 1;
+            // The watertight test agrees with an f64 reference on distance.
+            let t64 = intersect_f64(r, &tris[h.tri as usize]).expect("f64 test sees the hit");
+            assert!(
+                (t64 - h.t as f64).abs() <= 1e-4 * t64.abs().max(1.0),
+                "t {} vs f64 {t64}",
+                h.t
+            );
+        }
+    }
+    assert!(hits > 1000, "too few hits ({hits}) to test anything");
+    assert!(st.bvh_nodes > 0 && st.tri_tests > 0);
+}
+
+#[test]
+fn octree_walk_matches_per_leaf_slabs() {
+    let tris = scene();
+    let oct = Octree::build(
+        &tris,
+        OctreeParams {
+            max_leaf_tris: 64,
+            max_depth: 6,
+        },
+    );
+    assert!(oct.leaf_count() > 64);
+    for r in rays(1500, 4) {
+        let walk = oct.leaves_along(&r, 0.0, f32::INFINITY);
+        // Brute force: every leaf the ray passes through with positive length.
+        let mut brute: Vec<(f32, u32)> = oct
+            .leaves
+            .iter()
+            .enumerate()
+            .filter_map(|(i, l)| {
+                l.bounds
+                    .clip(&r, 0.0, f32::INFINITY)
+                    .map(|(a, _)| (a, i as u32))
+            })
+            .collect();
+        brute.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let on_plane = (0..3).any(|a| r.dir[a] == 0.0);
+        if on_plane {
+            // A ray inside a splitting plane touches leaves on both sides;
+            // the walk takes exactly one of each pair (the upper one).
+            for (l, _, _) in &walk {
+                assert!(brute.iter().any(|(_, b)| b == l));
+            }
+        } else {
+            let wl: Vec<u32> = walk.iter().map(|w| w.0).collect();
+            let bl: Vec<u32> = brute.iter().map(|b| b.1).collect();
+            assert_eq!(wl, bl, "ray {r:?}");
+        }
+        for w in walk.windows(2) {
+            assert_eq!(w[0].2, w[1].1);
+        }
+    }
+}
+
+#[test]
+fn leaf_restricted_queries_match_brute_force() {
+    let tris = scene();
+    let oct = Octree::build(
+        &tris,
+        OctreeParams {
+            max_leaf_tris: 48,
+            max_depth: 6,
+        },
+    );
+    let n = oct.leaf_count() as u32;
+    // Subsets: every third leaf, a contiguous half, and a single leaf.
+    let busiest = (0..n)
+        .max_by_key(|&l| oct.leaves[l as usize].tris.len())
+        .unwrap();
+    let subsets: Vec<Box<dyn Fn(u32) -> bool>> = vec![
+        Box::new(|l| l % 3 == 0),
+        Box::new(move |l| l < n / 2),
+        Box::new(move |l| l == busiest),
+    ];
+    let min_hits = [500, 500, 5];
+    for (si, sel) in subsets.iter().enumerate() {
+        // As a worker would: a BVH over only the triangles of its leaves.
+        let mut ids: Vec<u32> = (0..n)
+            .filter(|&l| sel(l))
+            .flat_map(|l| oct.leaves[l as usize].tris.clone())
+            .collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let accel = Accel::build(&tris, &ids, 12.0);
+        let mut st = TraceStats::default();
+        let mut hits = 0;
+        for (i, r) in rays(2500, 5 + si as u64).iter().enumerate() {
+            let (t0, t1) = if i % 3 == 0 {
+                (2.0, 25.0)
+            } else {
+                (0.0, f32::INFINITY)
+            };
+            let segs = oct.leaves_along(r, t0, t1);
+            let inside = |t: f32| segs.iter().any(|&(l, a, b)| sel(l) && t >= a && t < b);
+            let expect = brute(&tris, r, t0, t1, |_, t| inside(t));
+            let got = accel.intersect_in_leaves(&oct, &|l| sel(l), r, t0, t1, &mut st);
+            assert_eq!(got, expect, "subset {si}, ray {i} {r:?}");
+            hits += got.is_some() as usize;
+        }
+        assert!(hits > min_hits[si], "subset {si}: only {hits} hits");
+    }
+}
