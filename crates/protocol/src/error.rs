@@ -1,0 +1,47 @@
+//! Errors of a connection; each names the peer.
+
+use std::net::SocketAddr;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ProtocolError {
+    #[error("{peer}: {source}")]
+    Io {
+        peer: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{peer}: frame exceeds the maximum of {max} bytes")]
+    FrameTooLarge { peer: SocketAddr, max: usize },
+    #[error("{peer}: undecodable {what} message: {message}")]
+    Decode {
+        peer: SocketAddr,
+        what: &'static str,
+        message: String,
+    },
+    #[error("{peer}: connection closed during {during}")]
+    Closed {
+        peer: SocketAddr,
+        during: &'static str,
+    },
+    #[error("{peer}: expected {expected}, got {got}")]
+    OutOfOrder {
+        peer: SocketAddr,
+        expected: &'static str,
+        got: String,
+    },
+    #[error("{peer}: protocol version mismatch: we speak {ours}, peer speaks {theirs}")]
+    Version {
+        peer: SocketAddr,
+        ours: u32,
+        theirs: u32,
+    },
+    #[error("{peer}: wrong cluster token (the peer could not prove it)")]
+    WrongToken { peer: SocketAddr },
+    #[error("{peer}: refused by peer: {reason}")]
+    Refused { peer: SocketAddr, reason: String },
+    #[error("{peer}: {what} timed out")]
+    Timeout {
+        peer: SocketAddr,
+        what: &'static str,
+    },
+}

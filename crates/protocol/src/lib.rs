@@ -1,0 +1,24 @@
+//! locus-protocol: how the scheduler, the workers and `locus submit` talk.
+//!
+//! Messages are postcard-encoded and carried in length-delimited frames with
+//! an explicit maximum length ([`connection::Connection`], after
+//! mini-redis). Every connection opens with the [`handshake`]: protocol
+//! version plus mutual proof of the shared cluster token by HMAC-SHA256 over
+//! fresh nonces, so the token never crosses the wire. postcard is not
+//! self-describing: enum variants in message families are only ever
+//! appended, never reordered or removed.
+
+pub mod connection;
+pub mod error;
+pub mod handshake;
+
+pub use connection::Connection;
+pub use error::ProtocolError;
+
+/// Bumped on any incompatible change of any message family.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Default maximum frame length: large enough for a geometry shipment of a
+/// big octree leaf, small enough that a bad length prefix cannot make a peer
+/// allocate gigabytes.
+pub const MAX_FRAME_LEN: usize = 64 << 20;
