@@ -7,10 +7,10 @@
 use glam::Vec3;
 use locus_core::accel::Accel;
 use locus_core::bench::incoherent_rays;
-use locus_core::generate::{ROOM_MATERIALS, RoomParams, conference_room};
+use locus_core::generate::{RoomParams, conference_room, room_materials};
 use locus_core::geometry::Ray;
 use locus_core::render::{Prepared, RenderOptions, render};
-use locus_core::scene::{Camera, Material, RenderSettings, Scene};
+use locus_core::scene::{Camera, RenderSettings, Scene};
 use locus_core::stats::TraceStats;
 use std::sync::OnceLock;
 
@@ -20,28 +20,7 @@ fn room() -> &'static (Prepared, Vec<Ray>, Vec<obvhs::triangle::Triangle>) {
     static ROOM: OnceLock<(Prepared, Vec<Ray>, Vec<obvhs::triangle::Triangle>)> = OnceLock::new();
     ROOM.get_or_init(|| {
         let m = conference_room(&RoomParams::default());
-        let mats = ROOM_MATERIALS
-            .iter()
-            .map(|(n, kd, ke)| Material {
-                name: n.to_string(),
-                albedo: Vec3::from(*kd),
-                emission: Vec3::from(*ke),
-            })
-            .collect();
-        let tris = m
-            .faces
-            .iter()
-            .map(|f| {
-                (
-                    [
-                        m.positions[f[0] as usize],
-                        m.positions[f[1] as usize],
-                        m.positions[f[2] as usize],
-                    ],
-                    f[3],
-                )
-            })
-            .collect();
+        let (mats, tris) = (room_materials(), m.tagged_triangles());
         let cam = Camera {
             position: Vec3::new(0.6, 1.6, 0.6),
             look_at: Vec3::new(8.0, 0.7, 5.0),

@@ -1,9 +1,8 @@
 //! Measurements shared by `locus bench` and the divan benchmarks: BVH build
-//! time, incoherent ray throughput of [`Accel`] against raw obvhs traversal
+//! time, incoherent ray throughput of [`crate::accel::Accel`] against raw obvhs traversal
 //! on the same rays, and path-traced samples per second. Ratios are taken
 //! within one run because the machines are shared and noisy.
 
-use crate::accel::Accel;
 use crate::geometry::Ray;
 use crate::render::{Prepared, RenderOptions, render};
 use crate::sampler::SampleKey;
@@ -15,15 +14,7 @@ use std::time::Instant;
 /// Rays with origins uniform in the scene bounds (shrunk by 5%) and
 /// uniform directions: the incoherent case of diffuse interreflection.
 pub fn incoherent_rays(prep: &Prepared, n: usize, seed: u64) -> Vec<Ray> {
-    let b = crate::geometry::Bounds::from_points(
-        &prep
-            .scene
-            .tris
-            .iter()
-            .flatten()
-            .copied()
-            .collect::<Vec<_>>(),
-    );
+    let b = crate::geometry::Bounds::of_triangles(&prep.scene.tris);
     let c = b.center();
     let e = b.extent() * 0.45;
     (0..n)
@@ -56,10 +47,9 @@ pub struct TraceBench {
 /// Runs the measurements on one thread for the ray part (so the ratio is
 /// not disturbed by scheduling) and `threads` for the render part.
 pub fn run(prep: &Prepared, rays: usize, rounds: usize, spp: u32, threads: usize) -> TraceBench {
-    let t = Instant::now();
-    let ids: Vec<u32> = (0..prep.scene.tris.len() as u32).collect();
-    let accel = Accel::build(&prep.scene.tris, &ids, prep.scene.magnitude());
-    let bvh_build_s = t.elapsed().as_secs_f64();
+    // The BVH that `Prepared::new` built and timed is the one measured.
+    let accel = &prep.accel;
+    let bvh_build_s = prep.timings.bvh_s;
     let rs = incoherent_rays(prep, rays, 12345);
     let tris = accel.obvhs_triangles();
     let mut agree = 0;

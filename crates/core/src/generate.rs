@@ -41,6 +41,16 @@ pub struct MeshBuilder {
 }
 
 impl MeshBuilder {
+    /// The faces as (vertices, material) pairs, the input of
+    /// [`crate::scene::Scene::from_triangles`].
+    pub fn tagged_triangles(&self) -> Vec<([Vec3; 3], u32)> {
+        let p = |i: u32| self.positions[i as usize];
+        self.faces
+            .iter()
+            .map(|f| ([p(f[0]), p(f[1]), p(f[2])], f[3]))
+            .collect()
+    }
+
     fn vert(&mut self, p: Vec3) -> u32 {
         self.positions.push(p);
         self.positions.len() as u32 - 1
@@ -118,6 +128,18 @@ pub const ROOM_MATERIALS: [(&str, [f32; 3], [f32; 3]); 6] = [
     ("chair", [0.15, 0.22, 0.45], [0.0; 3]),
     ("panel", [0.0, 0.0, 0.0], [12.0, 11.5, 10.5]),
 ];
+
+/// [`ROOM_MATERIALS`] as scene materials, indexed like the room's faces.
+pub fn room_materials() -> Vec<crate::scene::Material> {
+    ROOM_MATERIALS
+        .iter()
+        .map(|(n, kd, ke)| crate::scene::Material {
+            name: n.to_string(),
+            albedo: Vec3::from(*kd),
+            emission: Vec3::from(*ke),
+        })
+        .collect()
+}
 
 /// The room, in metres: 12 x 3 x 8, y up, a table down the middle with
 /// chairs on both sides and two rows of light panels under the ceiling.

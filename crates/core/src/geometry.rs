@@ -50,6 +50,14 @@ impl Bounds {
         }
         b
     }
+    /// Bounds of every vertex of `tris`.
+    pub fn of_triangles(tris: &[[Vec3; 3]]) -> Self {
+        let mut b = Self::EMPTY;
+        for &p in tris.iter().flatten() {
+            b.grow(p);
+        }
+        b
+    }
     pub fn grow(&mut self, p: Vec3) {
         self.min = self.min.min(p);
         self.max = self.max.max(p);

@@ -152,21 +152,20 @@ fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
         ignore_points: true,
         ignore_lines: true,
     };
+    let libs = obj_materials(path, &text)?;
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
     // tobj is only asked for geometry and the material *names* (so it can
-    // number `usemtl` groups): Kd and Ke are read by `obj_materials`, which
-    // validates them with line numbers, whereas tobj's own MTL parser panics
-    // on a colour with fewer than three components.
+    // number `usemtl` groups), taken from the libraries parsed above: its
+    // own MTL parser panics on a colour with fewer than three components.
     let names_only = |p: &Path| -> tobj::MTLLoadResult {
         let full = dir.join(p);
-        let t = std::fs::read_to_string(&full).map_err(|_| tobj::LoadError::OpenFileFailed)?;
-        let names: String = t
-            .lines()
-            .filter_map(|l| {
-                l.trim()
-                    .strip_prefix("newmtl")
-                    .map(|n| format!("newmtl {}\n", n.trim()))
-            })
+        let (_, mats) = libs
+            .iter()
+            .find(|(lp, _)| *lp == full)
+            .ok_or(tobj::LoadError::OpenFileFailed)?;
+        let names: String = mats
+            .iter()
+            .map(|m| format!("newmtl {}\n", m.name))
             .collect();
         tobj::load_mtl_buf(&mut names.as_bytes())
     };
@@ -177,17 +176,17 @@ fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
     .map_err(|_| SceneError::Syntax {
         file: path.to_path_buf(),
         location: Location::Element("file".into()),
-        message: "OBJ parser failed on this input".into(),
+        message: "the OBJ parser (tobj) crashed on this file; check it for malformed statements \
+                  or convert it to PLY or glTF"
+            .into(),
     })?;
     let (models, _) = parsed.map_err(|e| SceneError::Syntax {
         file: path.to_path_buf(),
         location: Location::Element("file".into()),
         message: e.to_string(),
     })?;
-    // In file order, as tobj numbers them.
-    let materials = obj_materials(path, &text)?;
     let mut out = MeshData {
-        materials: materials.clone(),
+        materials: libs.into_iter().flat_map(|(_, m)| m).collect(),
         ..Default::default()
     };
     // tobj splits models per object/material; positions are per model.
@@ -200,7 +199,7 @@ fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
             .mesh
             .material_id
             .map(|i| i as u32)
-            .filter(|&i| (i as usize) < materials.len());
+            .filter(|&i| (i as usize) < out.materials.len());
         for t in m.mesh.indices.chunks_exact(3) {
             out.triangles.push([base + t[0], base + t[1], base + t[2]]);
             out.tri_material.push(mat);
@@ -209,48 +208,64 @@ fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
     Ok(out)
 }
 
-fn validate_mtl(path: &Path, text: &str) -> Result<(), SceneError> {
+/// Kd and Ke of every material of one MTL file, in file order, checked
+/// with line numbers as they are read.
+fn parse_mtl(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
+    let file = || path.to_path_buf();
+    let mut out: Vec<FileMaterial> = Vec::new();
     for (i, raw) in text.lines().enumerate() {
         let line = raw.split('#').next().unwrap_or("").trim();
         let mut it = line.split_whitespace();
-        if let Some(k @ ("Kd" | "Ke")) = it.next() {
-            let comps: Vec<&str> = it.collect();
-            if comps.len() != 3 {
-                return Err(SceneError::Syntax {
-                    file: path.to_path_buf(),
-                    location: Location::line(i + 1),
-                    message: format!("{k} needs 3 components, found {}", comps.len()),
-                });
-            }
-            for c in comps {
-                match c.parse::<f32>() {
-                    Ok(x) if x.is_finite() => {}
-                    Ok(_) => {
+        match it.next() {
+            Some("newmtl") => out.push(FileMaterial {
+                name: line["newmtl".len()..].trim().to_string(),
+                albedo: Vec3::splat(0.8),
+                emission: Vec3::ZERO,
+            }),
+            Some(k @ ("Kd" | "Ke")) => {
+                let comps: Vec<&str> = it.collect();
+                if comps.len() != 3 {
+                    return Err(SceneError::Syntax {
+                        file: file(),
+                        location: Location::line(i + 1),
+                        message: format!("{k} needs 3 components, found {}", comps.len()),
+                    });
+                }
+                let mut rgb = [0f32; 3];
+                for (c, v) in comps.iter().zip(&mut rgb) {
+                    *v = c.parse().map_err(|_| SceneError::Syntax {
+                        file: file(),
+                        location: Location::line(i + 1),
+                        message: format!("'{c}' is not a number"),
+                    })?;
+                    if !v.is_finite() {
                         return Err(SceneError::NonFinite {
-                            file: path.to_path_buf(),
+                            file: file(),
                             location: Location::line(i + 1),
                             what: format!("{k} {c}"),
                         });
                     }
-                    Err(_) => {
-                        return Err(SceneError::Syntax {
-                            file: path.to_path_buf(),
-                            location: Location::line(i + 1),
-                            message: format!("'{c}' is not a number"),
-                        });
+                }
+                // A colour before any newmtl belongs to no material.
+                if let Some(m) = out.last_mut() {
+                    if k == "Kd" {
+                        m.albedo = Vec3::from(rgb);
+                    } else {
+                        m.emission = Vec3::from(rgb);
                     }
                 }
             }
+            _ => {}
         }
     }
-    Ok(())
+    Ok(out)
 }
 
-/// Kd and Ke of every material in the OBJ's material libraries, in the order
-/// tobj numbers them (libraries in file order, materials in library order).
-fn obj_materials(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
+/// Every material library the OBJ names, read once, in the order tobj
+/// numbers materials (libraries in file order, materials in library order).
+fn obj_materials(path: &Path, text: &str) -> Result<Vec<(PathBuf, Vec<FileMaterial>)>, SceneError> {
     let dir = path.parent().unwrap_or(Path::new("."));
-    let mut out = Vec::new();
+    let mut libs = Vec::new();
     for raw in text.lines() {
         let line = raw.split('#').next().unwrap_or("").trim();
         if let Some(name) = line.strip_prefix("mtllib") {
@@ -259,50 +274,11 @@ fn obj_materials(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneErro
                 file: p.clone(),
                 source,
             })?;
-            validate_mtl(&p, &t)?;
-            let mut cur: Option<FileMaterial> = None;
-            for l in t.lines() {
-                let l = l.split('#').next().unwrap_or("").trim();
-                let mut it = l.split_whitespace();
-                let rgb = |it: std::str::SplitWhitespace| {
-                    // validate_mtl guarantees three finite numbers.
-                    let v: Vec<f32> = it.filter_map(|c| c.parse().ok()).collect();
-                    if v.len() == 3 {
-                        Vec3::new(v[0], v[1], v[2])
-                    } else {
-                        Vec3::ZERO
-                    }
-                };
-                match it.next() {
-                    Some("newmtl") => {
-                        if let Some(m) = cur.take() {
-                            out.push(m);
-                        }
-                        cur = Some(FileMaterial {
-                            name: l["newmtl".len()..].trim().to_string(),
-                            albedo: Vec3::splat(0.8),
-                            emission: Vec3::ZERO,
-                        });
-                    }
-                    Some("Kd") => {
-                        if let Some(m) = cur.as_mut() {
-                            m.albedo = rgb(it);
-                        }
-                    }
-                    Some("Ke") => {
-                        if let Some(m) = cur.as_mut() {
-                            m.emission = rgb(it);
-                        }
-                    }
-                    _ => {}
-                }
-            }
-            if let Some(m) = cur.take() {
-                out.push(m);
-            }
+            let mats = parse_mtl(&p, &t)?;
+            libs.push((p, mats));
         }
     }
-    Ok(out)
+    Ok(libs)
 }
 
 fn load_ply(path: &Path) -> Result<MeshData, SceneError> {

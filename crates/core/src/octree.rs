@@ -64,12 +64,7 @@ impl Octree {
     /// enlarged by 1% so that no geometry touches the root's faces, where a
     /// clip computed in a different precision could cut it off.
     pub fn build(tris: &[[Vec3; 3]], params: OctreeParams) -> Self {
-        let mut sb = Bounds::EMPTY;
-        for t in tris {
-            for &p in t {
-                sb.grow(p);
-            }
-        }
+        let mut sb = Bounds::of_triangles(tris);
         if sb.is_empty() {
             sb = Bounds::new(Vec3::splat(-1.0), Vec3::splat(1.0));
         }

@@ -10,7 +10,9 @@ pub enum ProtocolError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{peer}: frame exceeds the maximum of {max} bytes")]
+    #[error(
+        "{peer}: frame exceeds the maximum of {max} bytes; the peer is not speaking the locus protocol or needs a larger frame limit"
+    )]
     FrameTooLarge { peer: SocketAddr, max: usize },
     #[error("{peer}: undecodable {what} message: {message}")]
     Decode {
@@ -29,13 +31,17 @@ pub enum ProtocolError {
         expected: &'static str,
         got: String,
     },
-    #[error("{peer}: protocol version mismatch: we speak {ours}, peer speaks {theirs}")]
+    #[error(
+        "{peer}: protocol version mismatch: we speak {ours}, peer speaks {theirs}; run the same locus release on every node"
+    )]
     Version {
         peer: SocketAddr,
         ours: u32,
         theirs: u32,
     },
-    #[error("{peer}: wrong cluster token (the peer could not prove it)")]
+    #[error(
+        "{peer}: wrong cluster token (the peer could not prove it); give every node the same token"
+    )]
     WrongToken { peer: SocketAddr },
     #[error("{peer}: refused by peer: {reason}")]
     Refused { peer: SocketAddr, reason: String },

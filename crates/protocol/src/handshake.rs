@@ -139,7 +139,7 @@ pub async fn client(
             }
         };
         if !verify(token, b"locus-server", &nc, &ns, &proof_s) {
-            let reason = "wrong cluster token: the server could not prove it".to_string();
+            let reason = "wrong cluster token: the server could not prove it; give every node the same token".to_string();
             let _ = conn.write_msg(&Handshake::Refused { reason }).await;
             return Err(ProtocolError::WrongToken { peer });
         }
@@ -167,7 +167,7 @@ pub async fn server(conn: &mut Connection, token: &[u8]) -> Result<(), ProtocolE
         let nc = match next(conn, "handshake").await? {
             Handshake::Hello { version, nonce } if version == PROTOCOL_VERSION => nonce,
             Handshake::Hello { version, .. } => {
-                let reason = format!("protocol version mismatch: server speaks {PROTOCOL_VERSION}, client speaks {version}");
+                let reason = format!("protocol version mismatch: server speaks {PROTOCOL_VERSION}, client speaks {version}; run the same locus release on every node");
                 let _ = conn.write_msg(&Handshake::Refused { reason }).await;
                 return Err(ProtocolError::Version { peer, ours: PROTOCOL_VERSION, theirs: version });
             }
@@ -181,7 +181,7 @@ pub async fn server(conn: &mut Connection, token: &[u8]) -> Result<(), ProtocolE
                 Ok(())
             }
             Handshake::Proof { .. } => {
-                let reason = "wrong cluster token".to_string();
+                let reason = "wrong cluster token; give every node the same token".to_string();
                 let _ = conn.write_msg(&Handshake::Refused { reason }).await;
                 Err(ProtocolError::WrongToken { peer })
             }

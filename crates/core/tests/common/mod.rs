@@ -31,26 +31,12 @@ pub fn scene_from(
     camera: Camera,
     settings: RenderSettings,
 ) -> Scene {
-    let tris = mb
-        .faces
-        .iter()
-        .map(|f| {
-            (
-                [
-                    mb.positions[f[0] as usize],
-                    mb.positions[f[1] as usize],
-                    mb.positions[f[2] as usize],
-                ],
-                f[3],
-            )
-        })
-        .collect();
     Scene::from_triangles(
         PathBuf::from("<generated>"),
         camera,
         settings,
         materials,
-        tris,
+        mb.tagged_triangles(),
     )
 }
 
