@@ -92,10 +92,6 @@ impl Accel {
         Self { bvh, verts, ids }
     }
 
-    pub fn triangle_count(&self) -> usize {
-        self.ids.len()
-    }
-
     /// Closest hit with `t0 <= t < t1`; ties in t go to the smaller global id.
     #[inline]
     pub fn intersect(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<Hit> {

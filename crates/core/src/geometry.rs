@@ -62,9 +62,6 @@ impl Bounds {
         self.min = self.min.min(p);
         self.max = self.max.max(p);
     }
-    pub fn union(&self, o: &Bounds) -> Bounds {
-        Bounds::new(self.min.min(o.min), self.max.max(o.max))
-    }
     pub fn is_empty(&self) -> bool {
         self.min.cmpgt(self.max).any()
     }
@@ -73,10 +70,6 @@ impl Bounds {
     }
     pub fn center(&self) -> Vec3 {
         (self.min + self.max) * 0.5
-    }
-    pub fn surface_area(&self) -> f32 {
-        let e = self.extent().max(Vec3::ZERO);
-        2.0 * (e.x * e.y + e.y * e.z + e.z * e.x)
     }
     /// Largest absolute coordinate: the magnitude that float rounding
     /// errors in this box scale with.

@@ -217,34 +217,6 @@ impl Octree {
         });
         v
     }
-
-    /// Leaves whose boxes share a face with leaf `l` (adjacency for region
-    /// growing). Quadratic in the leaf count; built once per job.
-    pub fn face_neighbours(&self) -> Vec<Vec<u32>> {
-        let n = self.leaves.len();
-        let mut adj = vec![Vec::new(); n];
-        for i in 0..n {
-            for j in i + 1..n {
-                if share_face(&self.leaves[i].bounds, &self.leaves[j].bounds) {
-                    adj[i].push(j as u32);
-                    adj[j].push(i as u32);
-                }
-            }
-        }
-        adj
-    }
-}
-
-fn share_face(a: &Bounds, b: &Bounds) -> bool {
-    let mut touching = 0;
-    for k in 0..3 {
-        if a.max[k] == b.min[k] || b.max[k] == a.min[k] {
-            touching += 1;
-        } else if a.max[k] <= b.min[k] || b.max[k] <= a.min[k] {
-            return false;
-        }
-    }
-    touching == 1
 }
 
 fn child_bounds(b: &Bounds, i: usize) -> Bounds {
