@@ -62,11 +62,18 @@ impl Accel {
     /// the scene reach), because obvhs's slab test rounds in f32 and could
     /// otherwise reject a box that a ray grazes at a vertex or an edge.
     pub fn build(all: &[[Vec3; 3]], ids: &[u32], magnitude: f32) -> Self {
+        let verts: Vec<[Vec3; 3]> = ids.iter().map(|&i| all[i as usize]).collect();
+        Self::build_indexed(ids, &verts, magnitude)
+    }
+
+    /// Builds over triangles given as parallel lists of global ids and
+    /// vertices: what a farm worker holds for its region.
+    pub fn build_indexed(ids: &[u32], verts: &[[Vec3; 3]], magnitude: f32) -> Self {
+        assert_eq!(ids.len(), verts.len(), "one vertex triple per id");
         let pad = Vec3A::splat(magnitude * crate::geometry::SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
-        let boxes: Vec<Aabb> = ids
+        let boxes: Vec<Aabb> = verts
             .iter()
-            .map(|&i| {
-                let t = &all[i as usize];
+            .map(|t| {
                 let mut b = Aabb::from_points(&[t[0].into(), t[1].into(), t[2].into()]);
                 b.min -= pad;
                 b.max += pad;
@@ -79,17 +86,19 @@ impl Accel {
         } else {
             build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut core)
         };
-        let verts = bvh
-            .primitive_indices
-            .iter()
-            .map(|&p| all[ids[p as usize] as usize])
-            .collect();
-        let ids = bvh
-            .primitive_indices
-            .iter()
-            .map(|&p| ids[p as usize])
-            .collect();
+        let order = &bvh.primitive_indices;
+        let verts = order.iter().map(|&p| verts[p as usize]).collect();
+        let ids = order.iter().map(|&p| ids[p as usize]).collect();
         Self { bvh, verts, ids }
+    }
+
+    /// Number of triangles the BVH holds.
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
     }
 
     /// Closest hit with `t0 <= t < t1`; ties in t go to the smaller global id.

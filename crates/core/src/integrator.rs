@@ -1,18 +1,29 @@
 //! Unidirectional path tracing with next-event estimation on area lights,
 //! multiple importance sampling (power heuristic), Russian roulette and a
-//! maximum depth, following pbrt-v4's `PathIntegrator`.
+//! maximum depth, following pbrt-v4's `PathIntegrator`, written as a
+//! recursion over path vertices so that the farm can evaluate each vertex on
+//! a different worker and still get the same bits.
+//!
+//! The unit of work is a [`PathRay`]: "the radiance arriving at this ray's
+//! origin along it". Its answer, `L(ray)`, is computed where the ray hits:
+//! [`shade`] returns the vertex's emitted term, its next-event contribution
+//! (valid only if the shadow segment is unoccluded) and the continuation ray
+//! with its scale, and [`ShadedVertex::finish`] combines them as
+//! `(emitted + nee) + scale * L(next)`. The single-machine renderer and the
+//! farm both evaluate exactly this expression, in this order.
 //!
 //! Sampling dimensions are keyed by path vertex: vertex `d` (1 for the first
 //! surface hit) uses dimensions `vertex_dim(d) ..+6`. Where a vertex is
 //! shaded therefore never changes which random numbers it sees.
 
-use crate::accel::Accel;
+use crate::accel::{Accel, Hit};
 use crate::geometry::{Ray, cosine_hemisphere, hit_point, offset_point, spawn_offset, tri_cross};
 use crate::light::LightSet;
 use crate::sampler::SampleKey;
-use crate::scene::Scene;
+use crate::scene::{Material, Scene};
 use crate::stats::TraceStats;
 use glam::Vec3;
+use serde::{Deserialize, Serialize};
 use std::f32::consts::PI;
 
 /// Dimensions 0 and 1 jitter the camera ray inside the pixel.
@@ -36,7 +47,163 @@ fn power_heuristic(a: f32, b: f32) -> f32 {
     }
 }
 
-/// What the integrator needs to know about the scene.
+/// A ray whose answer is the radiance arriving at its origin along it:
+/// emission at its hit point (MIS-weighted against the next-event estimate
+/// that the previous vertex already made, which is why `prev_pdf` travels
+/// with it) plus everything scattered there. This is what a forwarded path
+/// query carries between workers, bit for bit.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PathRay {
+    pub ray: Ray,
+    pub key: SampleKey,
+    /// Path vertices before this ray's hit (0 for a camera ray).
+    pub depth: u32,
+    /// Solid-angle BSDF pdf of `ray.dir` at its origin; 0 for a camera ray,
+    /// whose hit on an emitter takes the full emission.
+    pub prev_pdf: f32,
+    /// Path throughput up to the origin, used only by Russian roulette.
+    pub beta: Vec3,
+}
+
+impl PathRay {
+    pub fn camera(ray: Ray, key: SampleKey) -> Self {
+        Self {
+            ray,
+            key,
+            depth: 0,
+            prev_pdf: 0.0,
+            beta: Vec3::ONE,
+        }
+    }
+}
+
+/// A shadow segment: unoccluded when nothing lies in `[0, t_max)`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShadowRay {
+    pub ray: Ray,
+    pub t_max: f32,
+}
+
+/// The local part of one path vertex, waiting for its shadow answer and the
+/// radiance of its continuation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShadedVertex {
+    pub emitted: Vec3,
+    /// Next-event contribution if the shadow segment is unoccluded.
+    pub nee: Vec3,
+    pub scale: Vec3,
+}
+
+impl ShadedVertex {
+    /// `L = (emitted + nee·[visible]) + scale · L(next)`; `next` is zero when
+    /// the path ended here or its continuation escaped.
+    #[inline(always)]
+    pub fn finish(&self, visible: bool, next: Vec3) -> Vec3 {
+        let nee = if visible { self.nee } else { Vec3::ZERO };
+        (self.emitted + nee) + self.scale * next
+    }
+}
+
+/// What shading a hit produces.
+pub struct Shaded {
+    pub vertex: ShadedVertex,
+    pub shadow: Option<ShadowRay>,
+    pub next: Option<PathRay>,
+}
+
+/// Shades the hit `h` of `q` on triangle `tri` with material `mat`.
+pub fn shade(
+    q: &PathRay,
+    h: &Hit,
+    tri: &[Vec3; 3],
+    mat: &Material,
+    lights: &LightSet,
+    max_depth: u32,
+) -> Shaded {
+    let mut out = Shaded {
+        vertex: ShadedVertex {
+            emitted: Vec3::ZERO,
+            nee: Vec3::ZERO,
+            scale: Vec3::ZERO,
+        },
+        shadow: None,
+        next: None,
+    };
+    let ng = tri_cross(tri).normalize();
+    let wo = -q.ray.dir;
+    let cos_o = ng.dot(wo);
+    if mat.is_emissive() && cos_o > 0.0 {
+        let w = if q.depth == 0 {
+            1.0
+        } else {
+            let pdf_l = lights.pdf_area(h.tri) * h.t * h.t / cos_o;
+            power_heuristic(q.prev_pdf, pdf_l)
+        };
+        out.vertex.emitted = mat.emission * w;
+    }
+    if q.depth == max_depth || mat.albedo.max_element() <= 0.0 {
+        return out;
+    }
+    let vertex = q.depth + 1;
+    let key = q.key;
+    let p = hit_point(tri, h.b1, h.b2);
+    let n = if cos_o >= 0.0 { ng } else { -ng };
+    let origin = offset_point(p, ng, n, spawn_offset(tri));
+    let base = vertex_dim(vertex);
+    let f = mat.albedo / PI;
+
+    // Next-event estimation.
+    if let Some(ls) = lights.sample(key.get1d(base), key.get2d(base + 1)) {
+        let target = ls.point + ls.normal * spawn_offset(&ls.verts);
+        let to = ls.point - p;
+        let dist2 = to.length_squared();
+        let wi = to / dist2.sqrt();
+        let cos_s = n.dot(wi);
+        let cos_l = -ls.normal.dot(wi);
+        if cos_s > 0.0 && cos_l > 0.0 && ls.pdf_area > 0.0 && dist2 > 0.0 {
+            let seg = target - origin;
+            let len = seg.length();
+            if len > 0.0 {
+                let pdf_l = ls.pdf_area * dist2 / cos_l;
+                let pdf_b = cos_s / PI;
+                let w = power_heuristic(pdf_l, pdf_b);
+                out.vertex.nee = f * ls.emission * (cos_s * w / pdf_l);
+                out.shadow = Some(ShadowRay {
+                    ray: Ray::new(origin, seg / len),
+                    t_max: len,
+                });
+            }
+        }
+    }
+
+    // Continue by cosine sampling: f cos / pdf = albedo.
+    let wi = cosine_hemisphere(n, key.get2d(base + 3));
+    let pdf_b = n.dot(wi) / PI;
+    if pdf_b.is_nan() || pdf_b <= 0.0 {
+        return out;
+    }
+    let mut scale = mat.albedo;
+    let mut beta = q.beta * mat.albedo;
+    if vertex >= 3 {
+        let q_rr = (1.0 - beta.max_element()).max(0.0);
+        if key.get1d(base + 5) < q_rr {
+            return out;
+        }
+        scale /= 1.0 - q_rr;
+        beta /= 1.0 - q_rr;
+    }
+    out.vertex.scale = scale;
+    out.next = Some(PathRay {
+        ray: Ray::new(origin, wi),
+        key,
+        depth: vertex,
+        prev_pdf: pdf_b,
+        beta,
+    });
+    out
+}
+
+/// The path tracer over one machine's whole scene.
 pub struct Integrator<'a> {
     pub scene: &'a Scene,
     pub accel: &'a Accel,
@@ -47,90 +214,39 @@ pub struct Integrator<'a> {
 impl Integrator<'_> {
     /// Radiance arriving at the camera along `ray` for sample `key`.
     pub fn radiance(&self, camera_ray: Ray, key: SampleKey, stats: &mut TraceStats) -> Vec3 {
-        let scene = self.scene;
-        let mut l = Vec3::ZERO;
-        let mut beta = Vec3::ONE;
-        let mut ray = camera_ray;
-        // BSDF pdf (solid angle) of the direction that produced `ray`, for MIS
-        // when it hits an emitter; None for the camera ray.
-        let mut prev_pdf: Option<f32> = None;
-        let mut vertex = 0u32;
         stats.camera_rays += 1;
-        while let Some(h) = self.accel.intersect(&ray, 0.0, f32::INFINITY, stats) {
-            let v = &scene.tris[h.tri as usize];
-            let mat = &scene.materials[scene.tri_material[h.tri as usize] as usize];
-            let ng = tri_cross(v).normalize();
-            let wo = -ray.dir;
-            let cos_o = ng.dot(wo);
-            if mat.is_emissive() && cos_o > 0.0 {
-                let w = match prev_pdf {
-                    None => 1.0,
-                    Some(pdf_b) => {
-                        let pdf_l = self.lights.pdf_area(h.tri) * h.t * h.t / cos_o;
-                        power_heuristic(pdf_b, pdf_l)
-                    }
-                };
-                l += beta * mat.emission * w;
-            }
-            if vertex == self.max_depth {
-                break;
-            }
-            vertex += 1;
-            if mat.albedo.max_element() <= 0.0 {
-                break;
-            }
-            let p = hit_point(v, h.b1, h.b2);
-            let n = if cos_o >= 0.0 { ng } else { -ng };
-            let off = spawn_offset(v);
-            let origin = offset_point(p, ng, n, off);
-            let base = vertex_dim(vertex);
-            let f = mat.albedo / PI;
+        self.trace(&PathRay::camera(camera_ray, key), stats)
+    }
 
-            // Next-event estimation.
-            if let Some(ls) = self
-                .lights
-                .sample(scene, key.get1d(base), key.get2d(base + 1))
-            {
-                let target = ls.point + ls.normal * spawn_offset(&scene.tris[ls.tri as usize]);
-                let to = ls.point - p;
-                let dist2 = to.length_squared();
-                let wi = to / dist2.sqrt();
-                let cos_s = n.dot(wi);
-                let cos_l = -ls.normal.dot(wi);
-                if cos_s > 0.0 && cos_l > 0.0 && ls.pdf_area > 0.0 && dist2 > 0.0 {
-                    let seg = target - origin;
-                    let len = seg.length();
-                    if len > 0.0 {
-                        stats.shadow_rays += 1;
-                        let sray = Ray::new(origin, seg / len);
-                        if !self.accel.occluded(&sray, 0.0, len, stats) {
-                            let pdf_l = ls.pdf_area * dist2 / cos_l;
-                            let pdf_b = cos_s / PI;
-                            let w = power_heuristic(pdf_l, pdf_b);
-                            l += beta * f * ls.emission * (cos_s * w / pdf_l);
-                        }
-                    }
-                }
+    /// `L(q)`; recursion depth is bounded by `max_depth`.
+    pub fn trace(&self, q: &PathRay, stats: &mut TraceStats) -> Vec3 {
+        let Some(h) = self.accel.intersect(&q.ray, 0.0, f32::INFINITY, stats) else {
+            return Vec3::ZERO;
+        };
+        let scene = self.scene;
+        let mat = &scene.materials[scene.tri_material[h.tri as usize] as usize];
+        let s = shade(
+            q,
+            &h,
+            &scene.tris[h.tri as usize],
+            mat,
+            self.lights,
+            self.max_depth,
+        );
+        let visible = match s.shadow {
+            Some(sr) => {
+                stats.shadow_rays += 1;
+                !self.accel.occluded(&sr.ray, 0.0, sr.t_max, stats)
             }
-
-            // Continue the path by cosine sampling: f cos / pdf = albedo.
-            let wi = cosine_hemisphere(n, key.get2d(base + 3));
-            let pdf_b = n.dot(wi) / PI;
-            if pdf_b.is_nan() || pdf_b <= 0.0 {
-                break;
+            None => false,
+        };
+        let next = match s.next {
+            Some(nq) => {
+                stats.indirect_rays += 1;
+                self.trace(&nq, stats)
             }
-            beta *= mat.albedo;
-            if vertex >= 3 {
-                let q = (1.0 - beta.max_element()).max(0.0);
-                if key.get1d(base + 5) < q {
-                    break;
-                }
-                beta /= 1.0 - q;
-            }
-            prev_pdf = Some(pdf_b);
-            stats.indirect_rays += 1;
-            ray = Ray::new(origin, wi);
-        }
-        l
+            None => Vec3::ZERO,
+        };
+        s.vertex.finish(visible, next)
     }
 }

@@ -24,6 +24,7 @@ pub mod light;
 pub mod mesh_io;
 pub mod metrics;
 pub mod octree;
+pub mod region;
 pub mod render;
 pub mod report;
 pub mod sampler;

@@ -156,22 +156,45 @@ impl Octree {
     /// half-open intervals that partition the part of `[t0, t1)` inside the
     /// root. A ray lying exactly in a splitting plane is assigned to the
     /// upper side, so every point of the ray belongs to exactly one leaf.
-    pub fn walk<F>(&self, ray: &Ray, t0: f32, t1: f32, mut f: F) -> ControlFlow<()>
+    pub fn walk<F>(&self, ray: &Ray, t0: f32, t1: f32, f: F) -> ControlFlow<()>
+    where
+        F: FnMut(u32, f32, f32) -> ControlFlow<()>,
+    {
+        self.walk_from(ray, t0, t1, f32::NEG_INFINITY, f)
+    }
+
+    /// The walk of [`Self::walk`] resumed at `resume`: leaves ending at or
+    /// before it are skipped and the first one is clipped to start there.
+    /// Every leaf is classified exactly as in the full walk from `t0`, so a
+    /// worker that receives a forwarded ray continues the very processor
+    /// vector its sender computed, even for rays through leaf corners.
+    pub fn walk_from<F>(&self, ray: &Ray, t0: f32, t1: f32, resume: f32, mut f: F) -> ControlFlow<()>
     where
         F: FnMut(u32, f32, f32) -> ControlFlow<()>,
     {
         let Some((a, b)) = self.bounds.clip(ray, t0, t1) else {
             return ControlFlow::Continue(());
         };
-        self.walk_node(0, ray, a, b, &mut f)
+        self.walk_node(0, ray, a, b, resume, &mut f)
     }
 
-    fn walk_node<F>(&self, n: usize, ray: &Ray, ta: f32, tb: f32, f: &mut F) -> ControlFlow<()>
+    fn walk_node<F>(
+        &self,
+        n: usize,
+        ray: &Ray,
+        ta: f32,
+        tb: f32,
+        resume: f32,
+        f: &mut F,
+    ) -> ControlFlow<()>
     where
         F: FnMut(u32, f32, f32) -> ControlFlow<()>,
     {
+        if tb <= resume {
+            return ControlFlow::Continue(());
+        }
         match self.nodes[n] {
-            Node::Leaf { leaf } => f(leaf, ta, tb),
+            Node::Leaf { leaf } => f(leaf, ta.max(resume), tb),
             Node::Interior { first_child } => {
                 let m = self.node_bounds[n].center();
                 let mut cuts = [tb; 3];
@@ -199,13 +222,65 @@ impl Octree {
                             };
                             oct |= (upper as usize) << a;
                         }
-                        self.walk_node(first_child as usize + oct, ray, start, end, f)?;
+                        self.walk_node(first_child as usize + oct, ray, start, end, resume, f)?;
                     }
                     start = end;
                 }
                 ControlFlow::Continue(())
             }
         }
+    }
+
+    /// For each leaf, the leaves sharing part of a face with it (positive
+    /// area of contact), ascending. Sibling faces are bit-identical (see
+    /// `child_bounds`), so contact is decided exactly.
+    pub fn face_neighbours(&self) -> Vec<Vec<u32>> {
+        let mut out = vec![Vec::new(); self.leaves.len()];
+        let mut stack = Vec::new();
+        for (i, l) in self.leaves.iter().enumerate() {
+            let b = l.bounds;
+            stack.clear();
+            stack.push(0usize);
+            while let Some(n) = stack.pop() {
+                let nb = self.node_bounds[n];
+                if (0..3).any(|a| nb.min[a] > b.max[a] || nb.max[a] < b.min[a]) {
+                    continue;
+                }
+                match self.nodes[n] {
+                    Node::Interior { first_child } => {
+                        stack.extend(first_child as usize..first_child as usize + 8)
+                    }
+                    Node::Leaf { leaf } if leaf as usize != i => {
+                        let touch = (0..3).filter(|&a| nb.min[a] == b.max[a] || nb.max[a] == b.min[a]);
+                        let overlap = (0..3).filter(|&a| nb.min[a] < b.max[a] && b.min[a] < nb.max[a]);
+                        if touch.count() == 1 && overlap.count() == 2 {
+                            out[i].push(leaf);
+                        }
+                    }
+                    Node::Leaf { .. } => {}
+                }
+            }
+            out[i].sort_unstable();
+        }
+        out
+    }
+
+    /// The tree without its triangle lists: the replicated top of the tree
+    /// (paper 003, section 3.3) that every worker holds.
+    pub fn without_triangles(&self) -> Octree {
+        let mut t = Octree {
+            bounds: self.bounds,
+            nodes: self.nodes.clone(),
+            node_bounds: self.node_bounds.clone(),
+            leaves: Vec::with_capacity(self.leaves.len()),
+            params: self.params,
+        };
+        t.leaves.extend(self.leaves.iter().map(|l| Leaf {
+            bounds: l.bounds,
+            depth: l.depth,
+            tris: Vec::new(),
+        }));
+        t
     }
 
     /// Leaves along the ray as `(leaf, ta, tb)`.

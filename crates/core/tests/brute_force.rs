@@ -218,3 +218,175 @@ fn leaf_restricted_queries_match_brute_force() {
         assert!(hits > min_hits[si], "subset {si}: only {hits} hits");
     }
 }
+
+/// Rays that start at leaf corners and run to other leaf corners, and rays
+/// that run along leaf faces: the hard cases for a processor vector.
+fn corner_and_face_rays(oct: &Octree, n: u64) -> Vec<Ray> {
+    let leaves = &oct.leaves;
+    let m = leaves.len() as u64;
+    (0..n)
+        .map(|i| {
+            let k = SampleKey::new(i, 7, 11);
+            let a = &leaves[(k.get1d(0) * m as f32) as usize % m as usize].bounds;
+            let b = &leaves[(k.get1d(1) * m as f32) as usize % m as usize].bounds;
+            if i % 2 == 0 {
+                let d = b.max - a.min;
+                if d.length_squared() > 0.0 {
+                    return Ray::new(a.min, d.normalize());
+                }
+            }
+            let ax = (i / 2 % 3) as usize;
+            let mut d = Vec3::ZERO;
+            d[ax] = if i % 4 < 2 { 1.0 } else { -1.0 };
+            // On two faces at once: along the edge of leaf a.
+            let mut o = a.min;
+            o[ax] = -12.0 * d[ax];
+            Ray::new(o, d)
+        })
+        .collect()
+}
+
+#[test]
+fn processor_vector_chains_match_one_bvh() {
+    use locus_core::region::{ProcessorMap, RunResult};
+    let tris = scene();
+    let oct = Octree::build(
+        &tris,
+        OctreeParams {
+            max_leaf_tris: 32,
+            max_depth: 6,
+        },
+    );
+    let all: Vec<u32> = (0..tris.len() as u32).collect();
+    let global = Accel::build(&tris, &all, 12.0);
+    let n = oct.leaf_count();
+    let mut test_rays = rays(1500, 9);
+    test_rays.extend(corner_and_face_rays(&oct, 1500));
+    for workers in [1u16, 2, 3, 5, 8] {
+        // Scattered owners stress forwarding; contiguous ones are what the
+        // partitioners produce.
+        for scattered in [false, true] {
+            let owner: Vec<u16> = (0..n)
+                .map(|l| {
+                    if scattered {
+                        (SampleKey::new(l as u64, 0, workers as u64).get1d(0) * workers as f32)
+                            as u16
+                            % workers
+                    } else {
+                        (l * workers as usize / n) as u16
+                    }
+                })
+                .collect();
+            let map = ProcessorMap::new(&oct, owner.clone());
+            let accels: Vec<Accel> = (0..workers)
+                .map(|w| {
+                    let ids = ProcessorMap::region_triangles(&oct, &owner, w);
+                    let verts: Vec<[Vec3; 3]> = ids.iter().map(|&i| tris[i as usize]).collect();
+                    Accel::build_indexed(&ids, &verts, 12.0)
+                })
+                .collect();
+            let mut st = TraceStats::default();
+            let mut forwards = 0u64;
+            for (i, r) in test_rays.iter().enumerate() {
+                let t_max = if i % 3 == 0 { 15.0 } else { f32::INFINITY };
+                for any in [false, true] {
+                    let mut got = None;
+                    let mut occluded = false;
+                    if let Some((mut w, mut t)) = map.first_owner(r, t_max) {
+                        loop {
+                            match map.trace_run(w, &accels[w as usize], r, t_max, t, any, &mut st) {
+                                RunResult::Hit(h) => {
+                                    got = Some(h);
+                                    break;
+                                }
+                                RunResult::Occluded => {
+                                    occluded = true;
+                                    break;
+                                }
+                                RunResult::Forward { to, t: t2 } => {
+                                    assert!(to != w && t2 >= t, "forward goes on along the ray");
+                                    forwards += 1;
+                                    w = to;
+                                    t = t2;
+                                }
+                                RunResult::Miss => break,
+                            }
+                        }
+                    }
+                    if any {
+                        assert_eq!(
+                            occluded,
+                            global.occluded(r, 0.0, t_max, &mut st),
+                            "{workers} workers, scattered {scattered}: occlusion of ray {i} {r:?}"
+                        );
+                    } else {
+                        assert_eq!(
+                            got,
+                            global.intersect(r, 0.0, t_max, &mut st),
+                            "{workers} workers, scattered {scattered}: ray {i} {r:?}"
+                        );
+                    }
+                }
+            }
+            assert!(workers == 1 || forwards > 300, "only {forwards} forwards");
+        }
+    }
+}
+
+#[test]
+fn resumed_walk_continues_the_same_processor_vector() {
+    let tris = scene();
+    let oct = Octree::build(
+        &tris,
+        OctreeParams {
+            max_leaf_tris: 32,
+            max_depth: 6,
+        },
+    );
+    let mut checked = 0;
+    for r in rays(500, 12).iter().chain(&corner_and_face_rays(&oct, 500)) {
+        let full = oct.leaves_along(r, 0.0, f32::INFINITY);
+        for (k, &(_, ta, _)) in full.iter().enumerate().step_by(3) {
+            let mut rest = Vec::new();
+            let _ = oct.walk_from(r, 0.0, f32::INFINITY, ta, |l, a, b| {
+                rest.push((l, a, b));
+                std::ops::ControlFlow::Continue(())
+            });
+            assert_eq!(rest, full[k..], "ray {r:?} resumed at {ta}");
+            checked += 1;
+        }
+    }
+    assert!(checked > 1000);
+}
+
+#[test]
+fn face_neighbours_match_brute_force() {
+    let tris = scene();
+    let oct = Octree::build(
+        &tris,
+        OctreeParams {
+            max_leaf_tris: 32,
+            max_depth: 6,
+        },
+    );
+    let nb = oct.face_neighbours();
+    let ls = &oct.leaves;
+    for i in 0..ls.len() {
+        let a = ls[i].bounds;
+        let brute: Vec<u32> = (0..ls.len())
+            .filter(|&j| j != i)
+            .filter(|&j| {
+                let b = ls[j].bounds;
+                let touch = (0..3).filter(|&x| a.min[x] == b.max[x] || a.max[x] == b.min[x]);
+                let overlap = (0..3).filter(|&x| a.min[x] < b.max[x] && b.min[x] < a.max[x]);
+                touch.count() == 1 && overlap.count() == 2
+            })
+            .map(|j| j as u32)
+            .collect();
+        assert_eq!(nb[i], brute, "leaf {i}");
+        assert!(!nb[i].is_empty() || ls.len() == 1);
+        for &j in &nb[i] {
+            assert!(nb[j as usize].contains(&(i as u32)), "adjacency is symmetric");
+        }
+    }
+}
