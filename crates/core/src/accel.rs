@@ -142,6 +142,7 @@ impl Accel {
         );
         stats.bvh_nodes += nodes;
         stats.tri_tests += tests;
+        stats.bvh_queries += 1;
         best
     }
 
@@ -180,6 +181,7 @@ impl Accel {
         }
         stats.bvh_nodes += nodes;
         stats.tri_tests += tests;
+        stats.bvh_queries += 1;
         hit
     }
 

@@ -30,7 +30,7 @@ impl Default for OctreeParams {
     }
 }
 
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Leaf {
     pub bounds: Bounds,
     pub depth: u32,
@@ -38,7 +38,7 @@ pub struct Leaf {
     pub tris: Vec<u32>,
 }
 
-#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 enum Node {
     /// Index of the first of eight consecutive children; child `i` has
     /// bit 0 = upper x half, bit 1 = upper y, bit 2 = upper z.
@@ -50,7 +50,7 @@ enum Node {
     },
 }
 
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Octree {
     pub bounds: Bounds,
     nodes: Vec<Node>,
@@ -168,7 +168,14 @@ impl Octree {
     /// Every leaf is classified exactly as in the full walk from `t0`, so a
     /// worker that receives a forwarded ray continues the very processor
     /// vector its sender computed, even for rays through leaf corners.
-    pub fn walk_from<F>(&self, ray: &Ray, t0: f32, t1: f32, resume: f32, mut f: F) -> ControlFlow<()>
+    pub fn walk_from<F>(
+        &self,
+        ray: &Ray,
+        t0: f32,
+        t1: f32,
+        resume: f32,
+        mut f: F,
+    ) -> ControlFlow<()>
     where
         F: FnMut(u32, f32, f32) -> ControlFlow<()>,
     {
@@ -251,8 +258,10 @@ impl Octree {
                         stack.extend(first_child as usize..first_child as usize + 8)
                     }
                     Node::Leaf { leaf } if leaf as usize != i => {
-                        let touch = (0..3).filter(|&a| nb.min[a] == b.max[a] || nb.max[a] == b.min[a]);
-                        let overlap = (0..3).filter(|&a| nb.min[a] < b.max[a] && b.min[a] < nb.max[a]);
+                        let touch =
+                            (0..3).filter(|&a| nb.min[a] == b.max[a] || nb.max[a] == b.min[a]);
+                        let overlap =
+                            (0..3).filter(|&a| nb.min[a] < b.max[a] && b.min[a] < nb.max[a]);
                         if touch.count() == 1 && overlap.count() == 2 {
                             out[i].push(leaf);
                         }

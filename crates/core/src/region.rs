@@ -21,7 +21,7 @@ use std::ops::ControlFlow;
 /// Index of a worker in a job (its place in the job's worker list).
 pub type WorkerId = u16;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ProcessorMap {
     /// The octree with empty triangle lists.
     pub tree: Octree,
@@ -79,19 +79,21 @@ impl ProcessorMap {
     ) -> RunResult {
         let mut run: Option<(f32, f32)> = None;
         let mut next: Option<(WorkerId, f32)> = None;
-        let _ = self.tree.walk_from(ray, 0.0, t_max, resume, |leaf, ta, tb| {
-            let o = self.owner[leaf as usize];
-            if o == me {
-                run = Some(match run {
-                    Some((s, _)) => (s, tb),
-                    None => (ta, tb),
-                });
-                ControlFlow::Continue(())
-            } else {
-                next = Some((o, ta));
-                ControlFlow::Break(())
-            }
-        });
+        let _ = self
+            .tree
+            .walk_from(ray, 0.0, t_max, resume, |leaf, ta, tb| {
+                let o = self.owner[leaf as usize];
+                if o == me {
+                    run = Some(match run {
+                        Some((s, _)) => (s, tb),
+                        None => (ta, tb),
+                    });
+                    ControlFlow::Continue(())
+                } else {
+                    next = Some((o, ta));
+                    ControlFlow::Break(())
+                }
+            });
         if let Some((s, e)) = run {
             if any_hit {
                 if accel.occluded(ray, s, e, stats) {

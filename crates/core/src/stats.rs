@@ -11,6 +11,9 @@ pub struct TraceStats {
     pub indirect_rays: u64,
     pub bvh_nodes: u64,
     pub tri_tests: u64,
+    /// Closest-hit and any-hit BVH queries: on one machine one per ray; on
+    /// a farm worker one per run of owned leaves it traces.
+    pub bvh_queries: u64,
     /// Samples whose radiance was NaN or infinite and were replaced by zero.
     pub invalid_samples: u64,
     pub samples: u64,
@@ -29,6 +32,7 @@ impl std::ops::AddAssign for TraceStats {
         self.indirect_rays += o.indirect_rays;
         self.bvh_nodes += o.bvh_nodes;
         self.tri_tests += o.tri_tests;
+        self.bvh_queries += o.bvh_queries;
         self.invalid_samples += o.invalid_samples;
         self.samples += o.samples;
     }

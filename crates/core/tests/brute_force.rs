@@ -386,7 +386,10 @@ fn face_neighbours_match_brute_force() {
         assert_eq!(nb[i], brute, "leaf {i}");
         assert!(!nb[i].is_empty() || ls.len() == 1);
         for &j in &nb[i] {
-            assert!(nb[j as usize].contains(&(i as u32)), "adjacency is symmetric");
+            assert!(
+                nb[j as usize].contains(&(i as u32)),
+                "adjacency is symmetric"
+            );
         }
     }
 }

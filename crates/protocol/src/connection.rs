@@ -1,12 +1,22 @@
 //! A framed TCP connection carrying postcard messages.
+//!
+//! [`Connection`] is used whole for request/response exchanges (the
+//! handshake, registration); [`Connection::into_split`] gives a reader and a
+//! writer half for the long-lived links where a reader task and a writer
+//! task run side by side.
 
 use crate::error::ProtocolError;
+use bytes::BytesMut;
 use futures_util::{SinkExt, StreamExt};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use std::net::SocketAddr;
 use tokio::net::TcpStream;
-use tokio_util::codec::{Framed, LengthDelimitedCodec};
+use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio_util::codec::{Framed, FramedRead, FramedWrite, LengthDelimitedCodec};
+
+/// Bytes a frame occupies on the wire besides its payload.
+pub const FRAME_HEADER_LEN: usize = 4;
 
 pub struct Connection {
     framed: Framed<TcpStream, LengthDelimitedCodec>,
@@ -14,16 +24,74 @@ pub struct Connection {
     max_frame: usize,
 }
 
+pub struct ConnReader {
+    framed: FramedRead<OwnedReadHalf, LengthDelimitedCodec>,
+    peer: SocketAddr,
+    max_frame: usize,
+}
+
+pub struct ConnWriter {
+    framed: FramedWrite<OwnedWriteHalf, LengthDelimitedCodec>,
+    peer: SocketAddr,
+    max_frame: usize,
+}
+
+fn codec(max_frame: usize) -> LengthDelimitedCodec {
+    LengthDelimitedCodec::builder()
+        .length_field_type::<u32>()
+        .max_frame_length(max_frame)
+        .new_codec()
+}
+
+fn decode<T: DeserializeOwned>(
+    frame: Option<std::io::Result<BytesMut>>,
+    peer: SocketAddr,
+    max: usize,
+    what: &'static str,
+) -> Result<Option<(T, usize)>, ProtocolError> {
+    let Some(frame) = frame else {
+        return Ok(None);
+    };
+    let frame = frame.map_err(|e| {
+        // The codec reports an oversized length prefix as InvalidData.
+        if e.kind() == std::io::ErrorKind::InvalidData {
+            ProtocolError::FrameTooLarge { peer, max }
+        } else {
+            ProtocolError::Io { peer, source: e }
+        }
+    })?;
+    let len = frame.len() + FRAME_HEADER_LEN;
+    postcard::from_bytes(&frame)
+        .map(|m| Some((m, len)))
+        .map_err(|e| ProtocolError::Decode {
+            peer,
+            what,
+            message: e.to_string(),
+        })
+}
+
+fn encode<T: Serialize>(
+    msg: &T,
+    peer: SocketAddr,
+    max: usize,
+) -> Result<bytes::Bytes, ProtocolError> {
+    let bytes = postcard::to_stdvec(msg).map_err(|e| ProtocolError::Decode {
+        peer,
+        what: "outgoing",
+        message: e.to_string(),
+    })?;
+    if bytes.len() > max {
+        return Err(ProtocolError::FrameTooLarge { peer, max });
+    }
+    Ok(bytes::Bytes::from(bytes))
+}
+
 impl Connection {
     pub fn new(stream: TcpStream, max_frame: usize) -> std::io::Result<Self> {
         let peer = stream.peer_addr()?;
         stream.set_nodelay(true)?;
-        let codec = LengthDelimitedCodec::builder()
-            .length_field_type::<u32>()
-            .max_frame_length(max_frame)
-            .new_codec();
         Ok(Self {
-            framed: Framed::new(stream, codec),
+            framed: Framed::new(stream, codec(max_frame)),
             peer,
             max_frame,
         })
@@ -39,50 +107,69 @@ impl Connection {
         &mut self,
         what: &'static str,
     ) -> Result<Option<T>, ProtocolError> {
-        let Some(frame) = self.framed.next().await else {
-            return Ok(None);
-        };
-        let frame = frame.map_err(|e| {
-            // The codec reports an oversized length prefix as InvalidData.
-            if e.kind() == std::io::ErrorKind::InvalidData {
-                ProtocolError::FrameTooLarge {
-                    peer: self.peer,
-                    max: self.max_frame,
-                }
-            } else {
-                ProtocolError::Io {
-                    peer: self.peer,
-                    source: e,
-                }
-            }
-        })?;
-        postcard::from_bytes(&frame)
-            .map(Some)
-            .map_err(|e| ProtocolError::Decode {
-                peer: self.peer,
-                what,
-                message: e.to_string(),
-            })
+        Ok(decode(self.framed.next().await, self.peer, self.max_frame, what)?.map(|(m, _)| m))
     }
 
-    pub async fn write_msg<T: Serialize>(&mut self, msg: &T) -> Result<(), ProtocolError> {
-        let bytes = postcard::to_stdvec(msg).map_err(|e| ProtocolError::Decode {
+    /// Writes one message; returns the bytes it took on the wire.
+    pub async fn write_msg<T: Serialize>(&mut self, msg: &T) -> Result<usize, ProtocolError> {
+        let b = encode(msg, self.peer, self.max_frame)?;
+        let n = b.len() + FRAME_HEADER_LEN;
+        self.framed.send(b).await.map_err(|e| ProtocolError::Io {
             peer: self.peer,
-            what: "outgoing",
-            message: e.to_string(),
+            source: e,
         })?;
-        if bytes.len() > self.max_frame {
-            return Err(ProtocolError::FrameTooLarge {
+        Ok(n)
+    }
+
+    /// Splits into independent reader and writer halves, keeping any bytes
+    /// already read past the last frame.
+    pub fn into_split(self) -> (ConnReader, ConnWriter) {
+        let parts = self.framed.into_parts();
+        let (rd, wr) = parts.io.into_split();
+        let mut reader = FramedRead::new(rd, parts.codec);
+        reader.read_buffer_mut().extend_from_slice(&parts.read_buf);
+        (
+            ConnReader {
+                framed: reader,
                 peer: self.peer,
-                max: self.max_frame,
-            });
-        }
-        self.framed
-            .send(bytes::Bytes::from(bytes))
-            .await
-            .map_err(|e| ProtocolError::Io {
+                max_frame: self.max_frame,
+            },
+            ConnWriter {
+                framed: FramedWrite::new(wr, codec(self.max_frame)),
                 peer: self.peer,
-                source: e,
-            })
+                max_frame: self.max_frame,
+            },
+        )
+    }
+}
+
+impl ConnReader {
+    pub fn peer(&self) -> SocketAddr {
+        self.peer
+    }
+
+    /// The next message and the bytes it took on the wire; `None` on a
+    /// clean close.
+    pub async fn read_msg<T: DeserializeOwned>(
+        &mut self,
+        what: &'static str,
+    ) -> Result<Option<(T, usize)>, ProtocolError> {
+        decode(self.framed.next().await, self.peer, self.max_frame, what)
+    }
+}
+
+impl ConnWriter {
+    pub fn peer(&self) -> SocketAddr {
+        self.peer
+    }
+
+    pub async fn write_msg<T: Serialize>(&mut self, msg: &T) -> Result<usize, ProtocolError> {
+        let b = encode(msg, self.peer, self.max_frame)?;
+        let n = b.len() + FRAME_HEADER_LEN;
+        self.framed.send(b).await.map_err(|e| ProtocolError::Io {
+            peer: self.peer,
+            source: e,
+        })?;
+        Ok(n)
     }
 }

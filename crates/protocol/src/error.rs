@@ -50,4 +50,10 @@ pub enum ProtocolError {
         peer: SocketAddr,
         what: &'static str,
     },
+    #[error("cannot connect to {addr}: {source}")]
+    Connect {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
 }

@@ -191,3 +191,18 @@ pub async fn server(conn: &mut Connection, token: &[u8]) -> Result<(), ProtocolE
     })
     .await
 }
+
+/// Connects to `addr` and runs the client side of the handshake with the
+/// current protocol version.
+pub async fn dial(addr: &str, token: &[u8], max_frame: usize) -> Result<Connection, ProtocolError> {
+    let connect_err = |source| ProtocolError::Connect {
+        addr: addr.to_string(),
+        source,
+    };
+    let stream = tokio::net::TcpStream::connect(addr)
+        .await
+        .map_err(connect_err)?;
+    let mut conn = Connection::new(stream, max_frame).map_err(connect_err)?;
+    client(&mut conn, token, PROTOCOL_VERSION).await?;
+    Ok(conn)
+}

@@ -4,19 +4,25 @@
 //! an explicit maximum length ([`connection::Connection`], after
 //! mini-redis). Every connection opens with the [`handshake`]: protocol
 //! version plus mutual proof of the shared cluster token by HMAC-SHA256 over
-//! fresh nonces, so the token never crosses the wire. postcard is not
-//! self-describing: enum variants in message families are only ever
-//! appended, never reordered or removed.
+//! fresh nonces, so the token never crosses the wire. Then one message
+//! family per kind of link: [`control`] (scheduler and workers), [`submit`]
+//! (client and scheduler), [`rays`] (worker to worker); [`report`] holds the
+//! counters a job reports. postcard is not self-describing: enum variants
+//! are only ever appended, never reordered or removed.
 
 pub mod connection;
+pub mod control;
 pub mod error;
 pub mod handshake;
+pub mod rays;
+pub mod report;
+pub mod submit;
 
-pub use connection::Connection;
+pub use connection::{ConnReader, ConnWriter, Connection};
 pub use error::ProtocolError;
 
 /// Bumped on any incompatible change of any message family.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// Default maximum frame length: large enough for a geometry shipment of a
 /// big octree leaf, small enough that a bad length prefix cannot make a peer

@@ -1,0 +1,112 @@
+//! The embedded farm: the scheduler and N workers in one process, linked
+//! over real loopback TCP with the same code the daemons run.
+
+use anyhow::Context;
+use locus_protocol::submit::{JobRequest, JobResult};
+use locus_scheduler::{Scheduler, SchedulerConfig, client};
+use locus_worker::{Worker, WorkerConfig};
+use std::net::SocketAddr;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+pub struct LocalFarm {
+    pub scheduler: SocketAddr,
+    pub token: String,
+    shutdown: CancellationToken,
+    tasks: Vec<JoinHandle<anyhow::Result<()>>>,
+}
+
+/// A token nobody else knows: the embedded farm listens on loopback only,
+/// but other local users could still connect.
+fn fresh_token() -> String {
+    let mut b = [0u8; 16];
+    if getrandom::fill(&mut b).is_err() {
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        b[..8].copy_from_slice(
+            &locus_core::sampler::mix64(t ^ std::process::id() as u64).to_le_bytes(),
+        );
+    }
+    b.iter().map(|x| format!("{x:02x}")).collect()
+}
+
+impl LocalFarm {
+    /// Starts a scheduler and `workers` workers, each tracing on
+    /// `threads_per_worker` threads, all on 127.0.0.1 with OS-chosen ports.
+    pub async fn start(workers: usize, threads_per_worker: usize) -> anyhow::Result<Self> {
+        let token = fresh_token();
+        let shutdown = CancellationToken::new();
+        let sched = Scheduler::bind(SchedulerConfig {
+            listen: "127.0.0.1:0".into(),
+            token: token.clone(),
+            max_queued_jobs: 16,
+        })
+        .await?;
+        let addr = sched.local_addr()?;
+        let mut tasks = vec![tokio::spawn(sched.run(shutdown.clone()))];
+        for i in 0..workers {
+            let w = Worker::bind(WorkerConfig {
+                scheduler: addr.to_string(),
+                listen: "127.0.0.1:0".into(),
+                advertise: None,
+                token: token.clone(),
+                threads: threads_per_worker.max(1),
+                memory_budget: 0,
+                name: format!("embedded-{i}"),
+            })
+            .await?;
+            tasks.push(tokio::spawn(w.run(shutdown.clone())));
+        }
+        Ok(Self {
+            scheduler: addr,
+            token,
+            shutdown,
+            tasks,
+        })
+    }
+
+    pub fn shutdown_token(&self) -> CancellationToken {
+        self.shutdown.clone()
+    }
+
+    pub async fn render(
+        &self,
+        req: JobRequest,
+        progress: &(dyn Fn(u32, u32) + Sync),
+    ) -> anyhow::Result<JobResult> {
+        client::submit(&self.scheduler.to_string(), &self.token, req, progress).await
+    }
+
+    /// Cancels every task and waits for them.
+    pub async fn stop(self) -> anyhow::Result<()> {
+        self.shutdown.cancel();
+        for t in self.tasks {
+            t.await.context("farm task panicked")??;
+        }
+        Ok(())
+    }
+}
+
+/// Runs one job on a fresh embedded farm in its own runtime.
+pub fn render_embedded(
+    req: JobRequest,
+    workers: usize,
+    threads_per_worker: usize,
+    progress: &(dyn Fn(u32, u32) + Sync),
+) -> anyhow::Result<JobResult> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    rt.block_on(async {
+        let farm = LocalFarm::start(workers, threads_per_worker).await?;
+        crate::cancel_on_signals(farm.shutdown_token());
+        let r = tokio::select! {
+            r = farm.render(req, progress) => r,
+            _ = farm.shutdown.cancelled() => Err(anyhow::anyhow!("interrupted")),
+        };
+        farm.stop().await?;
+        r
+    })
+}

@@ -1,0 +1,164 @@
+//! Scheduler and workers: registration, job setup with the region's
+//! geometry, demand-driven tiles, and the end-of-job report.
+//!
+//! A worker opens with [`Opening::Register`]; a client with
+//! [`Opening::Submit`] (see [`crate::submit`]). Variants are only ever
+//! appended.
+
+use crate::report::WorkerStats;
+use crate::submit::JobRequest;
+use glam::Vec3;
+use locus_core::light::LightSet;
+use locus_core::region::{ProcessorMap, WorkerId};
+use locus_core::scene::{Camera, Material};
+use serde::{Deserialize, Serialize};
+
+/// The first message on a connection to the scheduler, after the handshake.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Opening {
+    Register(Registration),
+    Submit(Box<JobRequest>),
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Registration {
+    /// Where peers reach this worker (host:port).
+    pub listen: String,
+    /// Threads its compute pool runs.
+    pub cores: u32,
+    /// Bytes of scene data it accepts to hold.
+    pub memory_budget: u64,
+    pub name: String,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum WorkerToScheduler {
+    /// The region's BVH is built and the links to every peer are up.
+    Ready {
+        job: u64,
+    },
+    /// Demand-driven tiles: the worker has room for `count` more.
+    NeedTiles {
+        job: u64,
+        count: u32,
+    },
+    TileDone(TileResult),
+    Report {
+        job: u64,
+        stats: Box<WorkerStats>,
+    },
+    Failed {
+        job: u64,
+        reason: String,
+    },
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum SchedulerToWorker {
+    Welcome {
+        worker: u32,
+    },
+    StartJob(Box<JobSetup>),
+    /// Part of the worker's region geometry; `last` closes the shipment.
+    Geometry {
+        job: u64,
+        chunk: RegionGeometry,
+        last: bool,
+    },
+    Tile(TileAssignment),
+    NoMoreTiles {
+        job: u64,
+    },
+    /// Every tile is in: report and drop the job.
+    EndJob {
+        job: u64,
+    },
+    /// The job failed elsewhere: drop it without reporting.
+    AbortJob {
+        job: u64,
+        reason: String,
+    },
+}
+
+/// Per-job knobs of the ray traffic.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Tuning {
+    /// Ray items per packet (paper 003 used 50 samples per packet).
+    pub packet_size: u32,
+    /// A partly filled packet is sent after this long.
+    pub flush_us: u32,
+    /// Camera samples a worker keeps in flight; bounds every queue.
+    pub max_inflight: u32,
+    /// Tiles a worker holds at once.
+    pub tiles_ahead: u32,
+}
+
+impl Default for Tuning {
+    fn default() -> Self {
+        Self {
+            packet_size: 50,
+            flush_us: 200,
+            max_inflight: 4096,
+            tiles_ahead: 2,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JobSetup {
+    pub job: u64,
+    pub me: WorkerId,
+    /// Peer listen addresses, indexed by worker id.
+    pub peers: Vec<String>,
+    pub camera: Camera,
+    pub spp: u32,
+    pub max_depth: u32,
+    pub seed: u64,
+    pub materials: Vec<Material>,
+    pub lights: LightSet,
+    pub map: ProcessorMap,
+    /// Largest coordinate of the scene, for BVH padding.
+    pub magnitude: f32,
+    pub tuning: Tuning,
+}
+
+/// Triangles of a region: global ids ascending, with vertices and material.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RegionGeometry {
+    pub ids: Vec<u32>,
+    pub verts: Vec<[Vec3; 3]>,
+    pub material: Vec<u32>,
+}
+
+impl RegionGeometry {
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TileAssignment {
+    pub job: u64,
+    pub tile: u32,
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+}
+
+impl TileAssignment {
+    pub fn pixels(&self) -> u32 {
+        (self.x1 - self.x0) * (self.y1 - self.y0)
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TileResult {
+    pub job: u64,
+    pub tile: u32,
+    /// Row-major pixel means over the tile.
+    pub pixels: Vec<[f32; 3]>,
+}

@@ -1,0 +1,59 @@
+//! Worker to worker: ray queries travelling along their processor vector
+//! and the answers travelling back to where each query started.
+//!
+//! A `Trace` item asks its receiver to trace the run of its own leaves that
+//! starts at `resume` on the query's ray; the receiver either answers
+//! (`Answer` to `reply`), shades a hit it found (spawning child queries of
+//! its own) or forwards the item unchanged but for `resume` to the next
+//! owner. Rays travel with their exact bits.
+
+use glam::Vec3;
+use locus_core::integrator::{PathRay, ShadowRay};
+use locus_core::region::WorkerId;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum PeerMsg {
+    /// First message on a peer link, after the handshake.
+    Hello {
+        job: u64,
+        from: WorkerId,
+    },
+    Packet(Vec<RayItem>),
+}
+
+/// Where an answer goes: the pending slot of the worker that asked.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ReplyTo {
+    pub worker: WorkerId,
+    pub slot: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Query {
+    /// Radiance arriving along the ray (see `PathRay`).
+    Path(PathRay),
+    /// Whether the segment is unoccluded.
+    Shadow(ShadowRay),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Answer {
+    Radiance(Vec3),
+    Visible(bool),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum RayItem {
+    Trace {
+        query: Query,
+        /// Where on the ray the receiver's run begins; `-inf` for a query
+        /// not yet routed.
+        resume: f32,
+        reply: ReplyTo,
+    },
+    Answer {
+        to: u32,
+        answer: Answer,
+    },
+}

@@ -1,0 +1,89 @@
+//! What a job reports: per-worker counters (all counted where the work
+//! happened) and the job's derived figures.
+
+use locus_core::stats::TraceStats;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PeerTraffic {
+    pub msgs_sent: u64,
+    pub bytes_sent: u64,
+    pub msgs_recv: u64,
+    pub bytes_recv: u64,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct WorkerStats {
+    /// Rays by kind as originated here, plus BVH work done here.
+    pub trace: TraceStats,
+    /// Runs of owned leaves traced here (each is one local BVH query).
+    pub runs_traced: u64,
+    /// Trace items sent to a peer.
+    pub forwarded_out: u64,
+    /// Trace items received from peers.
+    pub queries_in: u64,
+    /// Answers sent to peers.
+    pub answers_out: u64,
+    /// Indexed by peer worker id (own entry stays zero).
+    pub peers: Vec<PeerTraffic>,
+    pub busy_s: f64,
+    pub idle_s: f64,
+    /// Times origination stopped because a peer's queue was full.
+    pub backpressure_stalls: u64,
+    pub tiles: u32,
+    pub triangles: u64,
+    pub leaves: u32,
+    pub bvh_build_s: f64,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct WorkerSummary {
+    pub id: u16,
+    pub addr: String,
+    pub predicted_cost_share: f64,
+    /// Share of the job's BVH node visits plus triangle tests.
+    pub measured_cost_share: f64,
+    pub stats: WorkerStats,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Phases {
+    pub partition_s: f64,
+    pub distribution_s: f64,
+    pub render_s: f64,
+    pub total_s: f64,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Prediction {
+    /// Pearson correlation, over workers, of predicted and measured cost
+    /// shares, for each model.
+    pub analytic_r: f64,
+    pub sampled_r: f64,
+    /// Work counted by the sampled predictor's preview.
+    pub preview_rays: u64,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FarmReport {
+    pub scene: String,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    pub max_depth: u32,
+    pub seed: u64,
+    pub partitioner: String,
+    pub cost_model: String,
+    pub leaves: u32,
+    pub triangles: u64,
+    pub phases: Phases,
+    pub prediction: Prediction,
+    pub workers: Vec<WorkerSummary>,
+    pub totals: WorkerStats,
+    /// Max over mean of busy time.
+    pub load_imbalance: f64,
+    /// Trace items forwarded over all local traces.
+    pub forwarded_fraction: f64,
+    pub bytes_per_sample: f64,
+    pub samples_per_s: f64,
+}

@@ -1,0 +1,170 @@
+//! Predicted cost of each octree leaf, two ways.
+//!
+//! - Analytic, after MacDonald and Booth: the chance that a ray visits a
+//!   leaf grows with its surface area, and the work once inside with its
+//!   triangle count, so cost = area x (1 + triangles). The 1 keeps empty
+//!   leaves, which rays still cross, from costing nothing.
+//! - Sampled, after Reinhard, Kok and Chalmers: trace a low-resolution
+//!   preview of the real workload (camera rays, shadow rays, one bounce)
+//!   leaf by leaf, and count the BVH node visits and triangle tests each
+//!   leaf's interval costs.
+//!
+//! [`preview`] at full resolution is also how the bench measures per-leaf
+//! cost to judge both predictions.
+
+use locus_core::accel::Accel;
+use locus_core::geometry::Ray;
+use locus_core::integrator::{DIM_PIXEL, PathRay, shade};
+use locus_core::light::LightSet;
+use locus_core::octree::Octree;
+use locus_core::sampler::SampleKey;
+use locus_core::scene::Scene;
+use locus_core::stats::TraceStats;
+use std::ops::ControlFlow;
+
+pub fn analytic(tree: &Octree) -> Vec<f64> {
+    tree.leaves
+        .iter()
+        .map(|l| {
+            let e = l.bounds.extent().as_dvec3();
+            let area = 2.0 * (e.x * e.y + e.y * e.z + e.z * e.x);
+            area * (1.0 + l.tris.len() as f64)
+        })
+        .collect()
+}
+
+/// Per-leaf work of a preview and the rays it traced.
+pub struct Preview {
+    pub cost: Vec<f64>,
+    pub rays: u64,
+}
+
+/// Traces one camera sample per preview pixel (the image downscaled by
+/// `div`) with up to `bounces` diffuse bounces and a shadow ray per vertex,
+/// every ray leaf by leaf, counting per-leaf work.
+pub fn preview(
+    scene: &Scene,
+    tree: &Octree,
+    accel: &Accel,
+    lights: &LightSet,
+    div: u32,
+    bounces: u32,
+    seed: u64,
+) -> Preview {
+    use rayon::prelude::*;
+    let cam = &scene.camera;
+    let div = div.max(1);
+    let (w, h) = (cam.width.div_ceil(div), cam.height.div_ceil(div));
+    let n = tree.leaves.len();
+    let (cost, rays) = (0..h)
+        .into_par_iter()
+        .fold(
+            || (vec![0u64; n], 0u64),
+            |(mut cost, mut rays), py| {
+                for px in 0..w {
+                    let (x, y) = (
+                        (px * div).min(cam.width - 1),
+                        (py * div).min(cam.height - 1),
+                    );
+                    let key = SampleKey::new(y as u64 * cam.width as u64 + x as u64, 0, seed);
+                    let mut q = PathRay::camera(cam.ray(x, y, key.get2d(DIM_PIXEL)), key);
+                    for _ in 0..=bounces {
+                        rays += 1;
+                        let Some(hit) =
+                            leafwise(tree, accel, &q.ray, f32::INFINITY, false, &mut cost)
+                        else {
+                            break;
+                        };
+                        let t = hit.tri as usize;
+                        let mat = &scene.materials[scene.tri_material[t] as usize];
+                        let s = shade(&q, &hit, &scene.tris[t], mat, lights, bounces);
+                        if let Some(sr) = s.shadow {
+                            rays += 1;
+                            leafwise(tree, accel, &sr.ray, sr.t_max, true, &mut cost);
+                        }
+                        match s.next {
+                            Some(nq) => q = nq,
+                            None => break,
+                        }
+                    }
+                }
+                (cost, rays)
+            },
+        )
+        .reduce(
+            || (vec![0u64; n], 0u64),
+            |(mut a, ra), (b, rb)| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x += y;
+                }
+                (a, ra + rb)
+            },
+        );
+    Preview {
+        cost: cost.into_iter().map(|c| c as f64).collect(),
+        rays,
+    }
+}
+
+/// Traces `ray` one leaf interval at a time, adding each interval's BVH
+/// work to its leaf.
+fn leafwise(
+    tree: &Octree,
+    accel: &Accel,
+    ray: &Ray,
+    t_max: f32,
+    any: bool,
+    cost: &mut [u64],
+) -> Option<locus_core::accel::Hit> {
+    let mut found = None;
+    let _ = tree.walk(ray, 0.0, t_max, |leaf, ta, tb| {
+        let mut st = TraceStats::default();
+        let hit = if any {
+            accel.occluded(ray, ta, tb, &mut st).then_some(None)
+        } else {
+            accel.intersect(ray, ta, tb, &mut st).map(Some)
+        };
+        cost[leaf as usize] += st.bvh_nodes + st.tri_tests;
+        match hit {
+            Some(h) => {
+                found = h;
+                ControlFlow::Break(())
+            }
+            None => ControlFlow::Continue(()),
+        }
+    });
+    found
+}
+
+/// Pearson correlation; 0 when either side has no variance.
+pub fn correlation(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len()) as f64;
+    if n < 2.0 {
+        return 0.0;
+    }
+    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+    let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b) {
+        sab += (x - ma) * (y - mb);
+        saa += (x - ma) * (x - ma);
+        sbb += (y - mb) * (y - mb);
+    }
+    if saa == 0.0 || sbb == 0.0 {
+        0.0
+    } else {
+        sab / (saa * sbb).sqrt()
+    }
+}
+
+/// Each worker's share of the total cost under an ownership.
+pub fn shares(cost: &[f64], owner: &[u16], workers: usize) -> Vec<f64> {
+    let mut s = vec![0.0; workers];
+    for (c, &o) in cost.iter().zip(owner) {
+        s[o as usize] += c;
+    }
+    let total: f64 = s.iter().sum();
+    if total > 0.0 {
+        s.iter_mut().for_each(|x| *x /= total);
+    }
+    s
+}

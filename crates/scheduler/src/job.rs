@@ -1,0 +1,145 @@
+//! Preparing a job on the scheduler: checking the submitted scene, building
+//! the octree, predicting leaf costs, partitioning, and cutting out each
+//! worker's region geometry.
+
+use crate::{cost, partition};
+use locus_core::accel::Accel;
+use locus_core::light::LightSet;
+use locus_core::octree::Octree;
+use locus_core::region::ProcessorMap;
+use locus_core::scene::{LoadStats, Scene};
+use locus_protocol::control::RegionGeometry;
+use locus_protocol::submit::{CostModel, JobRequest, Partitioner};
+use std::path::PathBuf;
+use std::time::Instant;
+
+pub struct Prepared {
+    pub scene: Scene,
+    pub map: ProcessorMap,
+    pub lights: LightSet,
+    pub regions: Vec<RegionGeometry>,
+    pub analytic_share: Vec<f64>,
+    pub sampled_share: Vec<f64>,
+    pub preview_rays: u64,
+    pub leaves: u32,
+    pub seconds: f64,
+}
+
+/// Rejects a request that would make tracing panic or lie.
+pub fn validate(req: &JobRequest) -> Result<(), String> {
+    if req.tris.len() != req.tri_material.len() {
+        return Err(format!(
+            "{} triangles but {} material ids",
+            req.tris.len(),
+            req.tri_material.len()
+        ));
+    }
+    if let Some(i) = req
+        .tri_material
+        .iter()
+        .position(|&m| m as usize >= req.materials.len())
+    {
+        return Err(format!(
+            "triangle {i} names material {}, beyond the {} defined",
+            req.tri_material[i],
+            req.materials.len()
+        ));
+    }
+    if let Some(i) = req
+        .tris
+        .iter()
+        .position(|t| t.iter().any(|p| !p.is_finite()))
+    {
+        return Err(format!("triangle {i} has a non-finite vertex"));
+    }
+    let c = &req.camera;
+    if c.width == 0 || c.height == 0 || c.width > 1 << 15 || c.height > 1 << 15 {
+        return Err(format!(
+            "image size {}x{} is out of range",
+            c.width, c.height
+        ));
+    }
+    if !(c.position.is_finite() && c.look_at.is_finite() && c.up.is_finite() && c.fov_y.is_finite())
+    {
+        return Err("camera has a non-finite value".into());
+    }
+    let s = &req.settings;
+    if s.spp == 0 || s.spp > 1 << 20 {
+        return Err(format!("spp {} is out of range", s.spp));
+    }
+    if s.max_depth > 1024 {
+        return Err(format!(
+            "max_depth {} is out of range (at most 1024)",
+            s.max_depth
+        ));
+    }
+    let o = &req.options;
+    if o.tile_size == 0 || o.tuning.packet_size == 0 || o.tuning.max_inflight == 0 {
+        return Err("tile size, packet size and max in-flight must be positive".into());
+    }
+    Ok(())
+}
+
+pub fn prepare(req: &JobRequest, workers: usize) -> Prepared {
+    let t = Instant::now();
+    let scene = Scene {
+        path: PathBuf::from(&req.name),
+        camera: req.camera.clone(),
+        settings: req.settings.clone(),
+        materials: req.materials.clone(),
+        tris: req.tris.clone(),
+        tri_material: req.tri_material.clone(),
+        load_stats: LoadStats::default(),
+    };
+    let tree = Octree::build(&scene.tris, scene.settings.octree);
+    let all: Vec<u32> = (0..scene.tris.len() as u32).collect();
+    let accel = Accel::build(&scene.tris, &all, scene.magnitude());
+    let lights = LightSet::build(&scene);
+    let analytic = cost::analytic(&tree);
+    // About 4096 preview pixels, or every pixel of a small image.
+    let pixels = scene.camera.width as f64 * scene.camera.height as f64;
+    let div = (pixels / 4096.0).sqrt().floor().max(1.0) as u32;
+    let pv = cost::preview(
+        &scene,
+        &tree,
+        &accel,
+        &lights,
+        div,
+        1,
+        scene.settings.seed ^ 0x5eed,
+    );
+    let chosen = match req.options.cost_model {
+        CostModel::Analytic => &analytic,
+        CostModel::Sampled => &pv.cost,
+    };
+    let owner = match req.options.partitioner {
+        Partitioner::RegionGrowing => {
+            partition::region_growing(&tree, &tree.face_neighbours(), chosen, workers)
+        }
+        Partitioner::Morton => partition::morton(chosen, workers),
+    };
+    let regions = (0..workers as u16)
+        .map(|w| {
+            let ids = ProcessorMap::region_triangles(&tree, &owner, w);
+            RegionGeometry {
+                verts: ids.iter().map(|&i| scene.tris[i as usize]).collect(),
+                material: ids
+                    .iter()
+                    .map(|&i| scene.tri_material[i as usize])
+                    .collect(),
+                ids,
+            }
+        })
+        .collect();
+    Prepared {
+        analytic_share: cost::shares(&analytic, &owner, workers),
+        sampled_share: cost::shares(&pv.cost, &owner, workers),
+        preview_rays: pv.rays,
+        leaves: tree.leaves.len() as u32,
+        map: ProcessorMap::new(&tree, owner),
+        lights,
+        regions,
+        scene,
+        seconds: t.elapsed().as_secs_f64(),
+    }
+}

@@ -1,0 +1,635 @@
+//! The compute side of a worker in one job: a loop on its own thread that
+//! owns every pending query and traces batches of work on the rayon pool.
+//!
+//! Work arrives as ray items from peers, tiles from the scheduler and answers
+//! to this worker's own queries. A trace item is traced through the run of
+//! owned leaves where it resumes ([`ProcessorMap::trace_run`]): a hit is
+//! shaded here and spawns a shadow query and a continuation query whose
+//! answers come back to a pending slot; a miss is answered; a ray that
+//! leaves the region is forwarded to the next owner. When both answers of a
+//! vertex are in, its radiance goes back to whoever asked. Camera samples
+//! are the roots: a tile is done when every one of its samples is answered.
+//!
+//! Queues are bounded by construction: a worker keeps at most
+//! `max_inflight` camera samples open, each sample has at most
+//! `max_depth + 1` vertices pending and two queries in flight per vertex, so
+//! the ray items in the whole farm are bounded. Sends to peers never block
+//! this loop (a blocked loop could deadlock two workers sending to each
+//! other); a packet that does not fit its peer's channel waits here, and
+//! while any does, no new camera sample starts: that is the backpressure.
+
+use glam::{DVec3, Vec3};
+use locus_core::accel::Accel;
+use locus_core::integrator::{DIM_PIXEL, PathRay, Shaded, shade};
+use locus_core::light::LightSet;
+use locus_core::region::{ProcessorMap, RunResult, WorkerId};
+use locus_core::sampler::SampleKey;
+use locus_core::scene::{Camera, Material};
+use locus_core::stats::TraceStats;
+use locus_protocol::control::{
+    RegionGeometry, TileAssignment, TileResult, Tuning, WorkerToScheduler,
+};
+use locus_protocol::rays::{Answer, Query, RayItem, ReplyTo};
+use locus_protocol::report::WorkerStats;
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+/// Everything a worker holds for one job.
+pub struct EngineJob {
+    pub job: u64,
+    pub me: WorkerId,
+    pub workers: usize,
+    pub camera: Camera,
+    pub spp: u32,
+    pub max_depth: u32,
+    pub seed: u64,
+    pub materials: Vec<Material>,
+    pub lights: LightSet,
+    pub map: ProcessorMap,
+    pub accel: Accel,
+    pub geometry: RegionGeometry,
+    pub tuning: Tuning,
+}
+
+pub enum Input {
+    Packet { from: WorkerId, items: Vec<RayItem> },
+    Tile(TileAssignment),
+    NoMoreTiles,
+    End,
+}
+
+/// Where the engine's output goes.
+pub struct Links {
+    /// One bounded channel per peer (None for this worker itself).
+    pub peers: Vec<Option<flume::Sender<Vec<RayItem>>>>,
+    pub control: flume::Sender<WorkerToScheduler>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    #[error("worker {from} sent an answer for slot {slot}, which is not pending here")]
+    UnknownSlot { from: WorkerId, slot: u32 },
+    #[error("worker {from} sent a query that resumes in a leaf this worker does not own")]
+    Misrouted { from: WorkerId },
+    #[error("hit on triangle {0}, which is not in this region's geometry")]
+    ForeignTriangle(u32),
+    #[error("the link to {0} closed while the job was running")]
+    LinkClosed(&'static str),
+    #[error("the scheduler ended the job with {0} queries still pending")]
+    EndedEarly(usize),
+}
+
+struct Work {
+    query: Query,
+    resume: f32,
+    reply: ReplyTo,
+    /// Worker it came from (itself for local work), for error messages.
+    from: WorkerId,
+}
+
+enum Outcome {
+    Forward(WorkerId, Work),
+    Answer(ReplyTo, Answer),
+    Shaded(ReplyTo, Box<Shaded>),
+    Error(EngineError),
+}
+
+enum Wait<T> {
+    None,
+    Pending,
+    Done(T),
+}
+
+enum Slot {
+    Free,
+    Sample {
+        tile: u32,
+        index: u32,
+    },
+    Vertex {
+        reply: ReplyTo,
+        vertex: locus_core::integrator::ShadedVertex,
+        shadow: Wait<bool>,
+        next: Wait<Vec3>,
+    },
+}
+
+struct TileState {
+    a: TileAssignment,
+    values: Vec<Vec3>,
+    remaining: u32,
+    next: u32,
+}
+
+struct Engine<'a> {
+    job: &'a EngineJob,
+    links: Links,
+    slots: Vec<Slot>,
+    free: Vec<u32>,
+    tiles: Vec<Option<TileState>>,
+    inflight: usize,
+    no_more_tiles: bool,
+    out: Vec<Vec<RayItem>>,
+    out_since: Vec<Option<Instant>>,
+    stalled: Vec<VecDeque<Vec<RayItem>>>,
+    stats: WorkerStats,
+}
+
+const BATCH: usize = 8192;
+
+/// Runs the job until the scheduler ends it; returns this worker's counters
+/// (traffic bytes are added by the caller, which owns the sockets).
+pub fn run(
+    job: &EngineJob,
+    pool: &rayon::ThreadPool,
+    inbox: flume::Receiver<Input>,
+    links: Links,
+) -> Result<WorkerStats, EngineError> {
+    let n = job.workers;
+    let mut e = Engine {
+        job,
+        links,
+        slots: Vec::new(),
+        free: Vec::new(),
+        tiles: Vec::new(),
+        inflight: 0,
+        no_more_tiles: false,
+        out: (0..n).map(|_| Vec::new()).collect(),
+        out_since: vec![None; n],
+        stalled: (0..n).map(|_| VecDeque::new()).collect(),
+        stats: WorkerStats {
+            peers: vec![Default::default(); n],
+            triangles: job.geometry.len() as u64,
+            leaves: job.map.owner.iter().filter(|&&o| o == job.me).count() as u32,
+            ..Default::default()
+        },
+    };
+    let start = Instant::now();
+    e.control(WorkerToScheduler::NeedTiles {
+        job: job.job,
+        count: job.tuning.tiles_ahead.max(1),
+    })?;
+    let mut work: VecDeque<Work> = VecDeque::new();
+    let mut idle = Duration::ZERO;
+    loop {
+        e.retry_stalled()?;
+        if e.stalled.iter().all(VecDeque::is_empty) {
+            e.originate(&mut work);
+        }
+        let mut inputs = Vec::new();
+        if work.is_empty() {
+            e.flush_all()?;
+            let wait = if e.stalled.iter().any(|s| !s.is_empty()) {
+                Duration::from_millis(1)
+            } else {
+                Duration::from_millis(100)
+            };
+            let t = Instant::now();
+            match inbox.recv_timeout(wait) {
+                Ok(x) => inputs.push(x),
+                Err(flume::RecvTimeoutError::Timeout) => {}
+                Err(flume::RecvTimeoutError::Disconnected) => {
+                    return Err(EngineError::LinkClosed("the worker's inbox"));
+                }
+            }
+            idle += t.elapsed();
+        }
+        while inputs.len() < 256 {
+            match inbox.try_recv() {
+                Ok(x) => inputs.push(x),
+                Err(_) => break,
+            }
+        }
+        for input in inputs {
+            match input {
+                Input::Packet { from, items } => {
+                    for it in items {
+                        match it {
+                            RayItem::Trace {
+                                query,
+                                resume,
+                                reply,
+                            } => {
+                                e.stats.queries_in += 1;
+                                work.push_back(Work {
+                                    query,
+                                    resume,
+                                    reply,
+                                    from,
+                                });
+                            }
+                            RayItem::Answer { to, answer } => e.answer(from, to, answer)?,
+                        }
+                    }
+                }
+                Input::Tile(a) => e.add_tile(a),
+                Input::NoMoreTiles => e.no_more_tiles = true,
+                Input::End => {
+                    let pending = e.slots.len() - e.free.len();
+                    if pending > 0 || !work.is_empty() {
+                        return Err(EngineError::EndedEarly(pending + work.len()));
+                    }
+                    let total = start.elapsed();
+                    e.stats.idle_s = idle.as_secs_f64();
+                    e.stats.busy_s = (total - idle.min(total)).as_secs_f64();
+                    return Ok(e.stats);
+                }
+            }
+        }
+        if !work.is_empty() {
+            let take = work.len().min(BATCH);
+            let batch: Vec<Work> = work.drain(..take).collect();
+            let job = e.job;
+            let results: Vec<(Vec<Outcome>, TraceStats)> = pool.install(|| {
+                use rayon::prelude::*;
+                batch
+                    .into_par_iter()
+                    .chunks(32)
+                    .map(|chunk| {
+                        let mut st = TraceStats::default();
+                        let o = chunk
+                            .into_iter()
+                            .map(|w| process(job, w, &mut st))
+                            .collect();
+                        (o, st)
+                    })
+                    .collect()
+            });
+            for (outs, st) in results {
+                e.stats.trace += st;
+                for o in outs {
+                    e.apply(o, &mut work)?;
+                }
+            }
+        }
+        e.flush_due()?;
+    }
+}
+
+/// Traces one work item through this worker's run of leaves.
+fn process(job: &EngineJob, w: Work, st: &mut TraceStats) -> Outcome {
+    let (ray, t_max, any) = match &w.query {
+        Query::Path(q) => (q.ray, f32::INFINITY, false),
+        Query::Shadow(s) => (s.ray, s.t_max, true),
+    };
+    let r = job
+        .map
+        .trace_run(job.me, &job.accel, &ray, t_max, w.resume, any, st);
+    match (r, &w.query) {
+        (RunResult::Forward { to, t }, _) => {
+            if t == w.resume && w.from != job.me {
+                // The sender computed the same processor vector; a query that
+                // does not start in our leaf was corrupted or misrouted.
+                return Outcome::Error(EngineError::Misrouted { from: w.from });
+            }
+            Outcome::Forward(to, Work { resume: t, ..w })
+        }
+        (RunResult::Hit(h), Query::Path(q)) => {
+            let Ok(k) = job.geometry.ids.binary_search(&h.tri) else {
+                return Outcome::Error(EngineError::ForeignTriangle(h.tri));
+            };
+            let mat = &job.materials[job.geometry.material[k] as usize];
+            let s = shade(
+                q,
+                &h,
+                &job.geometry.verts[k],
+                mat,
+                &job.lights,
+                job.max_depth,
+            );
+            Outcome::Shaded(w.reply, Box::new(s))
+        }
+        (RunResult::Miss, Query::Path(_)) => Outcome::Answer(w.reply, Answer::Radiance(Vec3::ZERO)),
+        (RunResult::Miss, Query::Shadow(_)) => Outcome::Answer(w.reply, Answer::Visible(true)),
+        (RunResult::Occluded | RunResult::Hit(_), _) => {
+            Outcome::Answer(w.reply, Answer::Visible(false))
+        }
+    }
+}
+
+impl Engine<'_> {
+    fn control(&self, m: WorkerToScheduler) -> Result<(), EngineError> {
+        self.links
+            .control
+            .send(m)
+            .map_err(|_| EngineError::LinkClosed("the scheduler"))
+    }
+
+    fn alloc(&mut self, s: Slot) -> u32 {
+        match self.free.pop() {
+            Some(i) => {
+                self.slots[i as usize] = s;
+                i
+            }
+            None => {
+                self.slots.push(s);
+                (self.slots.len() - 1) as u32
+            }
+        }
+    }
+
+    fn add_tile(&mut self, a: TileAssignment) {
+        let n = a.pixels() * self.job.spp;
+        let st = TileState {
+            a,
+            values: vec![Vec3::ZERO; n as usize],
+            remaining: n,
+            next: 0,
+        };
+        match self.tiles.iter().position(Option::is_none) {
+            Some(i) => self.tiles[i] = Some(st),
+            None => self.tiles.push(Some(st)),
+        }
+    }
+
+    /// Starts camera samples until `max_inflight` are open.
+    fn originate(&mut self, work: &mut VecDeque<Work>) {
+        let cap = self.job.tuning.max_inflight.max(1) as usize;
+        let job = self.job;
+        let me = job.me;
+        for ti in 0..self.tiles.len() {
+            loop {
+                if self.inflight >= cap {
+                    return;
+                }
+                let Some(t) = self.tiles[ti].as_mut() else {
+                    break;
+                };
+                if t.next as usize >= t.values.len() {
+                    break;
+                }
+                let index = t.next;
+                t.next += 1;
+                let a = t.a;
+                let p = index / job.spp;
+                let s = index % job.spp;
+                let w = a.x1 - a.x0;
+                let (x, y) = (a.x0 + p % w, a.y0 + p / w);
+                let key =
+                    SampleKey::new(y as u64 * job.camera.width as u64 + x as u64, s, job.seed);
+                let ray = job.camera.ray(x, y, key.get2d(DIM_PIXEL));
+                let slot = self.alloc(Slot::Sample {
+                    tile: ti as u32,
+                    index,
+                });
+                self.inflight += 1;
+                self.stats.trace.camera_rays += 1;
+                work.push_back(Work {
+                    query: Query::Path(PathRay::camera(ray, key)),
+                    resume: f32::NEG_INFINITY,
+                    reply: ReplyTo { worker: me, slot },
+                    from: me,
+                });
+            }
+        }
+    }
+
+    fn apply(&mut self, o: Outcome, work: &mut VecDeque<Work>) -> Result<(), EngineError> {
+        let me = self.job.me;
+        match o {
+            Outcome::Error(e) => return Err(e),
+            Outcome::Forward(to, w) => {
+                self.stats.forwarded_out += 1;
+                self.push_out(
+                    to,
+                    RayItem::Trace {
+                        query: w.query,
+                        resume: w.resume,
+                        reply: w.reply,
+                    },
+                )?;
+            }
+            Outcome::Answer(reply, a) => self.deliver(reply, a)?,
+            Outcome::Shaded(reply, s) => {
+                if s.shadow.is_none() && s.next.is_none() {
+                    let l = s.vertex.finish(false, Vec3::ZERO);
+                    return self.deliver(reply, Answer::Radiance(l));
+                }
+                let slot = self.alloc(Slot::Vertex {
+                    reply,
+                    vertex: s.vertex,
+                    shadow: if s.shadow.is_some() {
+                        Wait::Pending
+                    } else {
+                        Wait::None
+                    },
+                    next: if s.next.is_some() {
+                        Wait::Pending
+                    } else {
+                        Wait::None
+                    },
+                });
+                let reply = ReplyTo { worker: me, slot };
+                if let Some(sr) = s.shadow {
+                    self.stats.trace.shadow_rays += 1;
+                    work.push_back(Work {
+                        query: Query::Shadow(sr),
+                        resume: f32::NEG_INFINITY,
+                        reply,
+                        from: me,
+                    });
+                }
+                if let Some(nq) = s.next {
+                    self.stats.trace.indirect_rays += 1;
+                    work.push_back(Work {
+                        query: Query::Path(nq),
+                        resume: f32::NEG_INFINITY,
+                        reply,
+                        from: me,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn deliver(&mut self, reply: ReplyTo, a: Answer) -> Result<(), EngineError> {
+        if reply.worker == self.job.me {
+            self.answer(reply.worker, reply.slot, a)
+        } else {
+            self.stats.answers_out += 1;
+            self.push_out(
+                reply.worker,
+                RayItem::Answer {
+                    to: reply.slot,
+                    answer: a,
+                },
+            )
+        }
+    }
+
+    /// Applies an answer to a pending slot; completed vertices answer their
+    /// own asker in turn (iteratively: a chain can be max_depth long).
+    fn answer(&mut self, from: WorkerId, slot: u32, a: Answer) -> Result<(), EngineError> {
+        let mut todo = vec![(from, slot, a)];
+        while let Some((from, slot, a)) = todo.pop() {
+            let bad = EngineError::UnknownSlot { from, slot };
+            let Some(s) = self.slots.get_mut(slot as usize) else {
+                return Err(bad);
+            };
+            match s {
+                Slot::Free => return Err(bad),
+                Slot::Sample { tile, index } => {
+                    let Answer::Radiance(l) = a else {
+                        return Err(bad);
+                    };
+                    let (tile, index) = (*tile, *index);
+                    *s = Slot::Free;
+                    self.free.push(slot);
+                    self.inflight -= 1;
+                    let Some(t) = self.tiles[tile as usize].as_mut() else {
+                        return Err(bad);
+                    };
+                    t.values[index as usize] = l;
+                    t.remaining -= 1;
+                    if t.remaining == 0 {
+                        self.finish_tile(tile)?;
+                    }
+                }
+                Slot::Vertex {
+                    reply,
+                    vertex,
+                    shadow,
+                    next,
+                } => {
+                    match (a, &*shadow, &*next) {
+                        (Answer::Visible(v), Wait::Pending, _) => *shadow = Wait::Done(v),
+                        (Answer::Radiance(l), _, Wait::Pending) => *next = Wait::Done(l),
+                        _ => return Err(bad),
+                    }
+                    if matches!(shadow, Wait::Pending) || matches!(next, Wait::Pending) {
+                        continue;
+                    }
+                    let visible = matches!(shadow, Wait::Done(true));
+                    let nl = match next {
+                        Wait::Done(l) => *l,
+                        _ => Vec3::ZERO,
+                    };
+                    let l = vertex.finish(visible, nl);
+                    let reply = *reply;
+                    *s = Slot::Free;
+                    self.free.push(slot);
+                    if reply.worker == self.job.me {
+                        todo.push((reply.worker, reply.slot, Answer::Radiance(l)));
+                    } else {
+                        self.deliver(reply, Answer::Radiance(l))?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Sums each pixel's samples in index order, exactly as the
+    /// single-machine renderer does.
+    fn finish_tile(&mut self, tile: u32) -> Result<(), EngineError> {
+        let Some(t) = self.tiles[tile as usize].take() else {
+            return Ok(());
+        };
+        let spp = self.job.spp as usize;
+        let pixels = t
+            .values
+            .chunks(spp)
+            .map(|samples| {
+                let mut sum = DVec3::ZERO;
+                for l in samples {
+                    self.stats.trace.samples += 1;
+                    if l.is_finite() {
+                        sum += l.as_dvec3();
+                    } else {
+                        self.stats.trace.invalid_samples += 1;
+                    }
+                }
+                let m = sum / spp as f64;
+                [m.x as f32, m.y as f32, m.z as f32]
+            })
+            .collect();
+        self.stats.tiles += 1;
+        self.control(WorkerToScheduler::TileDone(TileResult {
+            job: self.job.job,
+            tile: t.a.tile,
+            pixels,
+        }))?;
+        if !self.no_more_tiles {
+            self.control(WorkerToScheduler::NeedTiles {
+                job: self.job.job,
+                count: 1,
+            })?;
+        }
+        Ok(())
+    }
+
+    fn push_out(&mut self, peer: WorkerId, item: RayItem) -> Result<(), EngineError> {
+        let p = peer as usize;
+        if self.out[p].is_empty() {
+            self.out_since[p] = Some(Instant::now());
+        }
+        self.out[p].push(item);
+        if self.out[p].len() >= self.job.tuning.packet_size.max(1) as usize {
+            self.send(p)?;
+        }
+        Ok(())
+    }
+
+    fn send(&mut self, p: usize) -> Result<(), EngineError> {
+        let items = std::mem::take(&mut self.out[p]);
+        self.out_since[p] = None;
+        if items.is_empty() {
+            return Ok(());
+        }
+        if !self.stalled[p].is_empty() {
+            self.stalled[p].push_back(items);
+            return Ok(());
+        }
+        let Some(tx) = &self.links.peers[p] else {
+            return Err(EngineError::LinkClosed("a peer"));
+        };
+        match tx.try_send(items) {
+            Ok(()) => Ok(()),
+            Err(flume::TrySendError::Full(items)) => {
+                self.stats.backpressure_stalls += 1;
+                self.stalled[p].push_back(items);
+                Ok(())
+            }
+            Err(flume::TrySendError::Disconnected(_)) => Err(EngineError::LinkClosed("a peer")),
+        }
+    }
+
+    fn retry_stalled(&mut self) -> Result<(), EngineError> {
+        for p in 0..self.stalled.len() {
+            while let Some(items) = self.stalled[p].pop_front() {
+                let Some(tx) = &self.links.peers[p] else {
+                    return Err(EngineError::LinkClosed("a peer"));
+                };
+                match tx.try_send(items) {
+                    Ok(()) => {}
+                    Err(flume::TrySendError::Full(items)) => {
+                        self.stalled[p].push_front(items);
+                        break;
+                    }
+                    Err(flume::TrySendError::Disconnected(_)) => {
+                        return Err(EngineError::LinkClosed("a peer"));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn flush_due(&mut self) -> Result<(), EngineError> {
+        let deadline = Duration::from_micros(self.job.tuning.flush_us as u64);
+        for p in 0..self.out.len() {
+            if self.out_since[p].is_some_and(|t| t.elapsed() >= deadline) {
+                self.send(p)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn flush_all(&mut self) -> Result<(), EngineError> {
+        for p in 0..self.out.len() {
+            self.send(p)?;
+        }
+        Ok(())
+    }
+}

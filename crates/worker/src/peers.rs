@@ -1,0 +1,177 @@
+//! Links between workers: one TCP connection per ordered pair, written by
+//! the dialing side and read by the accepting side, each opened with the
+//! authenticated handshake and a `Hello` naming the job and the sender.
+//! Frames and bytes are counted per peer as they cross the socket.
+
+use crate::engine::Input;
+use locus_protocol::rays::{PeerMsg, RayItem};
+use locus_protocol::report::PeerTraffic;
+use locus_protocol::{Connection, MAX_FRAME_LEN, ProtocolError, handshake};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::Duration;
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, warn};
+
+/// What incoming links of the running job feed.
+pub struct JobLink {
+    pub job: u64,
+    pub inbox: flume::Sender<Input>,
+    pub traffic: Arc<Traffic>,
+    pub cancel: CancellationToken,
+}
+
+#[derive(Default)]
+struct Counters {
+    msgs_sent: AtomicU64,
+    bytes_sent: AtomicU64,
+    msgs_recv: AtomicU64,
+    bytes_recv: AtomicU64,
+}
+
+/// Per-peer frame and byte counters.
+pub struct Traffic(Vec<Counters>);
+
+impl Traffic {
+    pub fn new(n: usize) -> Self {
+        Self((0..n).map(|_| Counters::default()).collect())
+    }
+
+    pub fn snapshot(&self) -> Vec<PeerTraffic> {
+        self.0
+            .iter()
+            .map(|c| PeerTraffic {
+                msgs_sent: c.msgs_sent.load(Relaxed),
+                bytes_sent: c.bytes_sent.load(Relaxed),
+                msgs_recv: c.msgs_recv.load(Relaxed),
+                bytes_recv: c.bytes_recv.load(Relaxed),
+            })
+            .collect()
+    }
+}
+
+/// Dials peer `to` and starts the task that writes our packets to it; the
+/// task ends when the engine drops its sender, after the last write.
+#[allow(clippy::too_many_arguments)]
+pub async fn dial(
+    addr: &str,
+    token: &[u8],
+    job: u64,
+    me: u16,
+    to: u16,
+    rx: flume::Receiver<Vec<RayItem>>,
+    traffic: Arc<Traffic>,
+    cancel: CancellationToken,
+) -> Result<tokio::task::JoinHandle<()>, ProtocolError> {
+    let mut conn = handshake::dial(addr, token, MAX_FRAME_LEN).await?;
+    conn.write_msg(&PeerMsg::Hello { job, from: me }).await?;
+    let (_r, mut w) = conn.into_split();
+    Ok(tokio::spawn(async move {
+        let c = &traffic.0[to as usize];
+        loop {
+            let items = tokio::select! {
+                _ = cancel.cancelled() => break,
+                m = rx.recv_async() => match m { Ok(m) => m, Err(_) => break },
+            };
+            match w.write_msg(&PeerMsg::Packet(items)).await {
+                Ok(n) => {
+                    c.msgs_sent.fetch_add(1, Relaxed);
+                    c.bytes_sent.fetch_add(n as u64, Relaxed);
+                }
+                Err(e) => {
+                    warn!(peer = to, "peer link: {e}");
+                    cancel.cancel();
+                    break;
+                }
+            }
+        }
+        drop(_r);
+    }))
+}
+
+pub async fn accept_loop(
+    listener: TcpListener,
+    token: Vec<u8>,
+    job: watch::Receiver<Option<Arc<JobLink>>>,
+    shutdown: CancellationToken,
+) {
+    let token = Arc::new(token);
+    loop {
+        let (stream, addr) = tokio::select! {
+            _ = shutdown.cancelled() => return,
+            r = listener.accept() => match r {
+                Ok(x) => x,
+                Err(e) => {
+                    warn!("peer listener: {e}");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+        };
+        let (token, job, shutdown) = (token.clone(), job.clone(), shutdown.clone());
+        tokio::spawn(async move {
+            if let Err(e) = serve_peer(stream, &token, job, shutdown).await {
+                warn!(%addr, "peer link dropped: {e}");
+            }
+        });
+    }
+}
+
+async fn serve_peer(
+    stream: tokio::net::TcpStream,
+    token: &[u8],
+    mut job: watch::Receiver<Option<Arc<JobLink>>>,
+    shutdown: CancellationToken,
+) -> anyhow::Result<()> {
+    let mut conn = Connection::new(stream, MAX_FRAME_LEN)?;
+    handshake::server(&mut conn, token).await?;
+    let hello = tokio::time::timeout(
+        handshake::HANDSHAKE_TIMEOUT,
+        conn.read_msg::<PeerMsg>("peer"),
+    )
+    .await
+    .map_err(|_| anyhow::anyhow!("{}: no Hello after the handshake", conn.peer()))??;
+    let Some(PeerMsg::Hello { job: id, from }) = hello else {
+        anyhow::bail!("{}: expected Hello, got {hello:?}", conn.peer());
+    };
+    // The peer may have started the job a moment before we did.
+    let link = tokio::time::timeout(
+        Duration::from_secs(60),
+        job.wait_for(|j| j.as_ref().is_some_and(|j| j.job == id)),
+    )
+    .await
+    .map_err(|_| anyhow::anyhow!("{}: job {id} never started here", conn.peer()))??
+    .clone()
+    .expect("waited for Some");
+    if from as usize >= link.traffic.0.len() {
+        anyhow::bail!("{}: Hello from worker {from}, outside the job", conn.peer());
+    }
+    debug!(from, job = id, "peer link up");
+    let (mut r, _w) = conn.into_split();
+    let c = &link.traffic.0[from as usize];
+    loop {
+        let m = tokio::select! {
+            _ = shutdown.cancelled() => return Ok(()),
+            _ = link.cancel.cancelled() => return Ok(()),
+            m = r.read_msg::<PeerMsg>("peer") => m?,
+        };
+        match m {
+            None => return Ok(()),
+            Some((PeerMsg::Packet(items), n)) => {
+                c.msgs_recv.fetch_add(1, Relaxed);
+                c.bytes_recv.fetch_add(n as u64, Relaxed);
+                if link
+                    .inbox
+                    .send_async(Input::Packet { from, items })
+                    .await
+                    .is_err()
+                {
+                    return Ok(());
+                }
+            }
+            Some((other, _)) => anyhow::bail!("{}: unexpected {other:?}", r.peer()),
+        }
+    }
+}
