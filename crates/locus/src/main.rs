@@ -1,12 +1,14 @@
 //! `locus`: the command line of the locus render farm.
 //!
-//! Subcommands: `render` (single machine for now; the farm arrives with the
-//! scheduler and worker crates), `diff` (error metrics between two EXRs),
-//! `gen` (writes generated scenes) and `bench` (tracing throughput).
-//! Logs go to stderr through `tracing`, filtered by `RUST_LOG`.
+//! Subcommands: `render` (single machine, or the embedded farm with
+//! `--workers N`), the daemons `scheduler` and `worker`, `submit` (a job to a
+//! running farm), `diff` (error metrics between two EXRs), `gen` (writes
+//! generated scenes) and `bench` (tracing throughput; `bench farm` for the
+//! farm). Logs go to stderr through `tracing`, filtered by `RUST_LOG`.
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
+use locus::config::Config;
 use locus_core::bench;
 use locus_core::generate::{RoomParams, write_room};
 use locus_core::image_io::Image;
@@ -14,9 +16,15 @@ use locus_core::metrics::compare;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::report::{PhaseTimes, RenderReport};
 use locus_core::scene::Scene;
+use locus_protocol::control::Tuning;
+use locus_protocol::report::FarmReport;
+use locus_protocol::submit::{CostModel, JobOptions, JobResult, Partitioner};
+use locus_scheduler::{Scheduler, SchedulerConfig};
+use locus_worker::{Worker, WorkerConfig};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+use tokio_util::sync::CancellationToken;
 
 #[derive(Parser)]
 #[command(
@@ -42,6 +50,109 @@ enum Cmd {
     },
     /// Measure BVH build, ray throughput against raw obvhs, and samples/s.
     Bench(BenchArgs),
+    /// Run the scheduler daemon.
+    Scheduler(SchedulerArgs),
+    /// Run a worker daemon.
+    Worker(WorkerArgs),
+    /// Submit a scene to a running farm and write the result.
+    Submit(SubmitArgs),
+}
+
+#[derive(clap::Args, Clone)]
+struct TokenArgs {
+    /// Shared cluster token (or LOCUS_TOKEN, or `token` in --config).
+    #[arg(long, env = "LOCUS_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// A TOML config file (see configs/).
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+#[derive(clap::Args)]
+struct SchedulerArgs {
+    /// host:port to listen on (port 0 picks one and logs it).
+    #[arg(long)]
+    listen: Option<String>,
+    #[command(flatten)]
+    auth: TokenArgs,
+}
+
+#[derive(clap::Args)]
+struct WorkerArgs {
+    /// The scheduler's host:port.
+    #[arg(long)]
+    scheduler: Option<String>,
+    /// host:port for peer links (port 0 picks one).
+    #[arg(long)]
+    listen: Option<String>,
+    /// Address peers should dial, if not the bound one.
+    #[arg(long)]
+    advertise: Option<String>,
+    /// Tracing threads (0: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    #[command(flatten)]
+    auth: TokenArgs,
+}
+
+#[derive(clap::Args, Clone)]
+struct FarmArgs {
+    /// Partitioner of octree leaves into regions.
+    #[arg(long, value_enum, default_value = "region-growing")]
+    partitioner: PartitionerArg,
+    /// Leaf cost prediction the partitioner balances.
+    #[arg(long, value_enum, default_value = "sampled")]
+    cost: CostArg,
+    /// Ray items per packet.
+    #[arg(long, default_value_t = 50)]
+    packet_size: u32,
+    /// Flush deadline of a partly filled packet, in microseconds.
+    #[arg(long, default_value_t = 200)]
+    flush_us: u32,
+    /// Camera samples each worker keeps in flight.
+    #[arg(long, default_value_t = 4096)]
+    max_inflight: u32,
+    #[arg(long, default_value_t = 16)]
+    tile_size: u32,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy)]
+enum PartitionerArg {
+    RegionGrowing,
+    Morton,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy)]
+enum CostArg {
+    Analytic,
+    Sampled,
+}
+
+#[derive(clap::Args)]
+struct SubmitArgs {
+    scene: PathBuf,
+    /// The scheduler's host:port.
+    #[arg(long)]
+    scheduler: Option<String>,
+    #[arg(short, long, default_value = "out.exr")]
+    output: PathBuf,
+    /// Workers to use (0: every registered worker).
+    #[arg(long, default_value_t = 0)]
+    workers: u32,
+    #[arg(long)]
+    spp: Option<u32>,
+    #[arg(long)]
+    max_depth: Option<u32>,
+    #[arg(long)]
+    seed: Option<u64>,
+    #[arg(long)]
+    reference: Option<PathBuf>,
+    #[arg(long, default_value_t = 1.0)]
+    exposure: f32,
+    #[command(flatten)]
+    farm: FarmArgs,
+    #[command(flatten)]
+    auth: TokenArgs,
 }
 
 #[derive(clap::Args)]
@@ -64,6 +175,16 @@ struct RenderArgs {
     /// Exposure multiplier for the PNG preview.
     #[arg(long, default_value_t = 1.0)]
     exposure: f32,
+    /// Render on the embedded farm with this many workers (scheduler and
+    /// workers in this process, linked over loopback TCP); 0 renders on
+    /// this machine without the farm.
+    #[arg(long, default_value_t = 0)]
+    workers: usize,
+    /// Tracing threads per embedded worker (0: cores / workers, at least 1).
+    #[arg(long, default_value_t = 0)]
+    threads_per_worker: usize,
+    #[command(flatten)]
+    farm: FarmArgs,
 }
 
 #[derive(Subcommand)]
@@ -112,6 +233,9 @@ fn main() {
         Cmd::Diff { image, reference } => cmd_diff(&image, &reference),
         Cmd::Gen { what } => cmd_gen(what),
         Cmd::Bench(a) => cmd_bench(a),
+        Cmd::Scheduler(a) => cmd_scheduler(a),
+        Cmd::Worker(a) => cmd_worker(a),
+        Cmd::Submit(a) => cmd_submit(a),
     };
     if let Err(e) = r {
         tracing::error!("{e:#}");
@@ -140,6 +264,9 @@ fn sibling(path: &Path, ext: &str) -> PathBuf {
 }
 
 fn cmd_render(a: RenderArgs) -> Result<()> {
+    if a.workers > 0 {
+        return cmd_render_farm(a);
+    }
     let t = Instant::now();
     let scene = Scene::load(&a.scene)?;
     let load_s = t.elapsed().as_secs_f64();
@@ -326,4 +453,261 @@ fn cmd_bench(a: BenchArgs) -> Result<()> {
             .with_context(|| format!("writing {}", j.display()))?;
     }
     Ok(())
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?)
+}
+
+impl FarmArgs {
+    fn job_options(&self, workers: u32) -> JobOptions {
+        JobOptions {
+            workers,
+            partitioner: match self.partitioner {
+                PartitionerArg::RegionGrowing => Partitioner::RegionGrowing,
+                PartitionerArg::Morton => Partitioner::Morton,
+            },
+            cost_model: match self.cost {
+                CostArg::Analytic => CostModel::Analytic,
+                CostArg::Sampled => CostModel::Sampled,
+            },
+            tile_size: self.tile_size.max(1),
+            tuning: Tuning {
+                packet_size: self.packet_size.max(1),
+                flush_us: self.flush_us,
+                max_inflight: self.max_inflight.max(1),
+                ..Tuning::default()
+            },
+        }
+    }
+}
+
+fn load_for_farm(
+    path: &Path,
+    spp: Option<u32>,
+    max_depth: Option<u32>,
+    seed: Option<u64>,
+) -> Result<Scene> {
+    let mut scene = Scene::load(path)?;
+    if let Some(s) = spp {
+        scene.settings.spp = s.max(1);
+    }
+    if let Some(d) = max_depth {
+        scene.settings.max_depth = d;
+    }
+    if let Some(s) = seed {
+        scene.settings.seed = s;
+    }
+    Ok(scene)
+}
+
+fn tile_progress(total_hint: u64) -> (Option<indicatif::ProgressBar>, impl Fn(u32, u32) + Sync) {
+    let pb = progress_bar(total_hint, "farm");
+    let pb2 = pb.clone();
+    (pb, move |done: u32, total: u32| {
+        if let Some(pb) = &pb2 {
+            pb.set_length(total as u64);
+            pb.set_position(done as u64);
+        }
+    })
+}
+
+fn cmd_render_farm(a: RenderArgs) -> Result<()> {
+    let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
+    let reference = match &a.reference {
+        Some(p) => Some(Image::read_exr(p)?),
+        None => None,
+    };
+    let threads = if a.threads_per_worker > 0 {
+        a.threads_per_worker
+    } else {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        (cores / a.workers).max(1)
+    };
+    let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers as u32));
+    let (pb, progress) = tile_progress(0);
+    let result = locus::farm::render_embedded(req, a.workers, threads, &progress)?;
+    if let Some(pb) = pb {
+        pb.finish_and_clear();
+    }
+    write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
+}
+
+/// The JSON a farm render writes beside its EXR.
+#[derive(serde::Serialize)]
+struct FarmOutput<'a> {
+    scene: String,
+    image: String,
+    farm: &'a FarmReport,
+    error_vs_reference: Option<locus_core::metrics::ErrorMetrics>,
+}
+
+fn write_farm_result(
+    scene: &Path,
+    output: &Path,
+    exposure: f32,
+    r: &JobResult,
+    reference: Option<&Image>,
+) -> Result<()> {
+    let image = Image {
+        width: r.width,
+        height: r.height,
+        pixels: r.pixels.clone(),
+    };
+    if let Some(dir) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    image.write_exr(output)?;
+    let png = sibling(output, "png");
+    image.write_png(&png, exposure)?;
+    let error = match reference {
+        Some(re) => Some(compare(&image, re)?),
+        None => None,
+    };
+    let json = sibling(output, "json");
+    let out = FarmOutput {
+        scene: scene.display().to_string(),
+        image: output.display().to_string(),
+        farm: &r.report,
+        error_vs_reference: error,
+    };
+    std::fs::write(&json, serde_json::to_string_pretty(&out)?)
+        .with_context(|| format!("writing {}", json.display()))?;
+    let f = &r.report;
+    println!(
+        "wrote {} ({}x{}, {} spp, {} workers, {}) with {} and {}",
+        output.display(),
+        r.width,
+        r.height,
+        f.spp,
+        f.workers.len(),
+        f.partitioner,
+        png.display(),
+        json.display()
+    );
+    println!(
+        "  partition {:.3}s  distribution {:.3}s  render {:.3}s  {:.0} samples/s",
+        f.phases.partition_s, f.phases.distribution_s, f.phases.render_s, f.samples_per_s
+    );
+    println!(
+        "  load imbalance {:.3}  forwarded per ray {:.3}  bytes per sample {:.1}  prediction r: analytic {:.2}, sampled {:.2}",
+        f.load_imbalance,
+        f.forwarded_fraction,
+        f.bytes_per_sample,
+        f.prediction.analytic_r,
+        f.prediction.sampled_r
+    );
+    println!(
+        "  worker  leaves  triangles  rays-local  fwd-out  queries-in  MB-sent  busy-s  idle-s  pred%  meas%"
+    );
+    for w in &f.workers {
+        let s = &w.stats;
+        let sent: u64 = s.peers.iter().map(|p| p.bytes_sent).sum();
+        println!(
+            "  {:>6}  {:>6}  {:>9}  {:>10}  {:>7}  {:>10}  {:>7.2}  {:>6.2}  {:>6.2}  {:>5.1}  {:>5.1}",
+            w.id,
+            s.leaves,
+            s.triangles,
+            s.trace.bvh_queries,
+            s.forwarded_out,
+            s.queries_in,
+            sent as f64 / 1e6,
+            s.busy_s,
+            s.idle_s,
+            w.predicted_cost_share * 100.0,
+            w.measured_cost_share * 100.0
+        );
+    }
+    if let Some(e) = error {
+        println!("error vs reference: {e}");
+    }
+    Ok(())
+}
+
+fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
+    let cfg = Config::load(a.auth.config.as_deref())?;
+    let token = cfg.token(a.auth.token.clone(), a.auth.config.as_ref())?;
+    let listen = a
+        .listen
+        .or(cfg.scheduler.listen.clone())
+        .context("no listen address: pass --listen or set [scheduler] listen in the config")?;
+    runtime()?.block_on(async {
+        let s = Scheduler::bind(SchedulerConfig {
+            listen,
+            token,
+            max_queued_jobs: cfg.scheduler.max_queued_jobs.unwrap_or(16),
+        })
+        .await?;
+        // Scripts read the bound address from this line.
+        println!("scheduler listening on {}", s.local_addr()?);
+        let shutdown = CancellationToken::new();
+        locus::cancel_on_signals(shutdown.clone());
+        s.run(shutdown).await
+    })
+}
+
+fn cmd_worker(a: WorkerArgs) -> Result<()> {
+    let cfg = Config::load(a.auth.config.as_deref())?;
+    let token = cfg.token(a.auth.token.clone(), a.auth.config.as_ref())?;
+    let w = &cfg.worker;
+    let scheduler = a.scheduler.or(w.scheduler.clone()).context(
+        "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
+    )?;
+    let listen = a
+        .listen
+        .or(w.listen.clone())
+        .context("no listen address: pass --listen or set [worker] listen in the config")?;
+    let wc = WorkerConfig {
+        scheduler,
+        listen,
+        advertise: a.advertise.or(w.advertise.clone()),
+        token,
+        threads: a.threads.or(w.threads).unwrap_or(0),
+        memory_budget: w.memory_budget.unwrap_or(0),
+        name: w
+            .name
+            .clone()
+            .unwrap_or_else(|| format!("worker-{}", std::process::id())),
+    };
+    runtime()?.block_on(async {
+        let worker = Worker::bind(wc).await?;
+        println!("worker listening on {}", worker.local_addr()?);
+        let shutdown = CancellationToken::new();
+        locus::cancel_on_signals(shutdown.clone());
+        worker.run(shutdown).await
+    })
+}
+
+fn cmd_submit(a: SubmitArgs) -> Result<()> {
+    let cfg = Config::load(a.auth.config.as_deref())?;
+    let token = cfg.token(a.auth.token.clone(), a.auth.config.as_ref())?;
+    let scheduler = a
+        .scheduler
+        .clone()
+        .or(cfg.worker.scheduler.clone())
+        .context(
+            "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
+        )?;
+    let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
+    let reference = match &a.reference {
+        Some(p) => Some(Image::read_exr(p)?),
+        None => None,
+    };
+    let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
+    let (pb, progress) = tile_progress(0);
+    let result = runtime()?.block_on(async {
+        let shutdown = CancellationToken::new();
+        locus::cancel_on_signals(shutdown.clone());
+        tokio::select! {
+            r = locus_scheduler::client::submit(&scheduler, &token, req, &progress) => r,
+            _ = shutdown.cancelled() => Err(anyhow::anyhow!("interrupted")),
+        }
+    })?;
+    if let Some(pb) = pb {
+        pb.finish_and_clear();
+    }
+    write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
 }

@@ -116,3 +116,130 @@ fn bad_scene_fails_with_file_and_line() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing.exr"));
 }
+
+/// Reads the first stdout line of a daemon ("... listening on ADDR").
+fn listening_addr(child: &mut std::process::Child) -> String {
+    use std::io::BufRead;
+    let out = child.stdout.take().expect("piped stdout");
+    let mut line = String::new();
+    std::io::BufReader::new(out)
+        .read_line(&mut line)
+        .expect("daemon prints its address");
+    line.trim().rsplit(' ').next().expect("address").to_string()
+}
+
+#[cfg(unix)]
+fn sigterm(child: &std::process::Child) {
+    let _ = Command::new("kill")
+        .arg("-TERM")
+        .arg(child.id().to_string())
+        .status();
+}
+
+/// Scheduler, two workers and submit as separate processes, with the token
+/// from the environment, a flag and a config file; the image is identical to
+/// `locus render` on one machine, and SIGTERM stops the daemons cleanly.
+#[cfg(unix)]
+#[test]
+fn daemons_as_processes_match_single_machine() {
+    use std::process::Stdio;
+    let d = scratch("daemons");
+    let scene = d.join("small.toml");
+    let text = std::fs::read_to_string(root().join("scenes/cornell-box/cornell.toml")).unwrap();
+    let text = text.replace("resolution = [256, 256]", "resolution = [32, 24]");
+    assert!(text.contains("[32, 24]"), "the test scene is small");
+    std::fs::write(&scene, text).unwrap();
+    for f in ["cornell.obj", "cornell.mtl"] {
+        std::fs::copy(root().join("scenes/cornell-box").join(f), d.join(f)).unwrap();
+    }
+    let config = d.join("worker.toml");
+    std::fs::write(
+        &config,
+        "token = \"s3cret\"\n[worker]\nlisten = \"127.0.0.1:0\"\nthreads = 1\n",
+    )
+    .unwrap();
+    let mut sched = locus()
+        .args(["scheduler", "--listen", "127.0.0.1:0"])
+        .env("LOCUS_TOKEN", "s3cret")
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let addr = listening_addr(&mut sched);
+    let mut workers: Vec<_> = (0..2)
+        .map(|_| {
+            let mut w = locus()
+                .args(["worker", "--scheduler", &addr, "--config"])
+                .arg(&config)
+                .env_remove("LOCUS_TOKEN")
+                .env("RUST_LOG", "warn")
+                .stdout(Stdio::piped())
+                .spawn()
+                .unwrap();
+            listening_addr(&mut w);
+            w
+        })
+        .collect();
+    let farm_out = d.join("farm.exr");
+    let sub = locus()
+        .args([
+            "submit",
+            "--scheduler",
+            &addr,
+            "--token",
+            "s3cret",
+            "--workers",
+            "2",
+            "--partitioner",
+            "morton",
+        ])
+        .arg(&scene)
+        .arg("-o")
+        .arg(&farm_out)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(
+        sub.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sub.stderr)
+    );
+    let single = d.join("single.exr");
+    let r = render(&scene, &single, &[]);
+    assert!(r.status.success());
+    let a = locus_core::image_io::Image::read_exr(&farm_out).unwrap();
+    let b = locus_core::image_io::Image::read_exr(&single).unwrap();
+    assert_eq!(
+        a.to_bits(),
+        b.to_bits(),
+        "farm of processes = single machine"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("farm.json")).unwrap()).unwrap();
+    assert_eq!(report["farm"]["workers"].as_array().unwrap().len(), 2);
+    // A submit with the wrong token is refused with a message.
+    let bad = locus()
+        .args(["submit", "--scheduler", &addr, "--token", "wrong"])
+        .arg(&scene)
+        .arg("-o")
+        .arg(d.join("bad.exr"))
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("token"));
+    for w in &workers {
+        sigterm(w);
+    }
+    sigterm(&sched);
+    for w in &mut workers {
+        assert!(
+            w.wait().unwrap().success(),
+            "worker exits cleanly on SIGTERM"
+        );
+    }
+    assert!(
+        sched.wait().unwrap().success(),
+        "scheduler exits cleanly on SIGTERM"
+    );
+}

@@ -73,3 +73,103 @@ fn farm_matches_single_machine_bit_for_bit() {
         }
     });
 }
+
+/// Hostile and mistaken clients are refused or dropped with their reason,
+/// and a job running meanwhile still completes bit for bit.
+#[test]
+fn bad_clients_are_dropped_while_the_job_completes() {
+    use locus_protocol::{Connection, MAX_FRAME_LEN, PROTOCOL_VERSION, ProtocolError, handshake};
+    use tokio::io::AsyncWriteExt;
+    let scene = small_cornell();
+    let reference = single_machine(&scene);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let farm = locus::farm::LocalFarm::start(3, 1).await.expect("farm");
+        let addr = farm.scheduler.to_string();
+        let req = locus_scheduler::client::request(
+            &scene,
+            JobOptions {
+                workers: 3,
+                tile_size: 4,
+                ..Default::default()
+            },
+        );
+        let job = farm.render(req, &|_, _| {});
+        let attacks = async {
+            // Wrong token: refused, and told why.
+            let e = handshake::dial(&addr, b"not-the-token", MAX_FRAME_LEN)
+                .await
+                .err()
+                .expect("wrong token refused");
+            assert!(
+                matches!(
+                    e,
+                    ProtocolError::WrongToken { .. } | ProtocolError::Refused { .. }
+                ),
+                "{e}"
+            );
+            assert!(e.to_string().contains("token"), "{e}");
+            // Wrong version.
+            let s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+            let mut c = Connection::new(s, MAX_FRAME_LEN).unwrap();
+            let e = handshake::client(&mut c, farm.token.as_bytes(), PROTOCOL_VERSION + 7)
+                .await
+                .expect_err("wrong version refused");
+            assert!(e.to_string().contains("version"), "{e}");
+            // Garbage, an oversized length prefix, a truncated frame.
+            for bytes in [
+                b"GET / HTTP/1.1\r\n\r\n".to_vec(),
+                vec![0xff, 0xff, 0xff, 0xff, 1, 2, 3],
+                vec![0, 0, 0, 50, 1, 2, 3],
+            ] {
+                let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+                s.write_all(&bytes).await.unwrap();
+                drop(s);
+            }
+            // A client that passes the handshake, then sends garbage.
+            let mut c = handshake::dial(&addr, farm.token.as_bytes(), MAX_FRAME_LEN)
+                .await
+                .unwrap();
+            c.write_msg(&vec![0xffu8; 40]).await.unwrap();
+            let _ = c
+                .read_msg::<locus_protocol::submit::SchedulerToClient>("x")
+                .await;
+        };
+        let (r, ()) = tokio::join!(job, attacks);
+        let r = r.expect("job completes despite bad clients");
+        let img = locus_core::image_io::Image {
+            width: r.width,
+            height: r.height,
+            pixels: r.pixels,
+        };
+        assert_eq!(img.to_bits(), reference);
+        farm.stop().await.expect("clean stop");
+    });
+}
+
+/// A job naming a material that does not exist is refused with its reason;
+/// the farm stays up for the next job.
+#[test]
+fn invalid_job_is_refused_and_the_farm_stays_up() {
+    let scene = small_cornell();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let farm = locus::farm::LocalFarm::start(2, 1).await.expect("farm");
+        let mut bad = locus_scheduler::client::request(&scene, JobOptions::default());
+        bad.tri_material[3] = 999;
+        let e = farm.render(bad, &|_, _| {}).await.expect_err("refused");
+        assert!(e.to_string().contains("material 999"), "{e}");
+        let good = locus_scheduler::client::request(&scene, JobOptions::default());
+        let r = farm.render(good, &|_, _| {}).await.expect("next job runs");
+        assert_eq!(r.report.workers.len(), 2);
+        farm.stop().await.expect("clean stop");
+    });
+}

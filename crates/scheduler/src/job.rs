@@ -91,7 +91,15 @@ pub fn prepare(req: &JobRequest, workers: usize) -> Prepared {
         tri_material: req.tri_material.clone(),
         load_stats: LoadStats::default(),
     };
-    let tree = Octree::build(&scene.tris, scene.settings.octree);
+    // Regions are made of leaves: a scene with fewer leaves than a few per
+    // worker is refined until it has them (or leaves hold one triangle).
+    let mut params = scene.settings.octree;
+    let mut tree = Octree::build(&scene.tris, params);
+    while workers > 1 && tree.leaves.len() < 4 * workers && params.max_leaf_tris > 1 {
+        params.max_leaf_tris /= 2;
+        params.max_depth = params.max_depth.max(8);
+        tree = Octree::build(&scene.tris, params);
+    }
     let all: Vec<u32> = (0..scene.tris.len() as u32).collect();
     let accel = Accel::build(&scene.tris, &all, scene.magnitude());
     let lights = LightSet::build(&scene);

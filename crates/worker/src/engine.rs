@@ -20,7 +20,9 @@
 
 use glam::{DVec3, Vec3};
 use locus_core::accel::Accel;
-use locus_core::integrator::{DIM_PIXEL, PathRay, Shaded, shade};
+use locus_core::accel::Hit;
+use locus_core::geometry::Ray;
+use locus_core::integrator::{DIM_PIXEL, PathRay, shade};
 use locus_core::light::LightSet;
 use locus_core::region::{ProcessorMap, RunResult, WorkerId};
 use locus_core::sampler::SampleKey;
@@ -90,12 +92,28 @@ struct Work {
 enum Outcome {
     Forward(WorkerId, Work),
     Answer(ReplyTo, Answer),
-    Shaded(ReplyTo, Box<Shaded>),
+    /// Vertices shaded here that still wait for forwarded queries; vertex k
+    /// is the continuation of vertex k - 1 (see [`eval_hit`]).
+    Chain(ReplyTo, Vec<ChainVertex>),
     Error(EngineError),
 }
 
+/// A child query of a vertex shaded in this batch.
+enum Child<T> {
+    Done(T),
+    /// Must continue on another worker, resuming at `f32`.
+    Forward(WorkerId, Query, f32),
+    /// The next vertex of the chain.
+    Deeper,
+}
+
+struct ChainVertex {
+    vertex: locus_core::integrator::ShadedVertex,
+    shadow: Child<bool>,
+    next: Child<Vec3>,
+}
+
 enum Wait<T> {
-    None,
     Pending,
     Done(T),
 }
@@ -247,9 +265,10 @@ pub fn run(
                     .chunks(32)
                     .map(|chunk| {
                         let mut st = TraceStats::default();
+                        let mut scratch = Vec::new();
                         let o = chunk
                             .into_iter()
-                            .map(|w| process(job, w, &mut st))
+                            .map(|w| process(job, w, &mut st, &mut scratch))
                             .collect();
                         (o, st)
                     })
@@ -258,7 +277,7 @@ pub fn run(
             for (outs, st) in results {
                 e.stats.trace += st;
                 for o in outs {
-                    e.apply(o, &mut work)?;
+                    e.apply(o)?;
                 }
             }
         }
@@ -266,44 +285,142 @@ pub fn run(
     }
 }
 
-/// Traces one work item through this worker's run of leaves.
-fn process(job: &EngineJob, w: Work, st: &mut TraceStats) -> Outcome {
-    let (ray, t_max, any) = match &w.query {
-        Query::Path(q) => (q.ray, f32::INFINITY, false),
-        Query::Shadow(s) => (s.ray, s.t_max, true),
-    };
-    let r = job
-        .map
-        .trace_run(job.me, &job.accel, &ray, t_max, w.resume, any, st);
-    match (r, &w.query) {
-        (RunResult::Forward { to, t }, _) => {
-            if t == w.resume && w.from != job.me {
-                // The sender computed the same processor vector; a query that
-                // does not start in our leaf was corrupted or misrouted.
-                return Outcome::Error(EngineError::Misrouted { from: w.from });
+/// One run trace; with a single owner the walk is skipped (every leaf is
+/// ours and all geometry lies inside the root, so the answer is the same).
+#[inline]
+fn trace(
+    job: &EngineJob,
+    ray: &Ray,
+    t_max: f32,
+    resume: f32,
+    any: bool,
+    st: &mut TraceStats,
+) -> RunResult {
+    if job.workers == 1 {
+        let t0 = resume.max(0.0);
+        return if any {
+            if job.accel.occluded(ray, t0, t_max, st) {
+                RunResult::Occluded
+            } else {
+                RunResult::Miss
             }
-            Outcome::Forward(to, Work { resume: t, ..w })
+        } else {
+            match job.accel.intersect(ray, t0, t_max, st) {
+                Some(h) => RunResult::Hit(h),
+                None => RunResult::Miss,
+            }
+        };
+    }
+    job.map
+        .trace_run(job.me, &job.accel, ray, t_max, resume, any, st)
+}
+
+/// Traces one work item through this worker's run of leaves, and keeps
+/// going depth-first through everything that stays local: a path whose
+/// vertices are all here is finished in this call, like the single-machine
+/// integrator; only queries that leave the region become messages.
+fn process(job: &EngineJob, w: Work, st: &mut TraceStats, chain: &mut Vec<ChainVertex>) -> Outcome {
+    match w.query {
+        Query::Shadow(s) => match trace(job, &s.ray, s.t_max, w.resume, true, st) {
+            RunResult::Forward { to, t } => forward(job, w, to, t),
+            RunResult::Miss => Outcome::Answer(w.reply, Answer::Visible(true)),
+            RunResult::Occluded | RunResult::Hit(_) => {
+                Outcome::Answer(w.reply, Answer::Visible(false))
+            }
+        },
+        Query::Path(q) => match trace(job, &q.ray, f32::INFINITY, w.resume, false, st) {
+            RunResult::Forward { to, t } => forward(job, w, to, t),
+            RunResult::Miss | RunResult::Occluded => {
+                Outcome::Answer(w.reply, Answer::Radiance(Vec3::ZERO))
+            }
+            RunResult::Hit(h) => {
+                chain.clear();
+                match eval_hit(job, &q, &h, st, chain) {
+                    Err(e) => Outcome::Error(e),
+                    Ok(Some(l)) => Outcome::Answer(w.reply, Answer::Radiance(l)),
+                    Ok(None) => Outcome::Chain(w.reply, std::mem::take(chain)),
+                }
+            }
+        },
+    }
+}
+
+fn forward(job: &EngineJob, w: Work, to: WorkerId, t: f32) -> Outcome {
+    if t == w.resume && w.from != job.me {
+        // The sender computed the same processor vector; a query that does
+        // not start in our leaf was corrupted or misrouted.
+        return Outcome::Error(EngineError::Misrouted { from: w.from });
+    }
+    Outcome::Forward(to, Work { resume: t, ..w })
+}
+
+/// Shades hit `h` of `q` and evaluates its shadow and continuation queries
+/// as far as they stay here. Returns the vertex's radiance when everything
+/// was local; otherwise leaves this vertex (and the pending ones below it)
+/// at the end of `chain` and returns None.
+fn eval_hit(
+    job: &EngineJob,
+    q: &PathRay,
+    h: &Hit,
+    st: &mut TraceStats,
+    chain: &mut Vec<ChainVertex>,
+) -> Result<Option<Vec3>, EngineError> {
+    let Ok(k) = job.geometry.ids.binary_search(&h.tri) else {
+        return Err(EngineError::ForeignTriangle(h.tri));
+    };
+    let mat = &job.materials[job.geometry.material[k] as usize];
+    let s = shade(
+        q,
+        h,
+        &job.geometry.verts[k],
+        mat,
+        &job.lights,
+        job.max_depth,
+    );
+    let shadow = match s.shadow {
+        None => Child::Done(false),
+        Some(sr) => {
+            st.shadow_rays += 1;
+            match trace(job, &sr.ray, sr.t_max, f32::NEG_INFINITY, true, st) {
+                RunResult::Miss => Child::Done(true),
+                RunResult::Occluded | RunResult::Hit(_) => Child::Done(false),
+                RunResult::Forward { to, t } => Child::Forward(to, Query::Shadow(sr), t),
+            }
         }
-        (RunResult::Hit(h), Query::Path(q)) => {
-            let Ok(k) = job.geometry.ids.binary_search(&h.tri) else {
-                return Outcome::Error(EngineError::ForeignTriangle(h.tri));
-            };
-            let mat = &job.materials[job.geometry.material[k] as usize];
-            let s = shade(
-                q,
-                &h,
-                &job.geometry.verts[k],
-                mat,
-                &job.lights,
-                job.max_depth,
-            );
-            Outcome::Shaded(w.reply, Box::new(s))
+    };
+    let idx = chain.len();
+    chain.push(ChainVertex {
+        vertex: s.vertex,
+        shadow,
+        next: Child::Done(Vec3::ZERO),
+    });
+    let next = match s.next {
+        None => Child::Done(Vec3::ZERO),
+        Some(nq) => {
+            st.indirect_rays += 1;
+            match trace(job, &nq.ray, f32::INFINITY, f32::NEG_INFINITY, false, st) {
+                RunResult::Miss | RunResult::Occluded => Child::Done(Vec3::ZERO),
+                RunResult::Forward { to, t } => Child::Forward(to, Query::Path(nq), t),
+                RunResult::Hit(h2) => match eval_hit(job, &nq, &h2, st, chain)? {
+                    Some(l) => Child::Done(l),
+                    None => Child::Deeper,
+                },
+            }
         }
-        (RunResult::Miss, Query::Path(_)) => Outcome::Answer(w.reply, Answer::Radiance(Vec3::ZERO)),
-        (RunResult::Miss, Query::Shadow(_)) => Outcome::Answer(w.reply, Answer::Visible(true)),
-        (RunResult::Occluded | RunResult::Hit(_), _) => {
-            Outcome::Answer(w.reply, Answer::Visible(false))
-        }
+    };
+    if let (Child::Done(visible), Child::Done(l)) = (&chain[idx].shadow, &next) {
+        let v = chain[idx].vertex.finish(*visible, *l);
+        chain.truncate(idx);
+        return Ok(Some(v));
+    }
+    chain[idx].next = next;
+    Ok(None)
+}
+
+fn child_query<T>(c: Child<T>) -> Option<(WorkerId, Query, f32)> {
+    match c {
+        Child::Forward(to, q, t) => Some((to, q, t)),
+        _ => None,
     }
 }
 
@@ -384,7 +501,7 @@ impl Engine<'_> {
         }
     }
 
-    fn apply(&mut self, o: Outcome, work: &mut VecDeque<Work>) -> Result<(), EngineError> {
+    fn apply(&mut self, o: Outcome) -> Result<(), EngineError> {
         let me = self.job.me;
         match o {
             Outcome::Error(e) => return Err(e),
@@ -400,43 +517,38 @@ impl Engine<'_> {
                 )?;
             }
             Outcome::Answer(reply, a) => self.deliver(reply, a)?,
-            Outcome::Shaded(reply, s) => {
-                if s.shadow.is_none() && s.next.is_none() {
-                    let l = s.vertex.finish(false, Vec3::ZERO);
-                    return self.deliver(reply, Answer::Radiance(l));
-                }
-                let slot = self.alloc(Slot::Vertex {
-                    reply,
-                    vertex: s.vertex,
-                    shadow: if s.shadow.is_some() {
-                        Wait::Pending
-                    } else {
-                        Wait::None
-                    },
-                    next: if s.next.is_some() {
-                        Wait::Pending
-                    } else {
-                        Wait::None
-                    },
-                });
-                let reply = ReplyTo { worker: me, slot };
-                if let Some(sr) = s.shadow {
-                    self.stats.trace.shadow_rays += 1;
-                    work.push_back(Work {
-                        query: Query::Shadow(sr),
-                        resume: f32::NEG_INFINITY,
-                        reply,
-                        from: me,
+            Outcome::Chain(reply, chain) => {
+                let mut parent = reply;
+                for cv in chain {
+                    let slot = self.alloc(Slot::Vertex {
+                        reply: parent,
+                        vertex: cv.vertex,
+                        shadow: match cv.shadow {
+                            Child::Done(b) => Wait::Done(b),
+                            _ => Wait::Pending,
+                        },
+                        next: match cv.next {
+                            Child::Done(l) => Wait::Done(l),
+                            _ => Wait::Pending,
+                        },
                     });
-                }
-                if let Some(nq) = s.next {
-                    self.stats.trace.indirect_rays += 1;
-                    work.push_back(Work {
-                        query: Query::Path(nq),
-                        resume: f32::NEG_INFINITY,
-                        reply,
-                        from: me,
-                    });
+                    let mine = ReplyTo { worker: me, slot };
+                    for c in [child_query(cv.shadow), child_query(cv.next)]
+                        .into_iter()
+                        .flatten()
+                    {
+                        let (to, query, resume) = c;
+                        self.stats.forwarded_out += 1;
+                        self.push_out(
+                            to,
+                            RayItem::Trace {
+                                query,
+                                resume,
+                                reply: mine,
+                            },
+                        )?;
+                    }
+                    parent = mine;
                 }
             }
         }
@@ -461,8 +573,10 @@ impl Engine<'_> {
     /// Applies an answer to a pending slot; completed vertices answer their
     /// own asker in turn (iteratively: a chain can be max_depth long).
     fn answer(&mut self, from: WorkerId, slot: u32, a: Answer) -> Result<(), EngineError> {
-        let mut todo = vec![(from, slot, a)];
-        while let Some((from, slot, a)) = todo.pop() {
+        // A completed vertex answers exactly one asker, so the cascade is a
+        // chain: no stack needed.
+        let mut todo = Some((from, slot, a));
+        while let Some((from, slot, a)) = todo.take() {
             let bad = EngineError::UnknownSlot { from, slot };
             let Some(s) = self.slots.get_mut(slot as usize) else {
                 return Err(bad);
@@ -497,20 +611,16 @@ impl Engine<'_> {
                         (Answer::Radiance(l), _, Wait::Pending) => *next = Wait::Done(l),
                         _ => return Err(bad),
                     }
-                    if matches!(shadow, Wait::Pending) || matches!(next, Wait::Pending) {
+                    let (Wait::Done(visible), Wait::Done(nl)) = (&*shadow, &*next) else {
                         continue;
-                    }
-                    let visible = matches!(shadow, Wait::Done(true));
-                    let nl = match next {
-                        Wait::Done(l) => *l,
-                        _ => Vec3::ZERO,
                     };
+                    let (visible, nl) = (*visible, *nl);
                     let l = vertex.finish(visible, nl);
                     let reply = *reply;
                     *s = Slot::Free;
                     self.free.push(slot);
                     if reply.worker == self.job.me {
-                        todo.push((reply.worker, reply.slot, Answer::Radiance(l)));
+                        todo = Some((reply.worker, reply.slot, Answer::Radiance(l)));
                     } else {
                         self.deliver(reply, Answer::Radiance(l))?;
                     }

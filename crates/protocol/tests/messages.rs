@@ -1,0 +1,206 @@
+//! Every message of every family survives a postcard round trip, and
+//! arbitrary bytes never panic the decoder of any family.
+
+use glam::Vec3;
+use locus_core::geometry::Ray;
+use locus_core::integrator::{PathRay, ShadowRay};
+use locus_core::light::LightSet;
+use locus_core::octree::{Octree, OctreeParams};
+use locus_core::region::ProcessorMap;
+use locus_core::sampler::SampleKey;
+use locus_core::scene::{Camera, Material, RenderSettings};
+use locus_protocol::control::*;
+use locus_protocol::rays::*;
+use locus_protocol::report::{FarmReport, WorkerStats};
+use locus_protocol::submit::*;
+use proptest::prelude::*;
+
+fn roundtrip<T: serde::Serialize + serde::de::DeserializeOwned + PartialEq + std::fmt::Debug>(
+    m: &T,
+) {
+    let b = postcard::to_stdvec(m).expect("encode");
+    let back: T = postcard::from_bytes(&b).expect("decode");
+    assert_eq!(&back, m);
+}
+
+fn v3() -> impl Strategy<Value = Vec3> {
+    (-1e6f32..1e6, -1e6f32..1e6, -1e6f32..1e6).prop_map(|(x, y, z)| Vec3::new(x, y, z))
+}
+
+fn ray() -> impl Strategy<Value = Ray> {
+    (v3(), v3()).prop_map(|(o, d)| Ray::new(o, d))
+}
+
+fn path_ray() -> impl Strategy<Value = PathRay> {
+    (
+        ray(),
+        any::<u64>(),
+        any::<u32>(),
+        any::<u64>(),
+        0u32..64,
+        0f32..1e6,
+        v3(),
+    )
+        .prop_map(|(ray, p, s, seed, depth, prev_pdf, beta)| PathRay {
+            ray,
+            key: SampleKey::new(p, s, seed),
+            depth,
+            prev_pdf,
+            beta,
+        })
+}
+
+fn ray_item() -> impl Strategy<Value = RayItem> {
+    let reply = (any::<u16>(), any::<u32>()).prop_map(|(worker, slot)| ReplyTo { worker, slot });
+    let query = prop_oneof![
+        path_ray().prop_map(Query::Path),
+        (ray(), 0f32..1e30).prop_map(|(ray, t_max)| Query::Shadow(ShadowRay { ray, t_max })),
+    ];
+    let answer = prop_oneof![
+        v3().prop_map(Answer::Radiance),
+        any::<bool>().prop_map(Answer::Visible)
+    ];
+    prop_oneof![
+        (query, -1e6f32..1e6, reply).prop_map(|(query, resume, reply)| RayItem::Trace {
+            query,
+            resume,
+            reply
+        }),
+        (any::<u32>(), answer).prop_map(|(to, answer)| RayItem::Answer { to, answer }),
+    ]
+}
+
+fn camera() -> Camera {
+    Camera {
+        position: Vec3::new(0.0, 1.0, 5.0),
+        look_at: Vec3::ZERO,
+        up: Vec3::Y,
+        fov_y: 40.0,
+        width: 8,
+        height: 6,
+    }
+}
+
+fn tris(n: usize, seed: u64) -> Vec<[Vec3; 3]> {
+    (0..n as u64)
+        .map(|i| {
+            let k = SampleKey::new(i, 0, seed);
+            let p = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 10.0;
+            [p, p + Vec3::X, p + Vec3::Y]
+        })
+        .collect()
+}
+
+fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
+    let t = tris(n, seed);
+    let tree = Octree::build(
+        &t,
+        OctreeParams {
+            max_leaf_tris: 4,
+            max_depth: 5,
+        },
+    );
+    let owner = (0..tree.leaves.len())
+        .map(|l| (l % workers as usize) as u16)
+        .collect();
+    let scene = locus_core::scene::Scene::from_triangles(
+        "x".into(),
+        camera(),
+        RenderSettings::default(),
+        vec![Material {
+            name: "e".into(),
+            albedo: Vec3::splat(0.5),
+            emission: Vec3::ONE,
+        }],
+        t.iter().map(|&x| (x, 0)).collect(),
+    );
+    JobSetup {
+        job: seed,
+        me: 0,
+        peers: (0..workers)
+            .map(|w| format!("127.0.0.1:{}", 4000 + w))
+            .collect(),
+        camera: camera(),
+        spp: 4,
+        max_depth: 5,
+        seed,
+        materials: scene.materials.clone(),
+        lights: LightSet::build(&scene),
+        map: ProcessorMap::new(&tree, owner),
+        magnitude: 11.0,
+        tuning: Tuning::default(),
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, .. ProptestConfig::default() })]
+
+    #[test]
+    fn peer_messages_roundtrip(items in proptest::collection::vec(ray_item(), 0..60), job in any::<u64>(), from in any::<u16>()) {
+        roundtrip(&PeerMsg::Packet(items));
+        roundtrip(&PeerMsg::Hello { job, from });
+    }
+
+    #[test]
+    fn control_messages_roundtrip(n in 1usize..40, seed in any::<u64>(), workers in 1u16..6, count in any::<u32>(), reason in ".{0,40}") {
+        let s = setup(n, seed, workers);
+        let t = tris(n, seed);
+        let chunk = RegionGeometry { ids: (0..n as u32).collect(), verts: t, material: vec![0; n] };
+        let tile = TileAssignment { job: seed, tile: count, x0: 0, y0: 0, x1: 4, y1: 3 };
+        for m in [
+            SchedulerToWorker::Welcome { worker: count },
+            SchedulerToWorker::StartJob(Box::new(s)),
+            SchedulerToWorker::Geometry { job: seed, chunk, last: count % 2 == 0 },
+            SchedulerToWorker::Tile(tile),
+            SchedulerToWorker::NoMoreTiles { job: seed },
+            SchedulerToWorker::EndJob { job: seed },
+            SchedulerToWorker::AbortJob { job: seed, reason: reason.clone() },
+        ] {
+            roundtrip(&m);
+        }
+        let stats = WorkerStats { busy_s: n as f64, tiles: count, peers: vec![Default::default(); workers as usize], ..Default::default() };
+        for m in [
+            WorkerToScheduler::Ready { job: seed },
+            WorkerToScheduler::NeedTiles { job: seed, count },
+            WorkerToScheduler::TileDone(TileResult { job: seed, tile: count, pixels: vec![[n as f32, 0.5, -1.0]; 12] }),
+            WorkerToScheduler::Report { job: seed, stats: Box::new(stats) },
+            WorkerToScheduler::Failed { job: seed, reason: reason.clone() },
+        ] {
+            roundtrip(&m);
+        }
+        roundtrip(&Opening::Register(Registration { listen: reason.clone(), cores: count, memory_budget: seed, name: reason.clone() }));
+    }
+
+    #[test]
+    fn submit_messages_roundtrip(n in 0usize..40, seed in any::<u64>(), workers in any::<u32>(), reason in ".{0,40}") {
+        let t = tris(n, seed);
+        let req = JobRequest {
+            name: reason.clone(),
+            camera: camera(),
+            settings: RenderSettings { seed, ..Default::default() },
+            materials: vec![Material { name: reason.clone(), albedo: Vec3::splat(0.3), emission: Vec3::ZERO }],
+            tri_material: vec![0; n],
+            tris: t,
+            options: JobOptions { workers, partitioner: Partitioner::Morton, cost_model: CostModel::Analytic, ..Default::default() },
+        };
+        roundtrip(&Opening::Submit(Box::new(req)));
+        let report = FarmReport { scene: reason.clone(), seed, load_imbalance: n as f64, ..Default::default() };
+        for m in [
+            SchedulerToClient::Accepted { job: seed, workers },
+            SchedulerToClient::Progress { job: seed, tiles_done: workers / 2, tiles: workers },
+            SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report })),
+            SchedulerToClient::Failed { job: seed, reason: reason.clone() },
+        ] {
+            roundtrip(&m);
+        }
+    }
+
+    #[test]
+    fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
+        let _ = postcard::from_bytes::<PeerMsg>(&bytes);
+        let _ = postcard::from_bytes::<Opening>(&bytes);
+        let _ = postcard::from_bytes::<SchedulerToWorker>(&bytes);
+        let _ = postcard::from_bytes::<WorkerToScheduler>(&bytes);
+        let _ = postcard::from_bytes::<SchedulerToClient>(&bytes);
+    }
+}
