@@ -43,7 +43,7 @@ impl Config {
         toml::from_str(&text).map_err(|e| {
             let line = e
                 .span()
-                .map(|s| text[..s.start.min(text.len())].lines().count().max(1));
+                .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             match line {
                 Some(l) => anyhow::anyhow!("{}:{l}: {}", p.display(), e.message()),
                 None => anyhow::anyhow!("{}: {}", p.display(), e.message()),
@@ -61,5 +61,29 @@ impl Config {
                 config.map_or("a --config file".to_string(), |p| p.display().to_string())
             ),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn example_configs_parse() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+        let s = Config::load(Some(&dir.join("scheduler.toml"))).unwrap();
+        assert!(s.scheduler.listen.is_some() && s.token.is_some());
+        let w = Config::load(Some(&dir.join("worker.toml"))).unwrap();
+        assert!(w.worker.scheduler.is_some() && w.worker.listen.is_some());
+    }
+
+    #[test]
+    fn bad_config_names_file_and_line() {
+        let p = std::env::temp_dir().join(format!("locus-bad-config-{}.toml", std::process::id()));
+        std::fs::write(&p, "token = \"x\"\n[worker]\nthreds = 2\n").unwrap();
+        let e = Config::load(Some(&p)).unwrap_err().to_string();
+        assert!(e.contains(&format!("{}:3", p.display())), "{e}");
+        let none = Config::default().token(None, None).unwrap_err().to_string();
+        assert!(none.contains("LOCUS_TOKEN"));
     }
 }

@@ -56,6 +56,24 @@ enum Cmd {
     Worker(WorkerArgs),
     /// Submit a scene to a running farm and write the result.
     Submit(SubmitArgs),
+    /// The farm benchmark: overhead against one machine, speedup, and
+    /// region growing against the Morton baseline for 2, 4 and 8 workers.
+    BenchFarm(BenchFarmArgs),
+}
+
+#[derive(clap::Args)]
+struct BenchFarmArgs {
+    /// Scenes to measure; default: the generated room.
+    scenes: Vec<PathBuf>,
+    #[arg(long, default_value_t = 160)]
+    width: u32,
+    #[arg(long, default_value_t = 120)]
+    height: u32,
+    #[arg(long, default_value_t = 4)]
+    spp: u32,
+    /// Write the rows as JSON here too.
+    #[arg(long)]
+    json: Option<PathBuf>,
 }
 
 #[derive(clap::Args, Clone)]
@@ -236,6 +254,7 @@ fn main() {
         Cmd::Scheduler(a) => cmd_scheduler(a),
         Cmd::Worker(a) => cmd_worker(a),
         Cmd::Submit(a) => cmd_submit(a),
+        Cmd::BenchFarm(a) => cmd_bench_farm(a),
     };
     if let Err(e) = r {
         tracing::error!("{e:#}");
@@ -710,4 +729,119 @@ fn cmd_submit(a: SubmitArgs) -> Result<()> {
         pb.finish_and_clear();
     }
     write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
+}
+
+#[derive(serde::Serialize)]
+struct FarmBenchRow {
+    scene: String,
+    config: String,
+    workers: usize,
+    seconds: f64,
+    samples_per_s: f64,
+    load_imbalance: f64,
+    forwarded_per_ray: f64,
+    bytes_per_sample: f64,
+    identical_to_single: bool,
+}
+
+fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
+    let scenes = if a.scenes.is_empty() {
+        vec![default_room()?]
+    } else {
+        a.scenes.clone()
+    };
+    let mut rows = Vec::new();
+    for path in &scenes {
+        let mut scene = Scene::load(path)?;
+        scene.camera.width = a.width;
+        scene.camera.height = a.height;
+        scene.settings.spp = a.spp;
+        let name = path.display().to_string();
+        // One machine, one thread: the baseline for overhead.
+        let prep = Prepared::new(scene.clone());
+        let mut o = RenderOptions::from_scene(&scene);
+        o.threads = 1;
+        let single = render(&prep, &o, &|_, _| {});
+        let bits = single.image.to_bits();
+        drop(prep);
+        rows.push(FarmBenchRow {
+            scene: name.clone(),
+            config: "single machine, 1 thread".into(),
+            workers: 0,
+            seconds: single.render_s,
+            samples_per_s: single.stats.samples as f64 / single.render_s,
+            load_imbalance: 1.0,
+            forwarded_per_ray: 0.0,
+            bytes_per_sample: 0.0,
+            identical_to_single: true,
+        });
+        let runs: Vec<(usize, Partitioner)> = [(1, Partitioner::RegionGrowing)]
+            .into_iter()
+            .chain(
+                [2usize, 4, 8]
+                    .into_iter()
+                    .flat_map(|w| [(w, Partitioner::RegionGrowing), (w, Partitioner::Morton)]),
+            )
+            .collect();
+        for (w, p) in runs {
+            let opts = JobOptions {
+                workers: w as u32,
+                partitioner: p,
+                ..JobOptions::default()
+            };
+            let req = locus_scheduler::client::request(&scene, opts);
+            let r = locus::farm::render_embedded(req, w, 1, &|_, _| {})?;
+            let img = Image {
+                width: r.width,
+                height: r.height,
+                pixels: r.pixels.clone(),
+            };
+            let f = &r.report;
+            let row = FarmBenchRow {
+                scene: name.clone(),
+                config: format!("farm, {w} x 1 thread, {p:?}"),
+                workers: w,
+                seconds: f.phases.render_s,
+                samples_per_s: f.samples_per_s,
+                load_imbalance: f.load_imbalance,
+                forwarded_per_ray: f.forwarded_fraction,
+                bytes_per_sample: f.bytes_per_sample,
+                identical_to_single: img.to_bits() == bits,
+            };
+            tracing::info!(config = %row.config, seconds = row.seconds, "measured");
+            rows.push(row);
+        }
+    }
+    println!(
+        "| scene | configuration | render s | samples/s | vs single | imbalance | forwarded/ray | bytes/sample | bit-identical |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---|");
+    for r in &rows {
+        let base = rows
+            .iter()
+            .find(|b| b.scene == r.scene && b.workers == 0)
+            .map_or(1.0, |b| b.seconds);
+        println!(
+            "| {} | {} | {:.3} | {:.0} | {:.2}x | {:.2} | {:.3} | {:.1} | {} |",
+            Path::new(&r.scene)
+                .file_name()
+                .map_or(r.scene.clone(), |n| n.to_string_lossy().into()),
+            r.config,
+            r.seconds,
+            r.samples_per_s,
+            base / r.seconds,
+            r.load_imbalance,
+            r.forwarded_per_ray,
+            r.bytes_per_sample,
+            if r.identical_to_single { "yes" } else { "NO" }
+        );
+    }
+    if let Some(j) = a.json {
+        std::fs::write(&j, serde_json::to_string_pretty(&rows)?)
+            .with_context(|| format!("writing {}", j.display()))?;
+    }
+    if rows.iter().any(|r| !r.identical_to_single) {
+        bail!("a farm image differs from the single-machine image");
+    }
+    Ok(())
 }

@@ -155,11 +155,9 @@ async fn serve(
             ev.send(Event::Joined { id, reg, addr, tx }).await?;
             let writer = tokio::spawn(async move {
                 while let Some(m) = rx.recv().await {
-                    if let Err(e) = w.write_msg(&m).await {
-                        return Err(e);
-                    }
+                    w.write_msg(&m).await?;
                 }
-                Ok(())
+                Ok::<(), locus_protocol::ProtocolError>(())
             });
             let reason = loop {
                 let m = tokio::select! {
