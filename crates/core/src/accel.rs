@@ -35,9 +35,22 @@ pub struct Accel {
     ids: Vec<u32>,
 }
 
+/// How far (in t) the ray handed to obvhs starts behind the real origin.
+/// obvhs culls every child box whose exit distance is below its fixed
+/// `EPSILON` (1e-4, whatever the ray's tmin), so a box that a ray leaves
+/// within 1e-4 of its origin (a thin padded box around a triangle the
+/// origin lies on) was dropped or kept depending on how large its BVH node
+/// happened to be: a worker's BVH and the global one disagreed on hits at
+/// t = 0. Starting the BVH ray 2.5 x 1e-4 earlier puts every box that
+/// reaches the origin beyond that cull; triangle tests still use the real
+/// ray, so no answer changes except those the cull got wrong.
+const BVH_T_SHIFT: f32 = 2.5e-4;
+
 /// obvhs stores 1/d clamped at 1/f32::EPSILON, which shrinks slab
 /// intervals of near-parallel rays; a much larger clamp keeps the slabs
-/// conservative without creating inf * 0.
+/// conservative without creating inf * 0. The origin moves back by
+/// [`BVH_T_SHIFT`] along the ray; its rounding moves the ray by about an
+/// ulp of the scene's magnitude, far inside the boxes' padding.
 #[inline(always)]
 fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
     let inv = |x: f32| {
@@ -48,11 +61,11 @@ fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
         }
     };
     obvhs::ray::Ray {
-        origin: Vec3A::from(ray.origin),
+        origin: Vec3A::from(ray.origin - ray.dir * BVH_T_SHIFT),
         direction: Vec3A::from(ray.dir),
         inv_direction: Vec3A::new(inv(ray.dir.x), inv(ray.dir.y), inv(ray.dir.z)),
         tmin: 0.0,
-        tmax,
+        tmax: tmax + BVH_T_SHIFT,
     }
 }
 
@@ -135,7 +148,7 @@ impl Accel {
                         best = Some(Hit { tri: id, t, b1, b2 });
                         // Equal-t primitives in other nodes are still
                         // visited: obvhs keeps nodes with entry <= tmax.
-                        r.tmax = t;
+                        r.tmax = t + BVH_T_SHIFT;
                     }
                 }
             }

@@ -292,6 +292,99 @@ impl Octree {
         t
     }
 
+    /// Checks the links of a tree that arrived from elsewhere: children lie
+    /// after their parent and inside the node list, every leaf is reached
+    /// exactly once. A tree that passes can be walked without panicking.
+    pub fn check_structure(&self) -> Result<(), String> {
+        if self.nodes.is_empty() || self.node_bounds.len() != self.nodes.len() {
+            return Err("node and node bound lists are empty or differ in length".into());
+        }
+        let mut seen = vec![false; self.leaves.len()];
+        for (n, node) in self.nodes.iter().enumerate() {
+            match *node {
+                Node::Interior { first_child } => {
+                    let f = first_child as usize;
+                    if f <= n || f + 8 > self.nodes.len() {
+                        return Err(format!("node {n} has children outside the tree"));
+                    }
+                }
+                Node::Leaf { leaf } => match seen.get_mut(leaf as usize) {
+                    Some(s) if !*s => *s = true,
+                    _ => return Err(format!("node {n} names leaf {leaf}, missing or shared")),
+                },
+            }
+        }
+        if seen.iter().any(|s| !s) {
+            return Err("a leaf is not reachable from any node".into());
+        }
+        Ok(())
+    }
+
+    /// The tree with every subtree whose leaves all carry one label merged
+    /// into a single leaf, and the label of each merged leaf. A merged node
+    /// keeps its bounds bit for bit, and the walk splits a node's interval
+    /// into children whose intervals concatenate to exactly the node's, so
+    /// walking the merged tree gives the same interval boundaries wherever
+    /// the label changes: the processor map walks far fewer nodes this way.
+    pub fn collapse<L: Copy + PartialEq>(&self, label: &[L]) -> (Octree, Vec<L>) {
+        assert_eq!(label.len(), self.leaves.len(), "one label per leaf");
+        let mut uniform: Vec<Option<L>> = vec![None; self.nodes.len()];
+        // Children are stored after their parent, so a reverse sweep sees
+        // every child before its parent.
+        for n in (0..self.nodes.len()).rev() {
+            uniform[n] = match self.nodes[n] {
+                Node::Leaf { leaf } => Some(label[leaf as usize]),
+                Node::Interior { first_child } => {
+                    let f = first_child as usize;
+                    let l0 = uniform[f];
+                    if l0.is_some() && (f + 1..f + 8).all(|c| uniform[c] == l0) {
+                        l0
+                    } else {
+                        None
+                    }
+                }
+            };
+        }
+        let mut out = Octree {
+            bounds: self.bounds,
+            nodes: vec![Node::Leaf { leaf: u32::MAX }],
+            node_bounds: vec![self.node_bounds[0]],
+            leaves: Vec::new(),
+            params: self.params,
+        };
+        let mut labels = Vec::new();
+        let mut stack = vec![(0usize, 0usize, 0u32)];
+        while let Some((src, dst, depth)) = stack.pop() {
+            match (uniform[src], self.nodes[src]) {
+                (Some(l), _) => {
+                    out.nodes[dst] = Node::Leaf {
+                        leaf: out.leaves.len() as u32,
+                    };
+                    out.leaves.push(Leaf {
+                        bounds: self.node_bounds[src],
+                        depth,
+                        tris: Vec::new(),
+                    });
+                    labels.push(l);
+                }
+                (None, Node::Interior { first_child }) => {
+                    let first = out.nodes.len();
+                    out.nodes[dst] = Node::Interior {
+                        first_child: first as u32,
+                    };
+                    for c in 0..8 {
+                        out.nodes.push(Node::Leaf { leaf: u32::MAX });
+                        out.node_bounds
+                            .push(self.node_bounds[first_child as usize + c]);
+                        stack.push((first_child as usize + c, first + c, depth + 1));
+                    }
+                }
+                (None, Node::Leaf { .. }) => unreachable!("a leaf always has a label"),
+            }
+        }
+        (out, labels)
+    }
+
     /// Leaves along the ray as `(leaf, ta, tb)`.
     pub fn leaves_along(&self, ray: &Ray, t0: f32, t1: f32) -> Vec<(u32, f32, f32)> {
         let mut v = Vec::new();
@@ -451,6 +544,113 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Label-change points along a walk: (label before, label after, t).
+    fn changes(o: &Octree, labels: &[u8], r: &Ray) -> Vec<(u8, u8, u32)> {
+        let segs = o.leaves_along(r, 0.0, f32::INFINITY);
+        let mut v = vec![(u8::MAX, labels[segs[0].0 as usize], segs[0].1.to_bits())];
+        for w in segs.windows(2) {
+            let (a, b) = (labels[w[0].0 as usize], labels[w[1].0 as usize]);
+            if a != b {
+                v.push((a, b, w[1].1.to_bits()));
+            }
+        }
+        v.push((
+            labels[segs.last().unwrap().0 as usize],
+            u8::MAX,
+            segs.last().unwrap().2.to_bits(),
+        ));
+        v
+    }
+
+    #[test]
+    fn collapse_keeps_every_label_boundary_bit_for_bit() {
+        let tris = grid_tris(30);
+        let o = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 4,
+                max_depth: 7,
+            },
+        );
+        // Labels by octant of the leaf centre, plus a scattered minority, so
+        // both large uniform subtrees and ragged borders occur.
+        let c = o.bounds.center();
+        let labels: Vec<u8> = o
+            .leaves
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                let m = l.bounds.center();
+                if i % 17 == 0 {
+                    9
+                } else {
+                    (m.x > c.x) as u8 + 2 * (m.y > c.y) as u8
+                }
+            })
+            .collect();
+        let (small, small_labels) = o.collapse(&labels);
+        small.check_structure().unwrap();
+        assert!(small.leaves.len() < o.leaves.len());
+        let mut rng = 0x9e3779b97f4a7c15u64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let lo = o.bounds.min - Vec3::ONE;
+        let ext = o.bounds.extent() + 2.0;
+        let mut tested = 0;
+        for i in 0..2000 {
+            let p = lo + Vec3::new(next(), next(), next()) * ext;
+            // Every fourth ray runs along the root's splitting planes.
+            let (p, d) = if i % 4 == 0 {
+                (Vec3::new(c.x, c.y, p.z), Vec3::new(next() - 0.5, 0.0, 0.0))
+            } else {
+                (p, Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5))
+            };
+            if d.length() < 1e-3 {
+                continue;
+            }
+            let r = Ray::new(p, d.normalize());
+            if o.leaves_along(&r, 0.0, f32::INFINITY).is_empty() {
+                continue;
+            }
+            tested += 1;
+            assert_eq!(
+                changes(&o, &labels, &r),
+                changes(&small, &small_labels, &r),
+                "ray {i}"
+            );
+        }
+        assert!(tested > 500);
+        // One label everywhere: the whole tree is one leaf.
+        let (one, l) = o.collapse(&vec![3u8; o.leaves.len()]);
+        assert_eq!((one.leaves.len(), l), (1, vec![3]));
+    }
+
+    #[test]
+    fn check_structure_refuses_broken_links() {
+        let o = Octree::build(
+            &grid_tris(10),
+            OctreeParams {
+                max_leaf_tris: 4,
+                max_depth: 4,
+            },
+        );
+        o.check_structure().unwrap();
+        let mut cyc = o.clone();
+        cyc.nodes[0] = Node::Interior { first_child: 0 };
+        assert!(cyc.check_structure().is_err());
+        let mut out = o.clone();
+        let last = out.nodes.len() - 1;
+        out.nodes[last] = Node::Leaf { leaf: 1 << 30 };
+        assert!(out.check_structure().is_err());
+        let mut shared = o.clone();
+        shared.nodes[last] = Node::Leaf { leaf: 0 };
+        assert!(shared.check_structure().is_err());
     }
 
     #[test]

@@ -21,12 +21,47 @@ use std::ops::ControlFlow;
 /// Index of a worker in a job (its place in the job's worker list).
 pub type WorkerId = u16;
 
+/// On the wire a processor map is the tree and its owners; the routing
+/// tree is rebuilt (and the parts checked) on arrival.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "MapParts", into = "MapParts")]
 pub struct ProcessorMap {
     /// The octree with empty triangle lists.
     pub tree: Octree,
     /// Owner of each leaf.
     pub owner: Vec<WorkerId>,
+    /// `tree` with every single-owner subtree merged into one leaf
+    /// ([`Octree::collapse`]): what rays walk. It finds the same run
+    /// boundaries as `tree` while visiting a node per region crossing
+    /// rather than per leaf.
+    route: Octree,
+    route_owner: Vec<WorkerId>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct MapParts {
+    tree: Octree,
+    owner: Vec<WorkerId>,
+}
+
+impl TryFrom<MapParts> for ProcessorMap {
+    type Error = String;
+    fn try_from(p: MapParts) -> Result<Self, String> {
+        p.tree.check_structure()?;
+        if p.tree.leaves.len() != p.owner.len() {
+            return Err("processor map: one owner per leaf expected".into());
+        }
+        Ok(ProcessorMap::new(&p.tree, p.owner))
+    }
+}
+
+impl From<ProcessorMap> for MapParts {
+    fn from(m: ProcessorMap) -> Self {
+        MapParts {
+            tree: m.tree,
+            owner: m.owner,
+        }
+    }
 }
 
 /// Where a traced run leaves the ray.
@@ -46,18 +81,26 @@ pub enum RunResult {
 impl ProcessorMap {
     pub fn new(tree: &Octree, owner: Vec<WorkerId>) -> Self {
         assert_eq!(tree.leaves.len(), owner.len(), "one owner per leaf");
+        let (route, route_owner) = tree.collapse(&owner);
         Self {
             tree: tree.without_triangles(),
             owner,
+            route,
+            route_owner,
         }
+    }
+
+    /// Nodes in the routing tree (for reports: how much the merge saved).
+    pub fn route_leaves(&self) -> usize {
+        self.route.leaves.len()
     }
 
     /// Owner of the first leaf on `[0, t_max)`, or `None` when the ray
     /// misses the scene.
     pub fn first_owner(&self, ray: &Ray, t_max: f32) -> Option<(WorkerId, f32)> {
         let mut first = None;
-        let _ = self.tree.walk(ray, 0.0, t_max, |leaf, ta, _| {
-            first = Some((self.owner[leaf as usize], ta));
+        let _ = self.route.walk(ray, 0.0, t_max, |leaf, ta, _| {
+            first = Some((self.route_owner[leaf as usize], ta));
             ControlFlow::Break(())
         });
         first
@@ -80,9 +123,9 @@ impl ProcessorMap {
         let mut run: Option<(f32, f32)> = None;
         let mut next: Option<(WorkerId, f32)> = None;
         let _ = self
-            .tree
+            .route
             .walk_from(ray, 0.0, t_max, resume, |leaf, ta, tb| {
-                let o = self.owner[leaf as usize];
+                let o = self.route_owner[leaf as usize];
                 if o == me {
                     run = Some(match run {
                         Some((s, _)) => (s, tb),

@@ -81,8 +81,15 @@ pub enum EngineError {
     EndedEarly(usize),
 }
 
+/// What a work item traces: a query from a peer or from this worker, or a
+/// camera sample whose ray is generated on the pool, not in the serial loop.
+enum Task {
+    Query(Query),
+    Camera { x: u32, y: u32, sample: u32 },
+}
+
 struct Work {
-    query: Query,
+    task: Task,
     resume: f32,
     reply: ReplyTo,
     /// Worker it came from (itself for local work), for error messages.
@@ -90,7 +97,8 @@ struct Work {
 }
 
 enum Outcome {
-    Forward(WorkerId, Work),
+    /// The query continues on another worker, resuming at the distance.
+    Forward(WorkerId, Query, f32, ReplyTo),
     Answer(ReplyTo, Answer),
     /// Vertices shaded here that still wait for forwarded queries; vertex k
     /// is the continuation of vertex k - 1 (see [`eval_hit`]).
@@ -153,10 +161,25 @@ struct Engine<'a> {
     stats: WorkerStats,
 }
 
+/// Largest batch one pool task traces.
 const BATCH: usize = 8192;
+/// Smallest batch worth a pool task.
+const MIN_BATCH: usize = 16;
+
+type Traced = (Vec<Outcome>, TraceStats);
+
+enum Event {
+    Input(Input),
+    Traced(Traced),
+    InboxClosed,
+}
 
 /// Runs the job until the scheduler ends it; returns this worker's counters
 /// (traffic bytes are added by the caller, which owns the sockets).
+///
+/// Batches are traced as pool tasks while this thread applies the results
+/// of earlier ones: with `threads + 1` batches out, the pool never waits
+/// for the bookkeeping (answers, slots, packets, tiles), which is serial.
 pub fn run(
     job: &EngineJob,
     pool: &rayon::ThreadPool,
@@ -164,6 +187,8 @@ pub fn run(
     links: Links,
 ) -> Result<WorkerStats, EngineError> {
     let n = job.workers;
+    let max_out = pool.current_num_threads() + 1;
+    let (done_tx, done_rx) = flume::bounded::<Traced>(max_out);
     let mut e = Engine {
         job,
         links,
@@ -187,102 +212,116 @@ pub fn run(
         job: job.job,
         count: job.tuning.tiles_ahead.max(1),
     })?;
-    let mut work: VecDeque<Work> = VecDeque::new();
-    let mut idle = Duration::ZERO;
-    loop {
-        e.retry_stalled()?;
-        if e.stalled.iter().all(VecDeque::is_empty) {
-            e.originate(&mut work);
-        }
-        let mut inputs = Vec::new();
-        if work.is_empty() {
-            e.flush_all()?;
+    // Leaving this scope (also by an error) waits for the batches still
+    // out; each finds room in `done_tx`, so none blocks.
+    pool.in_place_scope(|scope| {
+        let mut work: VecDeque<Work> = VecDeque::new();
+        let mut idle = Duration::ZERO;
+        let mut out = 0usize;
+        loop {
+            e.retry_stalled()?;
+            if e.stalled.iter().all(VecDeque::is_empty) {
+                e.originate(&mut work);
+            }
+            while out < max_out && !work.is_empty() {
+                let share = work.len().div_ceil(max_out - out);
+                let take = share.clamp(MIN_BATCH, BATCH).min(work.len());
+                let batch: Vec<Work> = work.drain(..take).collect();
+                let tx = done_tx.clone();
+                scope.spawn(move |_| {
+                    let mut st = TraceStats::default();
+                    let mut scratch = Vec::new();
+                    let outs = batch
+                        .into_iter()
+                        .map(|w| process(job, w, &mut st, &mut scratch))
+                        .collect();
+                    // The engine holds the receiver until the scope ends.
+                    let _ = tx.send((outs, st));
+                });
+                out += 1;
+            }
+            if out == 0 {
+                // Nothing is being traced: what waits in packets must go.
+                e.flush_all()?;
+            }
             let wait = if e.stalled.iter().any(|s| !s.is_empty()) {
                 Duration::from_millis(1)
+            } else if out > 0 {
+                Duration::from_micros(job.tuning.flush_us.max(1) as u64)
             } else {
                 Duration::from_millis(100)
             };
             let t = Instant::now();
-            match inbox.recv_timeout(wait) {
-                Ok(x) => inputs.push(x),
-                Err(flume::RecvTimeoutError::Timeout) => {}
-                Err(flume::RecvTimeoutError::Disconnected) => {
-                    return Err(EngineError::LinkClosed("the worker's inbox"));
+            let first = flume::Selector::new()
+                .recv(&inbox, |r| r.map_or(Event::InboxClosed, Event::Input))
+                .recv(&done_rx, |r| r.map_or(Event::InboxClosed, Event::Traced))
+                .wait_timeout(wait)
+                .ok();
+            if out == 0 {
+                idle += t.elapsed();
+            }
+            let mut events: Vec<Event> = first.into_iter().collect();
+            while events.len() < 256 {
+                match done_rx.try_recv() {
+                    Ok(x) => events.push(Event::Traced(x)),
+                    Err(_) => break,
                 }
             }
-            idle += t.elapsed();
-        }
-        while inputs.len() < 256 {
-            match inbox.try_recv() {
-                Ok(x) => inputs.push(x),
-                Err(_) => break,
+            while events.len() < 512 {
+                match inbox.try_recv() {
+                    Ok(x) => events.push(Event::Input(x)),
+                    Err(_) => break,
+                }
             }
-        }
-        for input in inputs {
-            match input {
-                Input::Packet { from, items } => {
-                    for it in items {
-                        match it {
-                            RayItem::Trace {
-                                query,
-                                resume,
-                                reply,
-                            } => {
-                                e.stats.queries_in += 1;
-                                work.push_back(Work {
+            for ev in events {
+                match ev {
+                    Event::InboxClosed => {
+                        return Err(EngineError::LinkClosed("the worker's inbox"));
+                    }
+                    Event::Traced((outs, st)) => {
+                        out -= 1;
+                        e.stats.trace += st;
+                        for o in outs {
+                            e.apply(o)?;
+                        }
+                    }
+                    Event::Input(Input::Packet { from, items }) => {
+                        for it in items {
+                            match it {
+                                RayItem::Trace {
                                     query,
                                     resume,
                                     reply,
-                                    from,
-                                });
+                                } => {
+                                    e.stats.queries_in += 1;
+                                    work.push_back(Work {
+                                        task: Task::Query(query),
+                                        resume,
+                                        reply,
+                                        from,
+                                    });
+                                }
+                                RayItem::Answer { to, answer } => e.answer(from, to, answer)?,
                             }
-                            RayItem::Answer { to, answer } => e.answer(from, to, answer)?,
                         }
                     }
-                }
-                Input::Tile(a) => e.add_tile(a),
-                Input::NoMoreTiles => e.no_more_tiles = true,
-                Input::End => {
-                    let pending = e.slots.len() - e.free.len();
-                    if pending > 0 || !work.is_empty() {
-                        return Err(EngineError::EndedEarly(pending + work.len()));
+                    Event::Input(Input::Tile(a)) => e.add_tile(a),
+                    Event::Input(Input::NoMoreTiles) => e.no_more_tiles = true,
+                    Event::Input(Input::End) => {
+                        let pending = e.slots.len() - e.free.len();
+                        if pending > 0 || !work.is_empty() || out > 0 {
+                            return Err(EngineError::EndedEarly(pending + work.len()));
+                        }
+                        let total = start.elapsed();
+                        e.stats.idle_s = idle.as_secs_f64();
+                        e.stats.busy_s = (total - idle.min(total)).as_secs_f64();
+                        return Ok(std::mem::take(&mut e.stats));
                     }
-                    let total = start.elapsed();
-                    e.stats.idle_s = idle.as_secs_f64();
-                    e.stats.busy_s = (total - idle.min(total)).as_secs_f64();
-                    return Ok(e.stats);
                 }
             }
+            e.flush_due()?;
         }
-        if !work.is_empty() {
-            let take = work.len().min(BATCH);
-            let batch: Vec<Work> = work.drain(..take).collect();
-            let job = e.job;
-            let results: Vec<(Vec<Outcome>, TraceStats)> = pool.install(|| {
-                use rayon::prelude::*;
-                batch
-                    .into_par_iter()
-                    .chunks(32)
-                    .map(|chunk| {
-                        let mut st = TraceStats::default();
-                        let mut scratch = Vec::new();
-                        let o = chunk
-                            .into_iter()
-                            .map(|w| process(job, w, &mut st, &mut scratch))
-                            .collect();
-                        (o, st)
-                    })
-                    .collect()
-            });
-            for (outs, st) in results {
-                e.stats.trace += st;
-                for o in outs {
-                    e.apply(o)?;
-                }
-            }
-        }
-        e.flush_due()?;
-    }
+    })
 }
 
 /// One run trace; with a single owner the walk is skipped (every leaf is
@@ -320,16 +359,37 @@ fn trace(
 /// vertices are all here is finished in this call, like the single-machine
 /// integrator; only queries that leave the region become messages.
 fn process(job: &EngineJob, w: Work, st: &mut TraceStats, chain: &mut Vec<ChainVertex>) -> Outcome {
-    match w.query {
+    let query = match w.task {
+        Task::Query(q) => q,
+        Task::Camera { x, y, sample } => {
+            let key = SampleKey::new(
+                y as u64 * job.camera.width as u64 + x as u64,
+                sample,
+                job.seed,
+            );
+            st.camera_rays += 1;
+            let ray = job.camera.ray(x, y, key.get2d(DIM_PIXEL));
+            Query::Path(PathRay::camera(ray, key))
+        }
+    };
+    let forward = |query: Query, to: WorkerId, t: f32| {
+        if t == w.resume && w.from != job.me {
+            // The sender computed the same processor vector; a query that
+            // does not start in our leaf was corrupted or misrouted.
+            return Outcome::Error(EngineError::Misrouted { from: w.from });
+        }
+        Outcome::Forward(to, query, t, w.reply)
+    };
+    match query {
         Query::Shadow(s) => match trace(job, &s.ray, s.t_max, w.resume, true, st) {
-            RunResult::Forward { to, t } => forward(job, w, to, t),
+            RunResult::Forward { to, t } => forward(Query::Shadow(s), to, t),
             RunResult::Miss => Outcome::Answer(w.reply, Answer::Visible(true)),
             RunResult::Occluded | RunResult::Hit(_) => {
                 Outcome::Answer(w.reply, Answer::Visible(false))
             }
         },
         Query::Path(q) => match trace(job, &q.ray, f32::INFINITY, w.resume, false, st) {
-            RunResult::Forward { to, t } => forward(job, w, to, t),
+            RunResult::Forward { to, t } => forward(Query::Path(q), to, t),
             RunResult::Miss | RunResult::Occluded => {
                 Outcome::Answer(w.reply, Answer::Radiance(Vec3::ZERO))
             }
@@ -343,15 +403,6 @@ fn process(job: &EngineJob, w: Work, st: &mut TraceStats, chain: &mut Vec<ChainV
             }
         },
     }
-}
-
-fn forward(job: &EngineJob, w: Work, to: WorkerId, t: f32) -> Outcome {
-    if t == w.resume && w.from != job.me {
-        // The sender computed the same processor vector; a query that does
-        // not start in our leaf was corrupted or misrouted.
-        return Outcome::Error(EngineError::Misrouted { from: w.from });
-    }
-    Outcome::Forward(to, Work { resume: t, ..w })
 }
 
 /// Shades hit `h` of `q` and evaluates its shadow and continuation queries
@@ -479,20 +530,18 @@ impl Engine<'_> {
                 t.next += 1;
                 let a = t.a;
                 let p = index / job.spp;
-                let s = index % job.spp;
                 let w = a.x1 - a.x0;
-                let (x, y) = (a.x0 + p % w, a.y0 + p / w);
-                let key =
-                    SampleKey::new(y as u64 * job.camera.width as u64 + x as u64, s, job.seed);
-                let ray = job.camera.ray(x, y, key.get2d(DIM_PIXEL));
                 let slot = self.alloc(Slot::Sample {
                     tile: ti as u32,
                     index,
                 });
                 self.inflight += 1;
-                self.stats.trace.camera_rays += 1;
                 work.push_back(Work {
-                    query: Query::Path(PathRay::camera(ray, key)),
+                    task: Task::Camera {
+                        x: a.x0 + p % w,
+                        y: a.y0 + p / w,
+                        sample: index % job.spp,
+                    },
                     resume: f32::NEG_INFINITY,
                     reply: ReplyTo { worker: me, slot },
                     from: me,
@@ -505,14 +554,14 @@ impl Engine<'_> {
         let me = self.job.me;
         match o {
             Outcome::Error(e) => return Err(e),
-            Outcome::Forward(to, w) => {
+            Outcome::Forward(to, query, resume, reply) => {
                 self.stats.forwarded_out += 1;
                 self.push_out(
                     to,
                     RayItem::Trace {
-                        query: w.query,
-                        resume: w.resume,
-                        reply: w.reply,
+                        query,
+                        resume,
+                        reply,
                     },
                 )?;
             }
