@@ -39,6 +39,59 @@ pub struct Preview {
     pub rays: u64,
 }
 
+/// The sampled prediction the scheduler uses: about 4096 preview pixels
+/// (every pixel of a small image), one bounce.
+pub fn sampled(scene: &Scene, tree: &Octree, accel: &Accel, lights: &LightSet) -> Preview {
+    let pixels = scene.camera.width as f64 * scene.camera.height as f64;
+    let div = (pixels / 4096.0).sqrt().floor().max(1.0) as u32;
+    preview(
+        scene,
+        tree,
+        accel,
+        lights,
+        div,
+        1,
+        scene.settings.seed ^ 0x5eed,
+    )
+}
+
+/// How well each prediction matches the per-leaf cost of the real
+/// workload, per leaf.
+#[derive(Clone, Debug)]
+pub struct Quality {
+    pub leaves: usize,
+    /// Pearson r of analytic and sampled predictions against measured.
+    pub analytic_r: f64,
+    pub sampled_r: f64,
+    /// Rays the sampled prediction traced, and the measurement.
+    pub sampled_rays: u64,
+    pub measured_rays: u64,
+}
+
+/// Measures per-leaf cost with the full workload at one sample per pixel
+/// (every pixel, the scene's full path depth, an independent seed) and
+/// compares both predictions with it.
+pub fn quality(scene: &Scene, tree: &Octree, accel: &Accel, lights: &LightSet) -> Quality {
+    let analytic = analytic(tree);
+    let sampled = sampled(scene, tree, accel, lights);
+    let measured = preview(
+        scene,
+        tree,
+        accel,
+        lights,
+        1,
+        scene.settings.max_depth,
+        scene.settings.seed ^ 0x03ea_50ed,
+    );
+    Quality {
+        leaves: tree.leaves.len(),
+        analytic_r: correlation(&analytic, &measured.cost),
+        sampled_r: correlation(&sampled.cost, &measured.cost),
+        sampled_rays: sampled.rays,
+        measured_rays: measured.rays,
+    }
+}
+
 /// Traces one camera sample per preview pixel (the image downscaled by
 /// `div`) with up to `bounces` diffuse bounces and a shadow ray per vertex,
 /// every ray leaf by leaf, counting per-leaf work.

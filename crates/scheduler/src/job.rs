@@ -80,6 +80,20 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     Ok(())
 }
 
+/// The job's octree: the scene's own parameters, refined until there are a
+/// few leaves per worker (regions are made of leaves) or leaves hold one
+/// triangle.
+pub fn octree_for(scene: &Scene, workers: usize) -> Octree {
+    let mut params = scene.settings.octree;
+    let mut tree = Octree::build(&scene.tris, params);
+    while workers > 1 && tree.leaves.len() < 4 * workers && params.max_leaf_tris > 1 {
+        params.max_leaf_tris /= 2;
+        params.max_depth = params.max_depth.max(8);
+        tree = Octree::build(&scene.tris, params);
+    }
+    tree
+}
+
 pub fn prepare(req: &JobRequest, workers: usize) -> Prepared {
     let t = Instant::now();
     let scene = Scene {
@@ -91,31 +105,12 @@ pub fn prepare(req: &JobRequest, workers: usize) -> Prepared {
         tri_material: req.tri_material.clone(),
         load_stats: LoadStats::default(),
     };
-    // Regions are made of leaves: a scene with fewer leaves than a few per
-    // worker is refined until it has them (or leaves hold one triangle).
-    let mut params = scene.settings.octree;
-    let mut tree = Octree::build(&scene.tris, params);
-    while workers > 1 && tree.leaves.len() < 4 * workers && params.max_leaf_tris > 1 {
-        params.max_leaf_tris /= 2;
-        params.max_depth = params.max_depth.max(8);
-        tree = Octree::build(&scene.tris, params);
-    }
+    let tree = octree_for(&scene, workers);
     let all: Vec<u32> = (0..scene.tris.len() as u32).collect();
     let accel = Accel::build(&scene.tris, &all, scene.magnitude());
     let lights = LightSet::build(&scene);
     let analytic = cost::analytic(&tree);
-    // About 4096 preview pixels, or every pixel of a small image.
-    let pixels = scene.camera.width as f64 * scene.camera.height as f64;
-    let div = (pixels / 4096.0).sqrt().floor().max(1.0) as u32;
-    let pv = cost::preview(
-        &scene,
-        &tree,
-        &accel,
-        &lights,
-        div,
-        1,
-        scene.settings.seed ^ 0x5eed,
-    );
+    let pv = cost::sampled(&scene, &tree, &accel, &lights);
     let chosen = match req.options.cost_model {
         CostModel::Analytic => &analytic,
         CostModel::Sampled => &pv.cost,
