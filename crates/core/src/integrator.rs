@@ -17,8 +17,10 @@
 //! shaded therefore never changes which random numbers it sees.
 
 use crate::accel::{Accel, Hit};
+use crate::dircache::{LeafCaches, Lookup};
 use crate::geometry::{Ray, cosine_hemisphere, hit_point, offset_point, spawn_offset, tri_cross};
 use crate::light::LightSet;
+use crate::octree::Octree;
 use crate::sampler::SampleKey;
 use crate::scene::{Material, Scene};
 use crate::stats::TraceStats;
@@ -105,6 +107,21 @@ impl ShadedVertex {
 }
 
 /// What shading a hit produces.
+/// How direct light is estimated at a path vertex.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum DirectLighting {
+    /// Next-event estimation and emitters hit by continuation rays, combined
+    /// by the power heuristic (the default; lowest variance).
+    #[default]
+    Mis,
+    /// Next-event estimation alone takes all direct light; continuation rays
+    /// (depth >= 1) return radiance without the emission of the surface
+    /// they hit. This is the quantity the directional cache stores (see
+    /// [`crate::dircache`]): it does not depend on where in the leaf the ray
+    /// started.
+    LightOnly,
+}
+
 pub struct Shaded {
     pub vertex: ShadedVertex,
     pub shadow: Option<ShadowRay>,
@@ -119,6 +136,7 @@ pub fn shade(
     mat: &Material,
     lights: &LightSet,
     max_depth: u32,
+    direct: DirectLighting,
 ) -> Shaded {
     let mut out = Shaded {
         vertex: ShadedVertex {
@@ -133,11 +151,13 @@ pub fn shade(
     let wo = -q.ray.dir;
     let cos_o = ng.dot(wo);
     if mat.is_emissive() && cos_o > 0.0 {
-        let w = if q.depth == 0 {
-            1.0
-        } else {
-            let pdf_l = lights.pdf_area(h.tri) * h.t * h.t / cos_o;
-            power_heuristic(q.prev_pdf, pdf_l)
+        let w = match (q.depth, direct) {
+            (0, _) => 1.0,
+            (_, DirectLighting::LightOnly) => 0.0,
+            (_, DirectLighting::Mis) => {
+                let pdf_l = lights.pdf_area(h.tri) * h.t * h.t / cos_o;
+                power_heuristic(q.prev_pdf, pdf_l)
+            }
         };
         out.vertex.emitted = mat.emission * w;
     }
@@ -166,7 +186,10 @@ pub fn shade(
             if len > 0.0 {
                 let pdf_l = ls.pdf_area * dist2 / cos_l;
                 let pdf_b = cos_s / PI;
-                let w = power_heuristic(pdf_l, pdf_b);
+                let w = match direct {
+                    DirectLighting::Mis => power_heuristic(pdf_l, pdf_b),
+                    DirectLighting::LightOnly => 1.0,
+                };
                 out.vertex.nee = f * ls.emission * (cos_s * w / pdf_l);
                 out.shadow = Some(ShadowRay {
                     ray: Ray::new(origin, seg / len),
@@ -209,29 +232,44 @@ pub struct Integrator<'a> {
     pub accel: &'a Accel,
     pub lights: &'a LightSet,
     pub max_depth: u32,
+    pub direct: DirectLighting,
+    /// Directional caches per octree leaf; None traces every ray.
+    pub cache: Option<CacheUse<'a>>,
+}
+
+/// The caches and the octree whose leaves they belong to.
+#[derive(Clone, Copy)]
+pub struct CacheUse<'a> {
+    pub octree: &'a Octree,
+    pub caches: &'a LeafCaches,
 }
 
 impl Integrator<'_> {
-    /// Radiance arriving at the camera along `ray` for sample `key`.
     pub fn radiance(&self, camera_ray: Ray, key: SampleKey, stats: &mut TraceStats) -> Vec3 {
         stats.camera_rays += 1;
         self.trace(&PathRay::camera(camera_ray, key), stats)
     }
 
-    /// `L(q)`; recursion depth is bounded by `max_depth`.
+    /// Radiance arriving along `q.ray` (see [`DirectLighting`] for what it
+    /// includes at depth >= 1).
     pub fn trace(&self, q: &PathRay, stats: &mut TraceStats) -> Vec3 {
-        let Some(h) = self.accel.intersect(&q.ray, 0.0, f32::INFINITY, stats) else {
-            return Vec3::ZERO;
-        };
+        match self.accel.intersect(&q.ray, 0.0, f32::INFINITY, stats) {
+            Some(h) => self.shade_hit(q, &h, stats),
+            None => Vec3::ZERO,
+        }
+    }
+
+    fn shade_hit(&self, q: &PathRay, h: &Hit, stats: &mut TraceStats) -> Vec3 {
         let scene = self.scene;
         let mat = &scene.materials[scene.tri_material[h.tri as usize] as usize];
         let s = shade(
             q,
-            &h,
+            h,
             &scene.tris[h.tri as usize],
             mat,
             self.lights,
             self.max_depth,
+            self.direct,
         );
         let visible = match s.shadow {
             Some(sr) => {
@@ -243,10 +281,40 @@ impl Integrator<'_> {
         let next = match s.next {
             Some(nq) => {
                 stats.indirect_rays += 1;
-                self.trace(&nq, stats)
+                self.continue_path(&nq, stats)
             }
             None => Vec3::ZERO,
         };
         s.vertex.finish(visible, next)
+    }
+
+    /// A continuation ray: traced exactly inside the locality sphere of the
+    /// leaf it starts in, answered by that leaf's cache beyond it when the
+    /// cache can, traced (and the answer cached) otherwise.
+    fn continue_path(&self, nq: &PathRay, stats: &mut TraceStats) -> Vec3 {
+        let Some(c) = self.cache else {
+            return self.trace(nq, stats);
+        };
+        let Some(leaf) = c.octree.leaf_at(nq.ray.origin) else {
+            return self.trace(nq, stats);
+        };
+        let tp = c
+            .caches
+            .perimeter(&c.octree.leaves[leaf as usize].bounds, &nq.ray);
+        if let Some(h) = self.accel.intersect(&nq.ray, 0.0, tp, stats) {
+            stats.cache.local += 1;
+            return self.shade_hit(nq, &h, stats);
+        }
+        if let Lookup::Answer(v) = c.caches.lookup(leaf, nq.ray.dir) {
+            stats.cache.lookups += 1;
+            return v;
+        }
+        stats.cache.global += 1;
+        let v = match self.accel.intersect(&nq.ray, tp, f32::INFINITY, stats) {
+            Some(h) => self.shade_hit(nq, &h, stats),
+            None => Vec3::ZERO,
+        };
+        c.caches.update(leaf, nq.ray.dir, v);
+        v
     }
 }

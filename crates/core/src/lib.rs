@@ -11,10 +11,12 @@
 //! seed) and samples area lights from [`light`]; [`render`] runs it over
 //! tiles on a rayon pool and counts work in [`stats`]. Images leave through
 //! [`image_io`], are compared with [`metrics`], and reports are written by
-//! [`report`]. [`generate`] writes the generated conference-like room.
+//! [`report`]. [`dircache`] is paper 000's directional cache: per octree
+//! leaf, the radiance arriving from beyond a locality radius, by direction. [`generate`] writes the generated conference-like room.
 
 pub mod accel;
 pub mod bench;
+pub mod dircache;
 pub mod error;
 pub mod generate;
 pub mod geometry;

@@ -6,8 +6,9 @@
 //! tile order. Non-finite sample values are replaced by zero and counted.
 
 use crate::accel::Accel;
+use crate::dircache::{CacheMemory, CacheParams, LeafCaches};
 use crate::image_io::Image;
-use crate::integrator::{DIM_PIXEL, Integrator};
+use crate::integrator::{CacheUse, DIM_PIXEL, DirectLighting, Integrator};
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::sampler::{SampleKey, mix64};
@@ -55,12 +56,15 @@ impl Prepared {
         }
     }
 
+    /// The integrator without caches, with MIS direct lighting.
     pub fn integrator(&self, max_depth: u32) -> Integrator<'_> {
         Integrator {
             scene: &self.scene,
             accel: &self.accel,
             lights: &self.lights,
             max_depth,
+            direct: DirectLighting::Mis,
+            cache: None,
         }
     }
 }
@@ -82,6 +86,10 @@ pub struct RenderOptions {
     pub threads: usize,
     pub tile_size: u32,
     pub tile_order: TileOrder,
+    pub direct: DirectLighting,
+    /// Directional caches on the octree's leaves (forces
+    /// [`DirectLighting::LightOnly`], the quantity the caches store).
+    pub cache: Option<CacheParams>,
 }
 
 impl RenderOptions {
@@ -93,6 +101,8 @@ impl RenderOptions {
             threads: 0,
             tile_size: 16,
             tile_order: TileOrder::Scanline,
+            direct: DirectLighting::Mis,
+            cache: None,
         }
     }
 }
@@ -163,6 +173,8 @@ pub struct RenderOutput {
     pub image: Image,
     pub stats: TraceStats,
     pub render_s: f64,
+    /// What the directional caches held at the end, when they were on.
+    pub cache_memory: Option<CacheMemory>,
 }
 
 /// Renders on a pool of `opts.threads` threads; `progress(done, total)` is
@@ -174,7 +186,21 @@ pub fn render(
 ) -> RenderOutput {
     use rayon::prelude::*;
     let cam = &prep.scene.camera;
-    let integ = prep.integrator(opts.max_depth);
+    let caches = opts
+        .cache
+        .map(|p| LeafCaches::new(prep.octree.leaves.len(), p));
+    let integ = Integrator {
+        direct: if caches.is_some() {
+            DirectLighting::LightOnly
+        } else {
+            opts.direct
+        },
+        cache: caches.as_ref().map(|c| CacheUse {
+            octree: &prep.octree,
+            caches: c,
+        }),
+        ..prep.integrator(opts.max_depth)
+    };
     let tl = tiles(cam.width, cam.height, opts.tile_size, opts.tile_order);
     let total = tl.len();
     let done = AtomicUsize::new(0);
@@ -212,10 +238,12 @@ pub fn render(
         }
         stats += st;
     }
+    let render_s = duration_s(start.elapsed());
     RenderOutput {
         image,
         stats,
-        render_s: duration_s(start.elapsed()),
+        render_s,
+        cache_memory: caches.map(|c| c.memory()),
     }
 }
 

@@ -32,6 +32,8 @@ pub struct RenderReport {
     pub samples_per_second: f64,
     pub rays_per_second: f64,
     pub error_vs_reference: Option<ErrorMetrics>,
+    /// What the directional caches held at the end (when on).
+    pub cache_memory: Option<crate::dircache::CacheMemory>,
 }
 
 impl RenderReport {

@@ -17,6 +17,8 @@ pub struct TraceStats {
     /// Samples whose radiance was NaN or infinite and were replaced by zero.
     pub invalid_samples: u64,
     pub samples: u64,
+    /// Directional cache use by continuation rays.
+    pub cache: crate::dircache::CacheStats,
 }
 
 impl TraceStats {
@@ -35,5 +37,6 @@ impl std::ops::AddAssign for TraceStats {
         self.bvh_queries += o.bvh_queries;
         self.invalid_samples += o.invalid_samples;
         self.samples += o.samples;
+        self.cache += o.cache;
     }
 }

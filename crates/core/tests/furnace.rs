@@ -4,51 +4,10 @@
 //! within a bound derived from the standard error of the render.
 
 mod common;
-use glam::Vec3;
-use locus_core::generate::MeshBuilder;
 use locus_core::render::{Prepared, RenderOptions, render};
-use locus_core::scene::{Material, RenderSettings};
 
 fn furnace(rho: f32, le: f32, spp: u32) -> (f64, f64, f64) {
-    // A cube seen from inside: faces wound to point inward, because emission
-    // is one-sided. Finely tessellated so NEE samples many triangles.
-    let mut mb = MeshBuilder::default();
-    let (lo, s) = (Vec3::splat(-1.0), 2.0);
-    let (x, y, z) = (Vec3::X * s, Vec3::Y * s, Vec3::Z * s);
-    let n = 6;
-    mb.grid(lo, y, z, n, 0); // x = -1, normal +x
-    mb.grid(lo + x, z, y, n, 0); // x = +1, normal -x
-    mb.grid(lo, z, x, n, 0); // y = -1, normal +y
-    mb.grid(lo + y, x, z, n, 0); // y = +1, normal -y
-    mb.grid(lo, x, y, n, 0); // z = -1, normal +z
-    mb.grid(lo + z, y, x, n, 0); // z = +1, normal -z
-    let mats = vec![Material {
-        name: "furnace".into(),
-        albedo: Vec3::splat(rho),
-        emission: Vec3::splat(le),
-    }];
-    let cam = common::camera(
-        Vec3::new(0.1, -0.2, 0.05),
-        Vec3::new(1.0, 0.3, 0.7),
-        90.0,
-        24,
-        24,
-    );
-    let settings = RenderSettings {
-        spp,
-        max_depth: 200,
-        seed: 11,
-        ..Default::default()
-    };
-    let scene = common::scene_from(&mb, mats, cam, settings);
-    // Every face must point inward for the emission to be seen.
-    for t in &scene.tris {
-        let c = (t[0] + t[1] + t[2]) / 3.0;
-        assert!(
-            locus_core::geometry::tri_cross(t).dot(-c) > 0.0,
-            "face points outward"
-        );
-    }
+    let scene = common::furnace_scene(rho, le, spp, 6);
     let prep = Prepared::new(scene);
     let opts = RenderOptions::from_scene(&prep.scene);
     let out = render(&prep, &opts, &|_, _| {});

@@ -35,20 +35,10 @@ pub struct WorkerSection {
 
 impl Config {
     pub fn load(path: Option<&Path>) -> anyhow::Result<Self> {
-        let Some(p) = path else {
-            return Ok(Self::default());
-        };
-        let text =
-            std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-        toml::from_str(&text).map_err(|e| {
-            let line = e
-                .span()
-                .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
-            match line {
-                Some(l) => anyhow::anyhow!("{}:{l}: {}", p.display(), e.message()),
-                None => anyhow::anyhow!("{}: {}", p.display(), e.message()),
-            }
-        })
+        match path {
+            Some(p) => load_toml(p),
+            None => Ok(Self::default()),
+        }
     }
 
     /// The cluster token: flag or `LOCUS_TOKEN` (clap merges those two)
@@ -61,6 +51,46 @@ impl Config {
                 config.map_or("a --config file".to_string(), |p| p.display().to_string())
             ),
         }
+    }
+}
+
+/// Reads a TOML file into `T`; errors name the file and line.
+pub fn load_toml<T: serde::de::DeserializeOwned>(p: &Path) -> anyhow::Result<T> {
+    let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+    toml::from_str(&text).map_err(|e| {
+        let line = e
+            .span()
+            .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
+        match line {
+            Some(l) => anyhow::anyhow!("{}:{l}: {}", p.display(), e.message()),
+            None => anyhow::anyhow!("{}: {}", p.display(), e.message()),
+        }
+    })
+}
+
+/// A quality preset (`configs/presets/`): sampling settings plus the
+/// directional cache's parameters, used when the cache is switched on.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Preset {
+    pub name: String,
+    pub spp: u32,
+    pub max_depth: u32,
+    #[serde(default)]
+    pub cache: locus_core::dircache::CacheParams,
+}
+
+impl Preset {
+    pub fn load(p: &Path) -> anyhow::Result<Self> {
+        let preset: Preset = load_toml(p)?;
+        preset
+            .cache
+            .check()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        if preset.spp == 0 {
+            bail!("{}: spp must be at least 1", p.display());
+        }
+        Ok(preset)
     }
 }
 
@@ -85,5 +115,38 @@ mod tests {
         assert!(e.contains(&format!("{}:3", p.display())), "{e}");
         let none = Config::default().token(None, None).unwrap_err().to_string();
         assert!(none.contains("LOCUS_TOKEN"));
+    }
+
+    #[test]
+    fn quality_presets_parse_and_order_by_effort() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/presets");
+        let p: Vec<Preset> = ["accurate", "fast", "low"]
+            .iter()
+            .map(|n| Preset::load(&dir.join(format!("{n}.toml"))).unwrap())
+            .collect();
+        assert_eq!(p[0].name, "accurate");
+        // More effort, stricter cache, from accurate to low.
+        assert!(p[0].spp > p[1].spp && p[1].spp > p[2].spp);
+        assert!(p[0].cache.answer_rel_error < p[1].cache.answer_rel_error);
+        assert!(p[0].cache.radius > p[2].cache.radius);
+    }
+
+    #[test]
+    fn bad_preset_names_file_and_line() {
+        let p = std::env::temp_dir().join(format!("locus-bad-preset-{}.toml", std::process::id()));
+        std::fs::write(
+            &p,
+            "name = \"x\"\nspp = 4\nmax_depth = 3\n[cache]\nradios = 2\n",
+        )
+        .unwrap();
+        let e = Preset::load(&p).unwrap_err().to_string();
+        assert!(e.contains(&format!("{}:5", p.display())), "{e}");
+        std::fs::write(
+            &p,
+            "name = \"x\"\nspp = 4\nmax_depth = 3\n[cache]\nradius = -1\n",
+        )
+        .unwrap();
+        let e = Preset::load(&p).unwrap_err().to_string();
+        assert!(e.contains("radius"), "{e}");
     }
 }

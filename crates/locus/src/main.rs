@@ -8,7 +8,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
-use locus::config::Config;
+use locus::config::{Config, Preset};
 use locus_core::bench;
 use locus_core::generate::{RoomParams, write_room};
 use locus_core::image_io::Image;
@@ -205,6 +205,17 @@ struct RenderArgs {
     /// Tracing threads per embedded worker (0: cores / workers, at least 1).
     #[arg(long, default_value_t = 0)]
     threads_per_worker: usize,
+    /// A quality preset (configs/presets/*.toml): spp, depth and the
+    /// directional cache's parameters; --spp and --max-depth override it.
+    #[arg(long)]
+    preset: Option<PathBuf>,
+    /// Switch the directional cache on (the preset's parameters, or the
+    /// defaults); direct light is then estimated by light sampling alone.
+    #[arg(long)]
+    cache: bool,
+    /// Locality radius in leaf edges (overrides the preset's).
+    #[arg(long)]
+    cache_radius: Option<f32>,
     #[command(flatten)]
     farm: FarmArgs,
 }
@@ -288,6 +299,11 @@ fn sibling(path: &Path, ext: &str) -> PathBuf {
 
 fn cmd_render(a: RenderArgs) -> Result<()> {
     if a.workers > 0 {
+        if a.cache || a.preset.is_some() {
+            bail!(
+                "--cache and --preset render on one machine so far: the farm's directional caches are not built yet"
+            );
+        }
         return cmd_render_farm(a);
     }
     let t = Instant::now();
@@ -300,6 +316,20 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         "scene loaded"
     );
     let mut opts = RenderOptions::from_scene(&scene);
+    let preset = a.preset.as_deref().map(Preset::load).transpose()?;
+    if let Some(p) = &preset {
+        opts.spp = p.spp;
+        opts.max_depth = p.max_depth;
+    }
+    if a.cache {
+        let mut c = preset.as_ref().map(|p| p.cache).unwrap_or_default();
+        if let Some(r) = a.cache_radius {
+            c.radius = r;
+        }
+        c.check()
+            .map_err(|e| anyhow::anyhow!("--cache-radius: {e}"))?;
+        opts.cache = Some(c);
+    }
     if let Some(s) = a.spp {
         opts.spp = s.max(1);
     }
@@ -370,6 +400,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         samples_per_second: st.samples as f64 / out.render_s,
         rays_per_second: st.rays() as f64 / out.render_s,
         error_vs_reference: error,
+        cache_memory: out.cache_memory,
     };
     let json = sibling(&a.output, "json");
     report
@@ -396,6 +427,18 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         report.samples_per_second,
         report.rays_per_second / 1e6
     );
+    if let (Some(m), c) = (out.cache_memory, st.cache) {
+        println!(
+            "  directional cache: {} local, {} global, {} lookups (hit ratio {:.1}%), {} nodes in {} leaves, {:.1} MiB",
+            c.local,
+            c.global,
+            c.lookups,
+            100.0 * c.hit_ratio(),
+            m.nodes,
+            m.leaves_with_cache,
+            m.bytes as f64 / (1024.0 * 1024.0)
+        );
+    }
     if let Some(e) = error {
         println!("error vs reference: {e}");
     }

@@ -22,7 +22,7 @@ use glam::{DVec3, Vec3};
 use locus_core::accel::Accel;
 use locus_core::accel::Hit;
 use locus_core::geometry::Ray;
-use locus_core::integrator::{DIM_PIXEL, PathRay, shade};
+use locus_core::integrator::{DIM_PIXEL, DirectLighting, PathRay, shade};
 use locus_core::light::LightSet;
 use locus_core::region::{ProcessorMap, RunResult, WorkerId};
 use locus_core::sampler::SampleKey;
@@ -427,6 +427,7 @@ fn eval_hit(
         mat,
         &job.lights,
         job.max_depth,
+        DirectLighting::Mis,
     );
     let shadow = match s.shadow {
         None => Child::Done(false),
