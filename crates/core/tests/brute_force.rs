@@ -221,6 +221,17 @@ fn leaf_restricted_queries_match_brute_force() {
 
 /// Rays that start at leaf corners and run to other leaf corners, and rays
 /// that run along leaf faces: the hard cases for a processor vector.
+/// The octree the farm tests partition: leaves of up to 32 triangles.
+fn region_octree(tris: &[[Vec3; 3]]) -> Octree {
+    Octree::build(
+        tris,
+        OctreeParams {
+            max_leaf_tris: 32,
+            max_depth: 6,
+        },
+    )
+}
+
 fn corner_and_face_rays(oct: &Octree, n: u64) -> Vec<Ray> {
     let leaves = &oct.leaves;
     let m = leaves.len() as u64;
@@ -250,13 +261,7 @@ fn corner_and_face_rays(oct: &Octree, n: u64) -> Vec<Ray> {
 fn processor_vector_chains_match_one_bvh() {
     use locus_core::region::{ProcessorMap, RunResult};
     let tris = scene();
-    let oct = Octree::build(
-        &tris,
-        OctreeParams {
-            max_leaf_tris: 32,
-            max_depth: 6,
-        },
-    );
+    let oct = region_octree(&tris);
     let all: Vec<u32> = (0..tris.len() as u32).collect();
     let global = Accel::build(&tris, &all, 12.0);
     let n = oct.leaf_count();
@@ -336,13 +341,7 @@ fn processor_vector_chains_match_one_bvh() {
 #[test]
 fn resumed_walk_continues_the_same_processor_vector() {
     let tris = scene();
-    let oct = Octree::build(
-        &tris,
-        OctreeParams {
-            max_leaf_tris: 32,
-            max_depth: 6,
-        },
-    );
+    let oct = region_octree(&tris);
     let mut checked = 0;
     for r in rays(500, 12).iter().chain(&corner_and_face_rays(&oct, 500)) {
         let full = oct.leaves_along(r, 0.0, f32::INFINITY);
@@ -362,13 +361,7 @@ fn resumed_walk_continues_the_same_processor_vector() {
 #[test]
 fn face_neighbours_match_brute_force() {
     let tris = scene();
-    let oct = Octree::build(
-        &tris,
-        OctreeParams {
-            max_leaf_tris: 32,
-            max_depth: 6,
-        },
-    );
+    let oct = region_octree(&tris);
     let nb = oct.face_neighbours();
     let ls = &oct.leaves;
     for i in 0..ls.len() {

@@ -22,6 +22,15 @@ fn small_cornell() -> Scene {
     s
 }
 
+/// A 2-thread runtime like the CLI's, for the farm's tasks.
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
 fn single_machine(scene: &Scene) -> Vec<u32> {
     let prep = Prepared::new(scene.clone());
     let mut o = RenderOptions::from_scene(scene);
@@ -33,11 +42,7 @@ fn single_machine(scene: &Scene) -> Vec<u32> {
 fn farm_matches_single_machine_bit_for_bit() {
     let scene = small_cornell();
     let reference = single_machine(&scene);
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
     rt.block_on(async {
         for workers in [1usize, 2, 3, 4, 8] {
             let farm = locus::farm::LocalFarm::start(workers, 1).await.expect("farm");
@@ -82,11 +87,7 @@ fn bad_clients_are_dropped_while_the_job_completes() {
     use tokio::io::AsyncWriteExt;
     let scene = small_cornell();
     let reference = single_machine(&scene);
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
     rt.block_on(async {
         let farm = locus::farm::LocalFarm::start(3, 1).await.expect("farm");
         let addr = farm.scheduler.to_string();
@@ -156,11 +157,7 @@ fn bad_clients_are_dropped_while_the_job_completes() {
 #[test]
 fn invalid_job_is_refused_and_the_farm_stays_up() {
     let scene = small_cornell();
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
     rt.block_on(async {
         let farm = locus::farm::LocalFarm::start(2, 1).await.expect("farm");
         let mut bad = locus_scheduler::client::request(&scene, JobOptions::default());

@@ -86,6 +86,26 @@ fn encode<T: Serialize>(
     Ok(bytes::Bytes::from(bytes))
 }
 
+/// Encodes `msg` and sends it as one frame on either a whole connection or
+/// a writer half; returns the bytes it took on the wire.
+async fn send<T, S>(
+    sink: &mut S,
+    msg: &T,
+    peer: SocketAddr,
+    max: usize,
+) -> Result<usize, ProtocolError>
+where
+    T: Serialize,
+    S: futures_util::Sink<bytes::Bytes, Error = std::io::Error> + Unpin,
+{
+    let b = encode(msg, peer, max)?;
+    let n = b.len() + FRAME_HEADER_LEN;
+    sink.send(b)
+        .await
+        .map_err(|e| ProtocolError::Io { peer, source: e })?;
+    Ok(n)
+}
+
 impl Connection {
     pub fn new(stream: TcpStream, max_frame: usize) -> std::io::Result<Self> {
         let peer = stream.peer_addr()?;
@@ -112,13 +132,7 @@ impl Connection {
 
     /// Writes one message; returns the bytes it took on the wire.
     pub async fn write_msg<T: Serialize>(&mut self, msg: &T) -> Result<usize, ProtocolError> {
-        let b = encode(msg, self.peer, self.max_frame)?;
-        let n = b.len() + FRAME_HEADER_LEN;
-        self.framed.send(b).await.map_err(|e| ProtocolError::Io {
-            peer: self.peer,
-            source: e,
-        })?;
-        Ok(n)
+        send(&mut self.framed, msg, self.peer, self.max_frame).await
     }
 
     /// Splits into independent reader and writer halves, keeping any bytes
@@ -164,12 +178,6 @@ impl ConnWriter {
     }
 
     pub async fn write_msg<T: Serialize>(&mut self, msg: &T) -> Result<usize, ProtocolError> {
-        let b = encode(msg, self.peer, self.max_frame)?;
-        let n = b.len() + FRAME_HEADER_LEN;
-        self.framed.send(b).await.map_err(|e| ProtocolError::Io {
-            peer: self.peer,
-            source: e,
-        })?;
-        Ok(n)
+        send(&mut self.framed, msg, self.peer, self.max_frame).await
     }
 }

@@ -16,8 +16,6 @@ pub struct PeerTraffic {
 pub struct WorkerStats {
     /// Rays by kind as originated here, plus BVH work done here.
     pub trace: TraceStats,
-    /// Runs of owned leaves traced here (each is one local BVH query).
-    pub runs_traced: u64,
     /// Trace items sent to a peer.
     pub forwarded_out: u64,
     /// Trace items received from peers.
@@ -34,6 +32,24 @@ pub struct WorkerStats {
     pub triangles: u64,
     pub leaves: u32,
     pub bvh_build_s: f64,
+}
+
+/// Job totals: counters add up, the BVH build time is the slowest
+/// worker's, and per-peer traffic stays with each worker.
+impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
+    fn add_assign(&mut self, o: &WorkerStats) {
+        self.trace += o.trace;
+        self.forwarded_out += o.forwarded_out;
+        self.queries_in += o.queries_in;
+        self.answers_out += o.answers_out;
+        self.busy_s += o.busy_s;
+        self.idle_s += o.idle_s;
+        self.backpressure_stalls += o.backpressure_stalls;
+        self.tiles += o.tiles;
+        self.triangles += o.triangles;
+        self.leaves += o.leaves;
+        self.bvh_build_s = self.bvh_build_s.max(o.bvh_build_s);
+    }
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]

@@ -646,24 +646,10 @@ fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmReport
             }
         })
         .collect();
-    let mut totals = WorkerStats {
-        peers: Vec::new(),
-        ..Default::default()
-    };
+    let mut totals = WorkerStats::default();
     let mut bytes = 0u64;
     for s in &stats {
-        totals.trace += s.trace;
-        totals.runs_traced += s.trace.bvh_queries;
-        totals.forwarded_out += s.forwarded_out;
-        totals.queries_in += s.queries_in;
-        totals.answers_out += s.answers_out;
-        totals.busy_s += s.busy_s;
-        totals.idle_s += s.idle_s;
-        totals.backpressure_stalls += s.backpressure_stalls;
-        totals.tiles += s.tiles;
-        totals.triangles += s.triangles;
-        totals.leaves += s.leaves;
-        totals.bvh_build_s = totals.bvh_build_s.max(s.bvh_build_s);
+        totals += s;
         bytes += s.peers.iter().map(|p| p.bytes_sent).sum::<u64>();
     }
     let busy: Vec<f64> = stats.iter().map(|s| s.busy_s).collect();

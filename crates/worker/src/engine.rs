@@ -3,7 +3,7 @@
 //!
 //! Work arrives as ray items from peers, tiles from the scheduler and answers
 //! to this worker's own queries. A trace item is traced through the run of
-//! owned leaves where it resumes ([`ProcessorMap::trace_run`]): a hit is
+//! owned leaves where it resumes ([`locus_core::region::ProcessorMap::trace_run`]): a hit is
 //! shaded here and spawns a shadow query and a continuation query whose
 //! answers come back to a pending slot; a miss is answered; a ray that
 //! leaves the region is forwarded to the next owner. When both answers of a
@@ -23,34 +23,24 @@ use locus_core::accel::Accel;
 use locus_core::accel::Hit;
 use locus_core::geometry::Ray;
 use locus_core::integrator::{DIM_PIXEL, DirectLighting, PathRay, shade};
-use locus_core::light::LightSet;
-use locus_core::region::{ProcessorMap, RunResult, WorkerId};
+use locus_core::region::{RunResult, WorkerId};
 use locus_core::sampler::SampleKey;
-use locus_core::scene::{Camera, Material};
 use locus_core::stats::TraceStats;
 use locus_protocol::control::{
-    RegionGeometry, TileAssignment, TileResult, Tuning, WorkerToScheduler,
+    JobSetup, RegionGeometry, TileAssignment, TileResult, WorkerToScheduler,
 };
 use locus_protocol::rays::{Answer, Query, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-/// Everything a worker holds for one job.
+/// Everything a worker holds for one job: what the scheduler sent, and the
+/// BVH built over this worker's region.
 pub struct EngineJob {
-    pub job: u64,
-    pub me: WorkerId,
+    pub setup: JobSetup,
     pub workers: usize,
-    pub camera: Camera,
-    pub spp: u32,
-    pub max_depth: u32,
-    pub seed: u64,
-    pub materials: Vec<Material>,
-    pub lights: LightSet,
-    pub map: ProcessorMap,
     pub accel: Accel,
     pub geometry: RegionGeometry,
-    pub tuning: Tuning,
 }
 
 pub enum Input {
@@ -203,14 +193,20 @@ pub fn run(
         stats: WorkerStats {
             peers: vec![Default::default(); n],
             triangles: job.geometry.len() as u64,
-            leaves: job.map.owner.iter().filter(|&&o| o == job.me).count() as u32,
+            leaves: job
+                .setup
+                .map
+                .owner
+                .iter()
+                .filter(|&&o| o == job.setup.me)
+                .count() as u32,
             ..Default::default()
         },
     };
     let start = Instant::now();
     e.control(WorkerToScheduler::NeedTiles {
-        job: job.job,
-        count: job.tuning.tiles_ahead.max(1),
+        job: job.setup.job,
+        count: job.setup.tuning.tiles_ahead.max(1),
     })?;
     // Leaving this scope (also by an error) waits for the batches still
     // out; each finds room in `done_tx`, so none blocks.
@@ -247,7 +243,7 @@ pub fn run(
             let wait = if e.stalled.iter().any(|s| !s.is_empty()) {
                 Duration::from_millis(1)
             } else if out > 0 {
-                Duration::from_micros(job.tuning.flush_us.max(1) as u64)
+                Duration::from_micros(job.setup.tuning.flush_us.max(1) as u64)
             } else {
                 Duration::from_millis(100)
             };
@@ -324,8 +320,8 @@ pub fn run(
     })
 }
 
-/// One run trace; with a single owner the walk is skipped (every leaf is
-/// ours and all geometry lies inside the root, so the answer is the same).
+/// One run trace. With a single owner the routing tree is one leaf, so the
+/// walk costs a root clip and nothing more.
 #[inline]
 fn trace(
     job: &EngineJob,
@@ -335,23 +331,9 @@ fn trace(
     any: bool,
     st: &mut TraceStats,
 ) -> RunResult {
-    if job.workers == 1 {
-        let t0 = resume.max(0.0);
-        return if any {
-            if job.accel.occluded(ray, t0, t_max, st) {
-                RunResult::Occluded
-            } else {
-                RunResult::Miss
-            }
-        } else {
-            match job.accel.intersect(ray, t0, t_max, st) {
-                Some(h) => RunResult::Hit(h),
-                None => RunResult::Miss,
-            }
-        };
-    }
-    job.map
-        .trace_run(job.me, &job.accel, ray, t_max, resume, any, st)
+    job.setup
+        .map
+        .trace_run(job.setup.me, &job.accel, ray, t_max, resume, any, st)
 }
 
 /// Traces one work item through this worker's run of leaves, and keeps
@@ -363,17 +345,17 @@ fn process(job: &EngineJob, w: Work, st: &mut TraceStats, chain: &mut Vec<ChainV
         Task::Query(q) => q,
         Task::Camera { x, y, sample } => {
             let key = SampleKey::new(
-                y as u64 * job.camera.width as u64 + x as u64,
+                y as u64 * job.setup.camera.width as u64 + x as u64,
                 sample,
-                job.seed,
+                job.setup.seed,
             );
             st.camera_rays += 1;
-            let ray = job.camera.ray(x, y, key.get2d(DIM_PIXEL));
+            let ray = job.setup.camera.ray(x, y, key.get2d(DIM_PIXEL));
             Query::Path(PathRay::camera(ray, key))
         }
     };
     let forward = |query: Query, to: WorkerId, t: f32| {
-        if t == w.resume && w.from != job.me {
+        if t == w.resume && w.from != job.setup.me {
             // The sender computed the same processor vector; a query that
             // does not start in our leaf was corrupted or misrouted.
             return Outcome::Error(EngineError::Misrouted { from: w.from });
@@ -419,14 +401,14 @@ fn eval_hit(
     let Ok(k) = job.geometry.ids.binary_search(&h.tri) else {
         return Err(EngineError::ForeignTriangle(h.tri));
     };
-    let mat = &job.materials[job.geometry.material[k] as usize];
+    let mat = &job.setup.materials[job.geometry.material[k] as usize];
     let s = shade(
         q,
         h,
         &job.geometry.verts[k],
         mat,
-        &job.lights,
-        job.max_depth,
+        &job.setup.lights,
+        job.setup.max_depth,
         DirectLighting::Mis,
     );
     let shadow = match s.shadow {
@@ -498,7 +480,7 @@ impl Engine<'_> {
     }
 
     fn add_tile(&mut self, a: TileAssignment) {
-        let n = a.pixels() * self.job.spp;
+        let n = a.pixels() * self.job.setup.spp;
         let st = TileState {
             a,
             values: vec![Vec3::ZERO; n as usize],
@@ -513,9 +495,9 @@ impl Engine<'_> {
 
     /// Starts camera samples until `max_inflight` are open.
     fn originate(&mut self, work: &mut VecDeque<Work>) {
-        let cap = self.job.tuning.max_inflight.max(1) as usize;
+        let cap = self.job.setup.tuning.max_inflight.max(1) as usize;
         let job = self.job;
-        let me = job.me;
+        let me = job.setup.me;
         for ti in 0..self.tiles.len() {
             loop {
                 if self.inflight >= cap {
@@ -530,7 +512,7 @@ impl Engine<'_> {
                 let index = t.next;
                 t.next += 1;
                 let a = t.a;
-                let p = index / job.spp;
+                let p = index / job.setup.spp;
                 let w = a.x1 - a.x0;
                 let slot = self.alloc(Slot::Sample {
                     tile: ti as u32,
@@ -541,7 +523,7 @@ impl Engine<'_> {
                     task: Task::Camera {
                         x: a.x0 + p % w,
                         y: a.y0 + p / w,
-                        sample: index % job.spp,
+                        sample: index % job.setup.spp,
                     },
                     resume: f32::NEG_INFINITY,
                     reply: ReplyTo { worker: me, slot },
@@ -552,7 +534,7 @@ impl Engine<'_> {
     }
 
     fn apply(&mut self, o: Outcome) -> Result<(), EngineError> {
-        let me = self.job.me;
+        let me = self.job.setup.me;
         match o {
             Outcome::Error(e) => return Err(e),
             Outcome::Forward(to, query, resume, reply) => {
@@ -606,7 +588,7 @@ impl Engine<'_> {
     }
 
     fn deliver(&mut self, reply: ReplyTo, a: Answer) -> Result<(), EngineError> {
-        if reply.worker == self.job.me {
+        if reply.worker == self.job.setup.me {
             self.answer(reply.worker, reply.slot, a)
         } else {
             self.stats.answers_out += 1;
@@ -669,7 +651,7 @@ impl Engine<'_> {
                     let reply = *reply;
                     *s = Slot::Free;
                     self.free.push(slot);
-                    if reply.worker == self.job.me {
+                    if reply.worker == self.job.setup.me {
                         todo = Some((reply.worker, reply.slot, Answer::Radiance(l)));
                     } else {
                         self.deliver(reply, Answer::Radiance(l))?;
@@ -686,7 +668,7 @@ impl Engine<'_> {
         let Some(t) = self.tiles[tile as usize].take() else {
             return Ok(());
         };
-        let spp = self.job.spp as usize;
+        let spp = self.job.setup.spp as usize;
         let pixels = t
             .values
             .chunks(spp)
@@ -706,13 +688,13 @@ impl Engine<'_> {
             .collect();
         self.stats.tiles += 1;
         self.control(WorkerToScheduler::TileDone(TileResult {
-            job: self.job.job,
+            job: self.job.setup.job,
             tile: t.a.tile,
             pixels,
         }))?;
         if !self.no_more_tiles {
             self.control(WorkerToScheduler::NeedTiles {
-                job: self.job.job,
+                job: self.job.setup.job,
                 count: 1,
             })?;
         }
@@ -725,7 +707,7 @@ impl Engine<'_> {
             self.out_since[p] = Some(Instant::now());
         }
         self.out[p].push(item);
-        if self.out[p].len() >= self.job.tuning.packet_size.max(1) as usize {
+        if self.out[p].len() >= self.job.setup.tuning.packet_size.max(1) as usize {
             self.send(p)?;
         }
         Ok(())
@@ -777,7 +759,7 @@ impl Engine<'_> {
     }
 
     fn flush_due(&mut self) -> Result<(), EngineError> {
-        let deadline = Duration::from_micros(self.job.tuning.flush_us as u64);
+        let deadline = Duration::from_micros(self.job.setup.tuning.flush_us as u64);
         for p in 0..self.out.len() {
             if self.out_since[p].is_some_and(|t| t.elapsed() >= deadline) {
                 self.send(p)?;

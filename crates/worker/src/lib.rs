@@ -313,20 +313,12 @@ async fn start_job(
         outs.push(Some(tx));
     }
 
+    let job = setup.job;
     let ej = EngineJob {
-        job: setup.job,
-        me,
+        setup,
         workers: n,
-        camera: setup.camera,
-        spp: setup.spp,
-        max_depth: setup.max_depth,
-        seed: setup.seed,
-        materials: setup.materials,
-        lights: setup.lights,
-        map: setup.map,
         accel,
         geometry,
-        tuning: setup.tuning,
     };
     let links = Links {
         peers: outs,
@@ -334,7 +326,6 @@ async fn start_job(
     };
     let pool = pool.clone();
     let ctl2 = ctl.clone();
-    let job = setup.job;
     let cancel2 = cancel.clone();
     tokio::spawn(async move {
         let res =
@@ -368,7 +359,7 @@ async fn start_job(
         let _ = ctl2.send_async(msg).await;
         cancel2.cancel();
     });
-    ctl.send_async(WorkerToScheduler::Ready { job: setup.job })
+    ctl.send_async(WorkerToScheduler::Ready { job })
         .await
         .context("scheduler link closed")?;
     Ok(link)
