@@ -114,6 +114,20 @@ impl Accel {
         self.ids.is_empty()
     }
 
+    /// Heap bytes held: BVH nodes, primitive order, vertices and ids.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of_val;
+        size_of_val(self.bvh.nodes.as_slice())
+            + size_of_val(self.bvh.primitive_indices.as_slice())
+            + self
+                .bvh
+                .exact_node_aabbs
+                .as_ref()
+                .map_or(0, |v| size_of_val(v.as_slice()))
+            + size_of_val(self.verts.as_slice())
+            + size_of_val(self.ids.as_slice())
+    }
+
     /// Closest hit with `t0 <= t < t1`; ties in t go to the smaller global id.
     #[inline]
     pub fn intersect(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<Hit> {

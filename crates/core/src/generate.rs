@@ -237,6 +237,50 @@ pub fn write_room(
     Ok((tp, m.faces.len()))
 }
 
+/// The white furnace: a closed box of `n` x `n` quads per face, all of one
+/// material with albedo `rho` and emission `le`, faces pointing inward.
+/// Radiance arriving anywhere from any direction is `le / (1 - rho)`, so a
+/// render of it must have that mean whatever the integrator, the farm or
+/// the caches do.
+pub fn furnace(rho: f32, le: f32, spp: u32, n: u32) -> crate::scene::Scene {
+    use crate::scene::{Camera, Material, RenderSettings, Scene};
+    let mut mb = MeshBuilder::default();
+    let (lo, s) = (Vec3::splat(-1.0), 2.0);
+    let (x, y, z) = (Vec3::X * s, Vec3::Y * s, Vec3::Z * s);
+    mb.grid(lo, y, z, n, 0); // x = -1, normal +x
+    mb.grid(lo + x, z, y, n, 0); // x = +1, normal -x
+    mb.grid(lo, z, x, n, 0); // y = -1, normal +y
+    mb.grid(lo + y, x, z, n, 0); // y = +1, normal -y
+    mb.grid(lo, x, y, n, 0); // z = -1, normal +z
+    mb.grid(lo + z, y, x, n, 0); // z = +1, normal -z
+    let mats = vec![Material {
+        name: "furnace".into(),
+        albedo: Vec3::splat(rho),
+        emission: Vec3::splat(le),
+    }];
+    let camera = Camera {
+        position: Vec3::new(0.1, -0.2, 0.05),
+        look_at: Vec3::new(1.0, 0.3, 0.7),
+        up: Vec3::Y,
+        fov_y: 90.0,
+        width: 24,
+        height: 24,
+    };
+    let settings = RenderSettings {
+        spp,
+        max_depth: 200,
+        seed: 11,
+        ..Default::default()
+    };
+    Scene::from_triangles(
+        "<furnace>".into(),
+        camera,
+        settings,
+        mats,
+        mb.tagged_triangles(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -13,6 +13,9 @@ pub struct ErrorMetrics {
     pub rel_mse: f64,
     /// Mean absolute error over all channels.
     pub mae: f64,
+    /// Perceptual: mean SSIM (Wang et al. 2004) of tone-mapped luminance,
+    /// see [`ssim`]; 1 for identical images, lower is worse.
+    pub ssim: f64,
     /// Channels counted (3 per pixel).
     pub count: usize,
 }
@@ -41,16 +44,77 @@ pub fn compare(image: &Image, reference: &Image) -> Result<ErrorMetrics, ImageEr
         rmse: (se / nf).sqrt(),
         rel_mse: rel / nf,
         mae: ae / nf,
+        ssim: ssim(image, reference),
         count: n,
     })
+}
+
+/// Window edge and stride of [`ssim`].
+const SSIM_WINDOW: usize = 8;
+const SSIM_STRIDE: usize = 4;
+
+/// Mean structural similarity of two images of equal size: luminance
+/// (Rec. 709) tone-mapped by `L / (1 + L)` into [0, 1), so that HDR
+/// highlights do not swamp it, then SSIM with the standard constants
+/// (K1 = 0.01, K2 = 0.03, dynamic range 1) over 8 x 8 windows every 4
+/// pixels (the whole image when it is smaller than a window).
+pub fn ssim(a: &Image, b: &Image) -> f64 {
+    let lum = |im: &Image| -> Vec<f64> {
+        im.pixels
+            .iter()
+            .map(|p| {
+                let l = (0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]) as f64;
+                let l = if l.is_finite() { l.max(0.0) } else { 0.0 };
+                l / (1.0 + l)
+            })
+            .collect()
+    };
+    let (x, y) = (lum(a), lum(b));
+    let (w, h) = (a.width as usize, a.height as usize);
+    let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
+    let (ww, wh) = (SSIM_WINDOW.min(w), SSIM_WINDOW.min(h));
+    let (mut sum, mut count) = (0.0, 0usize);
+    let mut y0 = 0;
+    while y0 + wh <= h {
+        let mut x0 = 0;
+        while x0 + ww <= w {
+            let (mut mx, mut my, mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for j in y0..y0 + wh {
+                for i in x0..x0 + ww {
+                    let (u, v) = (x[j * w + i], y[j * w + i]);
+                    mx += u;
+                    my += v;
+                }
+            }
+            let n = (ww * wh) as f64;
+            mx /= n;
+            my /= n;
+            for j in y0..y0 + wh {
+                for i in x0..x0 + ww {
+                    let (u, v) = (x[j * w + i] - mx, y[j * w + i] - my);
+                    sxx += u * u;
+                    syy += v * v;
+                    sxy += u * v;
+                }
+            }
+            let d = (n - 1.0).max(1.0);
+            let (vx, vy, cxy) = (sxx / d, syy / d, sxy / d);
+            sum += ((2.0 * mx * my + c1) * (2.0 * cxy + c2))
+                / ((mx * mx + my * my + c1) * (vx + vy + c2));
+            count += 1;
+            x0 += SSIM_STRIDE;
+        }
+        y0 += SSIM_STRIDE;
+    }
+    if count == 0 { 1.0 } else { sum / count as f64 }
 }
 
 impl std::fmt::Display for ErrorMetrics {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "RMSE {:.6e}  relMSE {:.6e}  MAE {:.6e}",
-            self.rmse, self.rel_mse, self.mae
+            "RMSE {:.6e}  relMSE {:.6e}  MAE {:.6e}  SSIM {:.4}",
+            self.rmse, self.rel_mse, self.mae, self.ssim
         )
     }
 }
@@ -70,5 +134,30 @@ mod tests {
         assert!((m.rel_mse - 100.0 / 6.0).abs() < 1e-9);
         assert_eq!(compare(&a, &a).unwrap().rmse, 0.0);
         assert!(compare(&a, &Image::new(1, 2)).is_err());
+    }
+
+    /// SSIM is 1 for identical images and falls as noise grows, while the
+    /// mean stays the same (which RMSE alone would not tell apart from a
+    /// shift).
+    #[test]
+    fn ssim_falls_with_noise() {
+        let mut base = Image::new(32, 24);
+        for (i, p) in base.pixels.iter_mut().enumerate() {
+            let v = 0.2 + 0.6 * ((i % 32) as f32 / 32.0);
+            *p = [v, v, v];
+        }
+        let noisy = |amp: f32| {
+            let mut im = base.clone();
+            for (i, p) in im.pixels.iter_mut().enumerate() {
+                let k = crate::sampler::SampleKey::new(i as u64, 0, 1);
+                let n = (k.get1d(0) - 0.5) * 2.0 * amp;
+                *p = [p[0] + n, p[1] + n, p[2] + n];
+            }
+            im
+        };
+        assert!((ssim(&base, &base) - 1.0).abs() < 1e-12);
+        let (s1, s2) = (ssim(&noisy(0.05), &base), ssim(&noisy(0.2), &base));
+        assert!(s1 < 0.999 && s2 < s1, "{s1} {s2}");
+        assert!(s2 > 0.0);
     }
 }

@@ -1,9 +1,11 @@
 //! The library half of the `locus` command: the embedded farm ([`farm`]),
-//! daemon configuration ([`config`]) and signal handling, shared by the
-//! binary and the integration tests.
+//! daemon configuration and presets ([`config`]), the data-locality
+//! benchmark ([`locality`]) and signal handling, shared by the binary and
+//! the integration tests.
 
 pub mod config;
 pub mod farm;
+pub mod locality;
 
 use tokio_util::sync::CancellationToken;
 

@@ -10,6 +10,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use locus::config::{Config, Preset};
 use locus_core::bench;
+use locus_core::dircache::CacheParams;
 use locus_core::generate::{RoomParams, write_room};
 use locus_core::image_io::Image;
 use locus_core::metrics::compare;
@@ -18,7 +19,7 @@ use locus_core::report::{PhaseTimes, RenderReport};
 use locus_core::scene::Scene;
 use locus_protocol::control::Tuning;
 use locus_protocol::report::FarmReport;
-use locus_protocol::submit::{CostModel, JobOptions, JobResult, Partitioner};
+use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobResult, Partitioner};
 use locus_scheduler::{Scheduler, SchedulerConfig};
 use locus_worker::{Worker, WorkerConfig};
 use std::io::IsTerminal;
@@ -136,6 +137,13 @@ struct FarmArgs {
     max_inflight: u32,
     #[arg(long, default_value_t = 16)]
     tile_size: u32,
+    /// What a worker does with a ray reaching another worker's leaf:
+    /// forward it, fetch the leaf's geometry, hybrid or adaptive.
+    #[arg(long, default_value = "forward")]
+    fetch: FetchPolicy,
+    /// MiB of fetched geometry each worker keeps (LRU-like eviction).
+    #[arg(long, default_value_t = 256)]
+    fetch_budget_mib: u64,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy)]
@@ -236,7 +244,10 @@ enum GenWhat {
 }
 
 #[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true)]
 struct BenchArgs {
+    #[command(subcommand)]
+    what: Option<BenchWhat>,
     /// Scene to measure; default: the generated room (written to
     /// scenes/generated if missing).
     scene: Option<PathBuf>,
@@ -251,6 +262,43 @@ struct BenchArgs {
     /// Write the results as JSON here too.
     #[arg(long)]
     json: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+enum BenchWhat {
+    /// Paper 000's Tables 1-3: every preset with and without the
+    /// directional cache, under every fetch policy, on the embedded farm,
+    /// against a converged reference; writes locality.md, .csv and .svg.
+    Locality(LocalityArgs),
+}
+
+#[derive(clap::Args)]
+struct LocalityArgs {
+    scene: PathBuf,
+    #[arg(long, default_value_t = 4)]
+    workers: usize,
+    /// Tracing threads per worker (0: cores / workers, at least 1).
+    #[arg(long, default_value_t = 0)]
+    threads_per_worker: usize,
+    #[arg(long, default_value_t = 160)]
+    width: u32,
+    #[arg(long, default_value_t = 120)]
+    height: u32,
+    /// Samples per pixel of the converged reference (MIS, no cache).
+    #[arg(long, default_value_t = 1024)]
+    reference_spp: u32,
+    /// Preset files; default: configs/presets/{accurate,fast,low}.toml.
+    #[arg(long, num_args = 1..)]
+    presets: Vec<PathBuf>,
+    /// Policies to measure.
+    #[arg(long, num_args = 1.., default_values = ["forward", "fetch", "hybrid", "adaptive"])]
+    policies: Vec<FetchPolicy>,
+    #[arg(long, default_value_t = 256)]
+    fetch_budget_mib: u64,
+    /// Where the tables, the plot and the reference go; default
+    /// bench-out/locality-<scene>.
+    #[arg(long)]
+    out_dir: Option<PathBuf>,
 }
 
 fn main() {
@@ -297,13 +345,23 @@ fn sibling(path: &Path, ext: &str) -> PathBuf {
     path.with_extension(ext)
 }
 
+/// The preset and the directional cache parameters `render` asks for.
+fn render_quality(a: &RenderArgs) -> Result<(Option<Preset>, Option<CacheParams>)> {
+    let preset = a.preset.as_deref().map(Preset::load).transpose()?;
+    if !a.cache {
+        return Ok((preset, None));
+    }
+    let mut c = preset.as_ref().map(|p| p.cache).unwrap_or_default();
+    if let Some(r) = a.cache_radius {
+        c.radius = r;
+    }
+    c.check()
+        .map_err(|e| anyhow::anyhow!("--cache-radius: {e}"))?;
+    Ok((preset, Some(c)))
+}
+
 fn cmd_render(a: RenderArgs) -> Result<()> {
     if a.workers > 0 {
-        if a.cache || a.preset.is_some() {
-            bail!(
-                "--cache and --preset work on one machine only so far (the farm's directional caches are not built yet): drop --workers, or drop --cache/--preset"
-            );
-        }
         return cmd_render_farm(a);
     }
     let t = Instant::now();
@@ -316,20 +374,12 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         "scene loaded"
     );
     let mut opts = RenderOptions::from_scene(&scene);
-    let preset = a.preset.as_deref().map(Preset::load).transpose()?;
+    let (preset, cache) = render_quality(&a)?;
     if let Some(p) = &preset {
         opts.spp = p.spp;
         opts.max_depth = p.max_depth;
     }
-    if a.cache {
-        let mut c = preset.as_ref().map(|p| p.cache).unwrap_or_default();
-        if let Some(r) = a.cache_radius {
-            c.radius = r;
-        }
-        c.check()
-            .map_err(|e| anyhow::anyhow!("--cache-radius: {e}"))?;
-        opts.cache = Some(c);
-    }
+    opts.cache = cache;
     if let Some(s) = a.spp {
         opts.spp = s.max(1);
     }
@@ -489,7 +539,57 @@ fn default_room() -> Result<PathBuf> {
     Ok(path.to_path_buf())
 }
 
+fn cmd_bench_locality(a: LocalityArgs) -> Result<()> {
+    if a.scene == Path::new("scenes/generated/room.toml") {
+        default_room()?;
+    }
+    let stem = a
+        .scene
+        .file_stem()
+        .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
+    let presets = if a.presets.is_empty() {
+        ["accurate", "fast", "low"]
+            .iter()
+            .map(|n| PathBuf::from(format!("configs/presets/{n}.toml")))
+            .collect()
+    } else {
+        a.presets
+    };
+    let workers = a.workers.max(1);
+    let threads = if a.threads_per_worker > 0 {
+        a.threads_per_worker
+    } else {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        (cores / workers).max(1)
+    };
+    let plan = locus::locality::Plan {
+        out_dir: a
+            .out_dir
+            .unwrap_or_else(|| PathBuf::from(format!("bench-out/locality-{stem}"))),
+        scene: a.scene,
+        width: a.width,
+        height: a.height,
+        workers,
+        threads_per_worker: threads,
+        reference_spp: a.reference_spp.max(1),
+        presets,
+        policies: a.policies,
+        fetch_budget: a.fetch_budget_mib << 20,
+    };
+    locus::locality::run(&plan)?;
+    let md = plan.out_dir.join("locality.md");
+    print!(
+        "{}",
+        std::fs::read_to_string(&md).with_context(|| format!("reading {}", md.display()))?
+    );
+    println!("\nwrote {}, locality.csv and locality.svg", md.display());
+    Ok(())
+}
+
 fn cmd_bench(a: BenchArgs) -> Result<()> {
+    if let Some(BenchWhat::Locality(l)) = a.what {
+        return cmd_bench_locality(l);
+    }
     let path = match a.scene {
         Some(p) => p,
         None => default_room()?,
@@ -547,6 +647,9 @@ impl FarmArgs {
                 max_inflight: self.max_inflight.max(1),
                 ..Tuning::default()
             },
+            cache: None,
+            fetch: self.fetch,
+            fetch_budget: self.fetch_budget_mib << 20,
         }
     }
 }
@@ -582,7 +685,10 @@ fn tile_progress(total_hint: u64) -> (Option<indicatif::ProgressBar>, impl Fn(u3
 }
 
 fn cmd_render_farm(a: RenderArgs) -> Result<()> {
-    let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
+    let (preset, cache) = render_quality(&a)?;
+    let spp = a.spp.or(preset.as_ref().map(|p| p.spp));
+    let depth = a.max_depth.or(preset.as_ref().map(|p| p.max_depth));
+    let scene = load_for_farm(&a.scene, spp, depth, a.seed)?;
     let reference = match &a.reference {
         Some(p) => Some(Image::read_exr(p)?),
         None => None,
@@ -593,7 +699,9 @@ fn cmd_render_farm(a: RenderArgs) -> Result<()> {
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         (cores / a.workers).max(1)
     };
-    let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers as u32));
+    let mut opts = a.farm.job_options(a.workers as u32);
+    opts.cache = cache;
+    let req = locus_scheduler::client::request(&scene, opts);
     let (pb, progress) = tile_progress(0);
     let result = locus::farm::render_embedded(req, a.workers, threads, &progress)?;
     if let Some(pb) = pb {

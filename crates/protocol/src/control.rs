@@ -6,8 +6,11 @@
 //! appended.
 
 use crate::report::WorkerStats;
+use crate::submit::FetchPolicy;
 use crate::submit::JobRequest;
 use glam::Vec3;
+use locus_core::dircache::CacheParams;
+use locus_core::integrator::DirectLighting;
 use locus_core::light::LightSet;
 use locus_core::region::{ProcessorMap, WorkerId};
 use locus_core::scene::{Camera, Material};
@@ -120,6 +123,16 @@ pub struct JobSetup {
     /// Largest coordinate of the scene, for BVH padding.
     pub magnitude: f32,
     pub tuning: Tuning,
+    pub direct: DirectLighting,
+    pub cache: Option<CacheParams>,
+    pub fetch: FetchPolicy,
+    pub fetch_budget: u64,
+    /// Triangles (global ids, ascending) of each leaf this worker owns, in
+    /// leaf order: what it ships to a peer that fetches the leaf.
+    pub own_leaves: Vec<(u32, Vec<u32>)>,
+    /// Triangle references of every leaf, for the adaptive policy's
+    /// rent-or-buy rule.
+    pub leaf_tris: Vec<u32>,
 }
 
 /// Triangles of a region: global ids ascending, with vertices and material.

@@ -20,6 +20,17 @@ pub enum PeerMsg {
         from: WorkerId,
     },
     Packet(Vec<RayItem>),
+    /// Demand-driven: send me the geometry of these leaves of yours.
+    Fetch(Vec<u32>),
+    /// The answer to `Fetch`: one leaf's triangles.
+    Leaf(Box<LeafGeometry>),
+}
+
+/// A leaf's triangles as its owner holds them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LeafGeometry {
+    pub leaf: u32,
+    pub geometry: crate::control::RegionGeometry,
 }
 
 /// Where an answer goes: the pending slot of the worker that asked.

@@ -1,6 +1,7 @@
 //! What a job reports: per-worker counters (all counted where the work
 //! happened) and the job's derived figures.
 
+use locus_core::dircache::CacheMemory;
 use locus_core::stats::TraceStats;
 use serde::{Deserialize, Serialize};
 
@@ -32,6 +33,21 @@ pub struct WorkerStats {
     pub triangles: u64,
     pub leaves: u32,
     pub bvh_build_s: f64,
+    /// Directional caches held at the end of the job.
+    pub cache_memory: CacheMemory,
+    /// Remote leaves this worker asked for (merged requests count once).
+    pub fetch_requests: u64,
+    /// Leaf geometry frames received, and their bytes on the wire.
+    pub fetched_leaves: u64,
+    pub fetched_bytes: u64,
+    /// Leaves this worker shipped to peers that fetched them.
+    pub leaves_served: u64,
+    /// Largest weight the fetched-leaf cache reached, and its bound.
+    pub fetch_cache_peak: u64,
+    pub fetch_cache_bound: u64,
+    /// Rays that waited for a fetch, and ray crossings of fetched leaves.
+    pub fetch_waits: u64,
+    pub fetched_leaf_traces: u64,
 }
 
 /// Job totals: counters add up, the BVH build time is the slowest
@@ -49,6 +65,19 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.triangles += o.triangles;
         self.leaves += o.leaves;
         self.bvh_build_s = self.bvh_build_s.max(o.bvh_build_s);
+        let (a, b) = (&mut self.cache_memory, &o.cache_memory);
+        a.leaves_with_cache += b.leaves_with_cache;
+        a.nodes += b.nodes;
+        a.bytes += b.bytes;
+        a.max_leaf_bytes = a.max_leaf_bytes.max(b.max_leaf_bytes);
+        self.fetch_requests += o.fetch_requests;
+        self.fetched_leaves += o.fetched_leaves;
+        self.fetched_bytes += o.fetched_bytes;
+        self.leaves_served += o.leaves_served;
+        self.fetch_cache_peak = self.fetch_cache_peak.max(o.fetch_cache_peak);
+        self.fetch_cache_bound = self.fetch_cache_bound.max(o.fetch_cache_bound);
+        self.fetch_waits += o.fetch_waits;
+        self.fetched_leaf_traces += o.fetched_leaf_traces;
     }
 }
 

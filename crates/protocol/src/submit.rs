@@ -3,6 +3,7 @@
 
 use crate::report::FarmReport;
 use glam::Vec3;
+use locus_core::dircache::CacheParams;
 use locus_core::scene::{Camera, Material, RenderSettings};
 use serde::{Deserialize, Serialize};
 
@@ -24,6 +25,52 @@ pub enum CostModel {
     Sampled,
 }
 
+/// What a worker does with a ray that reaches a leaf it does not own
+/// (paper 000, section 2.2: data-parallel, demand-driven, hybrid).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub enum FetchPolicy {
+    /// Forward the ray to the leaf's owner (pure data-parallel).
+    #[default]
+    Forward,
+    /// Fetch the leaf's geometry from its owner and trace it here (pure
+    /// demand-driven); the ray waits for the geometry.
+    Fetch,
+    /// Camera rays, and any ray entering a leaf that touches this
+    /// worker's region, fetch; other rays (incoherent indirect and shadow
+    /// rays far from home) forward.
+    Hybrid,
+    /// Rent or buy, per leaf: forward until the traffic the leaf has cost
+    /// in forwarded queries reaches the bytes of its geometry, then fetch.
+    Adaptive,
+}
+
+impl FetchPolicy {
+    pub const ALL: [FetchPolicy; 4] = [
+        FetchPolicy::Forward,
+        FetchPolicy::Fetch,
+        FetchPolicy::Hybrid,
+        FetchPolicy::Adaptive,
+    ];
+    pub fn name(self) -> &'static str {
+        match self {
+            FetchPolicy::Forward => "forward",
+            FetchPolicy::Fetch => "fetch",
+            FetchPolicy::Hybrid => "hybrid",
+            FetchPolicy::Adaptive => "adaptive",
+        }
+    }
+}
+
+impl std::str::FromStr for FetchPolicy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| format!("unknown policy {s:?} (forward, fetch, hybrid, adaptive)"))
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobOptions {
     /// Workers to use; 0 means every registered worker.
@@ -32,6 +79,13 @@ pub struct JobOptions {
     pub cost_model: CostModel,
     pub tile_size: u32,
     pub tuning: crate::control::Tuning,
+    /// Directional caches per octree leaf (paper 000, section 2.4); None
+    /// traces every ray. With caches, direct light is next-event only
+    /// ([`locus_core::integrator::DirectLighting::LightOnly`]).
+    pub cache: Option<CacheParams>,
+    pub fetch: FetchPolicy,
+    /// Bytes of fetched leaf geometry (triangles plus BVH) a worker keeps.
+    pub fetch_budget: u64,
 }
 
 impl Default for JobOptions {
@@ -42,6 +96,9 @@ impl Default for JobOptions {
             cost_model: CostModel::default(),
             tile_size: 16,
             tuning: Default::default(),
+            cache: None,
+            fetch: FetchPolicy::default(),
+            fetch_budget: 256 << 20,
         }
     }
 }

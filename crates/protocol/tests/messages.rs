@@ -2,8 +2,9 @@
 //! arbitrary bytes never panic the decoder of any family.
 
 use glam::Vec3;
+use locus_core::dircache::CacheParams;
 use locus_core::geometry::Ray;
-use locus_core::integrator::{PathRay, ShadowRay};
+use locus_core::integrator::{DirectLighting, PathRay, ShadowRay};
 use locus_core::light::LightSet;
 use locus_core::octree::{Octree, OctreeParams};
 use locus_core::region::ProcessorMap;
@@ -100,7 +101,7 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
             max_depth: 5,
         },
     );
-    let owner = (0..tree.leaves.len())
+    let owner: Vec<u16> = (0..tree.leaves.len())
         .map(|l| (l % workers as usize) as u16)
         .collect();
     let scene = locus_core::scene::Scene::from_triangles(
@@ -126,9 +127,21 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
         seed,
         materials: scene.materials.clone(),
         lights: LightSet::build(&scene),
+        own_leaves: tree
+            .leaves
+            .iter()
+            .enumerate()
+            .filter(|(l, _)| owner[*l] == 0)
+            .map(|(l, lf)| (l as u32, lf.tris.clone()))
+            .collect(),
+        leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
         map: ProcessorMap::new(&tree, owner),
         magnitude: 11.0,
         tuning: Tuning::default(),
+        direct: DirectLighting::LightOnly,
+        cache: Some(CacheParams::default()),
+        fetch: FetchPolicy::Hybrid,
+        fetch_budget: 1 << 20,
     }
 }
 
@@ -137,8 +150,19 @@ proptest! {
 
     #[test]
     fn peer_messages_roundtrip(items in proptest::collection::vec(ray_item(), 0..60), job in any::<u64>(), from in any::<u16>()) {
+        let n = items.len();
         roundtrip(&PeerMsg::Packet(items));
         roundtrip(&PeerMsg::Hello { job, from });
+        roundtrip(&PeerMsg::Fetch(vec![job as u32, from as u32]));
+        let verts: Vec<[Vec3; 3]> = tris(n, job);
+        roundtrip(&PeerMsg::Leaf(Box::new(LeafGeometry {
+            leaf: from as u32,
+            geometry: RegionGeometry {
+                ids: (0..verts.len() as u32).collect(),
+                material: vec![0; verts.len()],
+                verts,
+            },
+        })));
     }
 
     #[test]

@@ -18,6 +18,10 @@ pub struct Prepared {
     pub map: ProcessorMap,
     pub lights: LightSet,
     pub regions: Vec<RegionGeometry>,
+    /// Per worker: its leaves with their triangle lists.
+    pub own_leaves: Vec<Vec<(u32, Vec<u32>)>>,
+    /// Triangle references per leaf.
+    pub leaf_tris: Vec<u32>,
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
     pub preview_rays: u64,
@@ -74,6 +78,9 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
         ));
     }
     let o = &req.options;
+    if let Some(c) = &o.cache {
+        c.check().map_err(|e| format!("cache parameters: {e}"))?;
+    }
     if o.tile_size == 0 || o.tuning.packet_size == 0 || o.tuning.max_inflight == 0 {
         return Err("tile size, packet size and max in-flight must be positive".into());
     }
@@ -134,7 +141,15 @@ pub fn prepare(req: &JobRequest, workers: usize) -> Prepared {
             }
         })
         .collect();
+    let mut own_leaves = vec![Vec::new(); workers];
+    for (i, (l, &o)) in tree.leaves.iter().zip(&owner).enumerate() {
+        let mut ids = l.tris.clone();
+        ids.sort_unstable();
+        own_leaves[o as usize].push((i as u32, ids));
+    }
     Prepared {
+        leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
+        own_leaves,
         analytic_share: cost::shares(&analytic, &owner, workers),
         sampled_share: cost::shares(&pv.cost, &owner, workers),
         preview_rays: pv.rays,

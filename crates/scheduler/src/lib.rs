@@ -18,6 +18,7 @@ pub mod job;
 pub mod partition;
 
 use anyhow::Context;
+use locus_core::integrator::DirectLighting;
 use locus_protocol::control::{
     JobSetup, Opening, Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler,
 };
@@ -413,6 +414,7 @@ impl Actor {
             .iter()
             .map(|m| self.workers[m].reg.listen.clone())
             .collect();
+        let mut own_leaves = prep.own_leaves.clone();
         for (w, m) in j.members.iter().enumerate() {
             let setup = JobSetup {
                 job: id,
@@ -427,6 +429,16 @@ impl Actor {
                 map: prep.map.clone(),
                 magnitude: prep.scene.magnitude(),
                 tuning: j.req.options.tuning,
+                direct: if j.req.options.cache.is_some() {
+                    DirectLighting::LightOnly
+                } else {
+                    DirectLighting::Mis
+                },
+                cache: j.req.options.cache,
+                fetch: j.req.options.fetch,
+                fetch_budget: j.req.options.fetch_budget,
+                own_leaves: std::mem::take(&mut own_leaves[w]),
+                leaf_tris: prep.leaf_tris.clone(),
             };
             let region = prep.regions[w].clone();
             let tx = self.workers[m].tx.clone();

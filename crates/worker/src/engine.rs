@@ -10,6 +10,16 @@
 //! vertex are in, its radiance goes back to whoever asked. Camera samples
 //! are the roots: a tile is done when every one of its samples is answered.
 //!
+//! With a fetch policy other than `forward`, a ray that reaches a leaf of
+//! another worker may instead wait for that leaf's geometry
+//! ([`crate::fetch`]): the first such ray sends the request, later ones
+//! join its wait list, and all resume on this worker when the leaf
+//! arrives. With directional caches on, a continuation ray is traced
+//! exactly inside its leaf's locality sphere and answered by the leaf's
+//! cache beyond it when the cache can (paper 000, section 2.4); the
+//! answer of a ray the cache could not answer updates the cache when it
+//! comes back, whichever worker traced it.
+//!
 //! Queues are bounded by construction: a worker keeps at most
 //! `max_inflight` camera samples open, each sample has at most
 //! `max_depth + 1` vertices pending and two queries in flight per vertex, so
@@ -18,33 +28,85 @@
 //! other); a packet that does not fit its peer's channel waits here, and
 //! while any does, no new camera sample starts: that is the backpressure.
 
+use crate::fetch::{FetchedLeaf, Locality, RayKind};
 use glam::{DVec3, Vec3};
 use locus_core::accel::Accel;
 use locus_core::accel::Hit;
+use locus_core::dircache::{LeafCaches, Lookup};
 use locus_core::geometry::Ray;
-use locus_core::integrator::{DIM_PIXEL, DirectLighting, PathRay, shade};
+use locus_core::integrator::{DIM_PIXEL, PathRay, shade};
 use locus_core::region::{RunResult, WorkerId};
 use locus_core::sampler::SampleKey;
 use locus_core::stats::TraceStats;
 use locus_protocol::control::{
     JobSetup, RegionGeometry, TileAssignment, TileResult, WorkerToScheduler,
 };
-use locus_protocol::rays::{Answer, Query, RayItem, ReplyTo};
+use locus_protocol::rays::{Answer, LeafGeometry, PeerMsg, Query, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
-use std::collections::VecDeque;
+use locus_protocol::submit::FetchPolicy;
+use std::collections::{HashMap, VecDeque};
+use std::ops::ControlFlow;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// Everything a worker holds for one job: what the scheduler sent, and the
-/// BVH built over this worker's region.
+/// Everything a worker holds for one job: what the scheduler sent, the BVH
+/// built over this worker's region, its directional caches and its
+/// fetched leaves.
 pub struct EngineJob {
     pub setup: JobSetup,
     pub workers: usize,
     pub accel: Accel,
     pub geometry: RegionGeometry,
+    /// One directional cache per octree leaf this worker shades in.
+    pub caches: Option<LeafCaches>,
+    pub locality: Locality,
+}
+
+impl EngineJob {
+    pub fn new(setup: JobSetup, workers: usize, accel: Accel, geometry: RegionGeometry) -> Self {
+        let caches = setup
+            .cache
+            .map(|p| LeafCaches::new(setup.map.tree.leaves.len(), p));
+        let locality = Locality::new(&setup);
+        Self {
+            setup,
+            workers,
+            accel,
+            geometry,
+            caches,
+            locality,
+        }
+    }
+
+    /// Vertices and material of a hit on this worker's own geometry.
+    fn own_surface(&self, h: Hit) -> Result<Surface, EngineError> {
+        let Ok(k) = self.geometry.ids.binary_search(&h.tri) else {
+            return Err(EngineError::ForeignTriangle(h.tri));
+        };
+        Ok(Surface {
+            hit: h,
+            verts: self.geometry.verts[k],
+            material: self.geometry.material[k],
+        })
+    }
 }
 
 pub enum Input {
-    Packet { from: WorkerId, items: Vec<RayItem> },
+    Packet {
+        from: WorkerId,
+        items: Vec<RayItem>,
+    },
+    /// A peer asks for the geometry of leaves of ours.
+    Fetch {
+        from: WorkerId,
+        leaves: Vec<u32>,
+    },
+    /// Geometry we asked for, with its frame's bytes on the wire.
+    Leaf {
+        from: WorkerId,
+        bytes: u64,
+        leaf: Box<LeafGeometry>,
+    },
     Tile(TileAssignment),
     NoMoreTiles,
     End,
@@ -53,7 +115,7 @@ pub enum Input {
 /// Where the engine's output goes.
 pub struct Links {
     /// One bounded channel per peer (None for this worker itself).
-    pub peers: Vec<Option<flume::Sender<Vec<RayItem>>>>,
+    pub peers: Vec<Option<flume::Sender<PeerMsg>>>,
     pub control: flume::Sender<WorkerToScheduler>,
 }
 
@@ -69,6 +131,14 @@ pub enum EngineError {
     LinkClosed(&'static str),
     #[error("the scheduler ended the job with {0} queries still pending")]
     EndedEarly(usize),
+    #[error("worker {from} asked for leaf {leaf}, which this worker does not own")]
+    NotMyLeaf { from: WorkerId, leaf: u32 },
+    #[error("worker {from} sent geometry for leaf {leaf}: {why}")]
+    BadLeaf {
+        from: WorkerId,
+        leaf: u32,
+        why: &'static str,
+    },
 }
 
 /// What a work item traces: a query from a peer or from this worker, or a
@@ -84,11 +154,51 @@ struct Work {
     reply: ReplyTo,
     /// Worker it came from (itself for local work), for error messages.
     from: WorkerId,
+    /// The fetched leaf this work waited for, held so that eviction cannot
+    /// make it wait again.
+    pinned: Option<Arc<FetchedLeaf>>,
 }
 
+/// Where a query that cannot go on here goes next.
+#[derive(Clone, Copy)]
+enum Dest {
+    /// To the owner of the next leaf.
+    Peer(WorkerId),
+    /// Back to this worker once the leaf's geometry has arrived.
+    Leaf(u32),
+}
+
+/// A hit with the triangle it is on, from this worker's region or from a
+/// fetched leaf.
+struct Surface {
+    hit: Hit,
+    verts: [Vec3; 3],
+    material: u32,
+}
+
+/// Where a traced segment leaves the ray.
+enum Traced {
+    Hit(Surface),
+    Occluded,
+    Miss,
+    /// Resume at `t`, on another worker or after a fetch.
+    Next(Dest, f32),
+}
+
+/// Counters a pool batch fills.
+#[derive(Default)]
+struct Counts {
+    trace: TraceStats,
+    fetched_leaf_traces: u64,
+}
+
+/// A directional cache entry to update when a continuation's radiance
+/// comes back: the leaf and the ray's direction.
+type CacheKey = (u32, Vec3);
+
 enum Outcome {
-    /// The query continues on another worker, resuming at the distance.
-    Forward(WorkerId, Query, f32, ReplyTo),
+    /// The query continues elsewhere, resuming at the distance.
+    Forward(Dest, Query, f32, ReplyTo),
     Answer(ReplyTo, Answer),
     /// Vertices shaded here that still wait for forwarded queries; vertex k
     /// is the continuation of vertex k - 1 (see [`eval_hit`]).
@@ -99,8 +209,8 @@ enum Outcome {
 /// A child query of a vertex shaded in this batch.
 enum Child<T> {
     Done(T),
-    /// Must continue on another worker, resuming at `f32`.
-    Forward(WorkerId, Query, f32),
+    /// Must continue elsewhere, resuming at `f32`.
+    Forward(Dest, Query, f32),
     /// The next vertex of the chain.
     Deeper,
 }
@@ -109,6 +219,7 @@ struct ChainVertex {
     vertex: locus_core::integrator::ShadedVertex,
     shadow: Child<bool>,
     next: Child<Vec3>,
+    update: Option<CacheKey>,
 }
 
 enum Wait<T> {
@@ -127,6 +238,7 @@ enum Slot {
         vertex: locus_core::integrator::ShadedVertex,
         shadow: Wait<bool>,
         next: Wait<Vec3>,
+        update: Option<CacheKey>,
     },
 }
 
@@ -147,8 +259,12 @@ struct Engine<'a> {
     no_more_tiles: bool,
     out: Vec<Vec<RayItem>>,
     out_since: Vec<Option<Instant>>,
-    stalled: Vec<VecDeque<Vec<RayItem>>>,
+    stalled: Vec<VecDeque<PeerMsg>>,
     stats: WorkerStats,
+    work: VecDeque<Work>,
+    /// Work waiting for a leaf's geometry, by leaf; a leaf with an entry
+    /// has its request out.
+    waiting: HashMap<u32, Vec<Work>>,
 }
 
 /// Largest batch one pool task traces.
@@ -156,11 +272,11 @@ const BATCH: usize = 8192;
 /// Smallest batch worth a pool task.
 const MIN_BATCH: usize = 16;
 
-type Traced = (Vec<Outcome>, TraceStats);
+type Batch = (Vec<Outcome>, Counts);
 
 enum Event {
     Input(Input),
-    Traced(Traced),
+    Traced(Batch),
     InboxClosed,
 }
 
@@ -178,7 +294,7 @@ pub fn run(
 ) -> Result<WorkerStats, EngineError> {
     let n = job.workers;
     let max_out = pool.current_num_threads() + 1;
-    let (done_tx, done_rx) = flume::bounded::<Traced>(max_out);
+    let (done_tx, done_rx) = flume::bounded::<Batch>(max_out);
     let mut e = Engine {
         job,
         links,
@@ -190,6 +306,8 @@ pub fn run(
         out: (0..n).map(|_| Vec::new()).collect(),
         out_since: vec![None; n],
         stalled: (0..n).map(|_| VecDeque::new()).collect(),
+        work: VecDeque::new(),
+        waiting: HashMap::new(),
         stats: WorkerStats {
             peers: vec![Default::default(); n],
             triangles: job.geometry.len() as u64,
@@ -200,6 +318,7 @@ pub fn run(
                 .iter()
                 .filter(|&&o| o == job.setup.me)
                 .count() as u32,
+            fetch_cache_bound: job.locality.store.bound(),
             ..Default::default()
         },
     };
@@ -211,21 +330,20 @@ pub fn run(
     // Leaving this scope (also by an error) waits for the batches still
     // out; each finds room in `done_tx`, so none blocks.
     pool.in_place_scope(|scope| {
-        let mut work: VecDeque<Work> = VecDeque::new();
         let mut idle = Duration::ZERO;
         let mut out = 0usize;
         loop {
             e.retry_stalled()?;
             if e.stalled.iter().all(VecDeque::is_empty) {
-                e.originate(&mut work);
+                e.originate();
             }
-            while out < max_out && !work.is_empty() {
-                let share = work.len().div_ceil(max_out - out);
-                let take = share.clamp(MIN_BATCH, BATCH).min(work.len());
-                let batch: Vec<Work> = work.drain(..take).collect();
+            while out < max_out && !e.work.is_empty() {
+                let share = e.work.len().div_ceil(max_out - out);
+                let take = share.clamp(MIN_BATCH, BATCH).min(e.work.len());
+                let batch: Vec<Work> = e.work.drain(..take).collect();
                 let tx = done_tx.clone();
                 scope.spawn(move |_| {
-                    let mut st = TraceStats::default();
+                    let mut st = Counts::default();
                     let mut scratch = Vec::new();
                     let outs = batch
                         .into_iter()
@@ -276,7 +394,8 @@ pub fn run(
                     }
                     Event::Traced((outs, st)) => {
                         out -= 1;
-                        e.stats.trace += st;
+                        e.stats.trace += st.trace;
+                        e.stats.fetched_leaf_traces += st.fetched_leaf_traces;
                         for o in outs {
                             e.apply(o)?;
                         }
@@ -290,26 +409,36 @@ pub fn run(
                                     reply,
                                 } => {
                                     e.stats.queries_in += 1;
-                                    work.push_back(Work {
+                                    e.work.push_back(Work {
                                         task: Task::Query(query),
                                         resume,
                                         reply,
                                         from,
+                                        pinned: None,
                                     });
                                 }
                                 RayItem::Answer { to, answer } => e.answer(from, to, answer)?,
                             }
                         }
                     }
+                    Event::Input(Input::Fetch { from, leaves }) => e.serve(from, leaves)?,
+                    Event::Input(Input::Leaf { from, bytes, leaf }) => {
+                        e.receive_leaf(from, bytes, *leaf)?
+                    }
                     Event::Input(Input::Tile(a)) => e.add_tile(a),
                     Event::Input(Input::NoMoreTiles) => e.no_more_tiles = true,
                     Event::Input(Input::End) => {
                         let pending = e.slots.len() - e.free.len();
-                        if pending > 0 || !work.is_empty() || out > 0 {
-                            return Err(EngineError::EndedEarly(pending + work.len()));
+                        let waiting: usize = e.waiting.values().map(Vec::len).sum();
+                        if pending > 0 || !e.work.is_empty() || out > 0 || waiting > 0 {
+                            return Err(EngineError::EndedEarly(pending + e.work.len() + waiting));
                         }
                         let total = start.elapsed();
                         e.stats.idle_s = idle.as_secs_f64();
+                        if let Some(c) = &job.caches {
+                            e.stats.cache_memory = c.memory();
+                        }
+                        e.stats.fetch_cache_peak = job.locality.store.peak();
                         e.stats.busy_s = (total - idle.min(total)).as_secs_f64();
                         return Ok(std::mem::take(&mut e.stats));
                     }
@@ -320,27 +449,128 @@ pub fn run(
     })
 }
 
-/// One run trace. With a single owner the routing tree is one leaf, so the
-/// walk costs a root clip and nothing more.
-#[inline]
+/// Traces the ray on `[0, t_max)` from `resume` through everything this
+/// worker can trace: its own run of leaves and, under a fetch policy, the
+/// fetched leaves that follow. With the `forward` policy this is one walk
+/// of the routing tree; otherwise the walk visits every leaf, because a
+/// fetched leaf is traced over its own interval only.
+#[allow(clippy::too_many_arguments)]
 fn trace(
     job: &EngineJob,
     ray: &Ray,
     t_max: f32,
     resume: f32,
     any: bool,
-    st: &mut TraceStats,
-) -> RunResult {
-    job.setup
-        .map
-        .trace_run(job.setup.me, &job.accel, ray, t_max, resume, any, st)
+    kind: RayKind,
+    pinned: Option<&Arc<FetchedLeaf>>,
+    c: &mut Counts,
+) -> Result<Traced, EngineError> {
+    let map = &job.setup.map;
+    let me = job.setup.me;
+    if job.locality.policy == FetchPolicy::Forward {
+        return Ok(
+            match map.trace_run(me, &job.accel, ray, t_max, resume, any, &mut c.trace) {
+                RunResult::Hit(h) => Traced::Hit(job.own_surface(h)?),
+                RunResult::Occluded => Traced::Occluded,
+                RunResult::Miss => Traced::Miss,
+                RunResult::Forward { to, t } => Traced::Next(Dest::Peer(to), t),
+            },
+        );
+    }
+    // Segments are traced in ray order, so the first hit is the closest.
+    let own = |s: f32, e: f32, c: &mut Counts| -> Option<Result<Traced, EngineError>> {
+        if any {
+            job.accel
+                .occluded(ray, s, e, &mut c.trace)
+                .then_some(Ok(Traced::Occluded))
+        } else {
+            job.accel
+                .intersect(ray, s, e, &mut c.trace)
+                .map(|h| job.own_surface(h).map(Traced::Hit))
+        }
+    };
+    let mut run: Option<(f32, f32)> = None;
+    let mut found: Option<Result<Traced, EngineError>> = None;
+    let _ = map.tree.walk_from(ray, 0.0, t_max, resume, |leaf, ta, tb| {
+        let o = map.owner[leaf as usize];
+        if o == me {
+            run = Some(run.map_or((ta, tb), |(s, _)| (s, tb)));
+            return ControlFlow::Continue(());
+        }
+        if let Some((s, e)) = run.take() {
+            found = own(s, e, c);
+            if found.is_some() {
+                return ControlFlow::Break(());
+            }
+        }
+        let fetched = match pinned.filter(|p| p.leaf == leaf) {
+            Some(p) => Some(p.clone()),
+            None => job.locality.store.get(leaf),
+        };
+        let Some(f) = fetched else {
+            let dest = if job.locality.wants_fetch(leaf, kind) {
+                Dest::Leaf(leaf)
+            } else {
+                Dest::Peer(o)
+            };
+            found = Some(Ok(Traced::Next(dest, ta)));
+            return ControlFlow::Break(());
+        };
+        c.fetched_leaf_traces += 1;
+        let r = if any {
+            f.accel
+                .occluded(ray, ta, tb, &mut c.trace)
+                .then_some(Traced::Occluded)
+        } else {
+            f.accel.intersect(ray, ta, tb, &mut c.trace).map(|h| {
+                let k = f
+                    .geometry
+                    .ids
+                    .binary_search(&h.tri)
+                    .expect("a leaf's BVH holds only the leaf's triangles");
+                Traced::Hit(Surface {
+                    hit: h,
+                    verts: f.geometry.verts[k],
+                    material: f.geometry.material[k],
+                })
+            })
+        };
+        match r {
+            Some(r) => {
+                found = Some(Ok(r));
+                ControlFlow::Break(())
+            }
+            None => ControlFlow::Continue(()),
+        }
+    });
+    if let Some(r) = found {
+        return r;
+    }
+    if let Some((s, e)) = run
+        && let Some(r) = own(s, e, c)
+    {
+        return r;
+    }
+    Ok(Traced::Miss)
 }
 
 /// Traces one work item through this worker's run of leaves, and keeps
 /// going depth-first through everything that stays local: a path whose
 /// vertices are all here is finished in this call, like the single-machine
 /// integrator; only queries that leave the region become messages.
-fn process(job: &EngineJob, w: Work, st: &mut TraceStats, chain: &mut Vec<ChainVertex>) -> Outcome {
+fn process(job: &EngineJob, w: Work, c: &mut Counts, chain: &mut Vec<ChainVertex>) -> Outcome {
+    match process_inner(job, &w, c, chain) {
+        Ok(o) => o,
+        Err(e) => Outcome::Error(e),
+    }
+}
+
+fn process_inner(
+    job: &EngineJob,
+    w: &Work,
+    c: &mut Counts,
+    chain: &mut Vec<ChainVertex>,
+) -> Result<Outcome, EngineError> {
     let query = match w.task {
         Task::Query(q) => q,
         Task::Camera { x, y, sample } => {
@@ -349,42 +579,60 @@ fn process(job: &EngineJob, w: Work, st: &mut TraceStats, chain: &mut Vec<ChainV
                 sample,
                 job.setup.seed,
             );
-            st.camera_rays += 1;
+            c.trace.camera_rays += 1;
             let ray = job.setup.camera.ray(x, y, key.get2d(DIM_PIXEL));
             Query::Path(PathRay::camera(ray, key))
         }
     };
-    let forward = |query: Query, to: WorkerId, t: f32| {
+    let forward = |query: Query, dest: Dest, t: f32| {
         if t == w.resume && w.from != job.setup.me {
             // The sender computed the same processor vector; a query that
             // does not start in our leaf was corrupted or misrouted.
-            return Outcome::Error(EngineError::Misrouted { from: w.from });
+            return Err(EngineError::Misrouted { from: w.from });
         }
-        Outcome::Forward(to, query, t, w.reply)
+        Ok(Outcome::Forward(dest, query, t, w.reply))
     };
-    match query {
-        Query::Shadow(s) => match trace(job, &s.ray, s.t_max, w.resume, true, st) {
-            RunResult::Forward { to, t } => forward(Query::Shadow(s), to, t),
-            RunResult::Miss => Outcome::Answer(w.reply, Answer::Visible(true)),
-            RunResult::Occluded | RunResult::Hit(_) => {
-                Outcome::Answer(w.reply, Answer::Visible(false))
-            }
-        },
-        Query::Path(q) => match trace(job, &q.ray, f32::INFINITY, w.resume, false, st) {
-            RunResult::Forward { to, t } => forward(Query::Path(q), to, t),
-            RunResult::Miss | RunResult::Occluded => {
-                Outcome::Answer(w.reply, Answer::Radiance(Vec3::ZERO))
-            }
-            RunResult::Hit(h) => {
-                chain.clear();
-                match eval_hit(job, &q, &h, st, chain) {
-                    Err(e) => Outcome::Error(e),
-                    Ok(Some(l)) => Outcome::Answer(w.reply, Answer::Radiance(l)),
-                    Ok(None) => Outcome::Chain(w.reply, std::mem::take(chain)),
+    let pinned = w.pinned.as_ref();
+    Ok(match query {
+        Query::Shadow(s) => {
+            match trace(
+                job,
+                &s.ray,
+                s.t_max,
+                w.resume,
+                true,
+                RayKind::Shadow,
+                pinned,
+                c,
+            )? {
+                Traced::Next(dest, t) => forward(Query::Shadow(s), dest, t)?,
+                Traced::Miss => Outcome::Answer(w.reply, Answer::Visible(true)),
+                Traced::Occluded | Traced::Hit(_) => {
+                    Outcome::Answer(w.reply, Answer::Visible(false))
                 }
             }
-        },
-    }
+        }
+        Query::Path(q) => {
+            let kind = if q.depth == 0 {
+                RayKind::Camera
+            } else {
+                RayKind::Indirect
+            };
+            match trace(job, &q.ray, f32::INFINITY, w.resume, false, kind, pinned, c)? {
+                Traced::Next(dest, t) => forward(Query::Path(q), dest, t)?,
+                Traced::Miss | Traced::Occluded => {
+                    Outcome::Answer(w.reply, Answer::Radiance(Vec3::ZERO))
+                }
+                Traced::Hit(h) => {
+                    chain.clear();
+                    match eval_hit(job, &q, &h, c, chain)? {
+                        Some(l) => Outcome::Answer(w.reply, Answer::Radiance(l)),
+                        None => Outcome::Chain(w.reply, std::mem::take(chain)),
+                    }
+                }
+            }
+        }
+    })
 }
 
 /// Shades hit `h` of `q` and evaluates its shadow and continuation queries
@@ -394,31 +642,38 @@ fn process(job: &EngineJob, w: Work, st: &mut TraceStats, chain: &mut Vec<ChainV
 fn eval_hit(
     job: &EngineJob,
     q: &PathRay,
-    h: &Hit,
-    st: &mut TraceStats,
+    h: &Surface,
+    c: &mut Counts,
     chain: &mut Vec<ChainVertex>,
 ) -> Result<Option<Vec3>, EngineError> {
-    let Ok(k) = job.geometry.ids.binary_search(&h.tri) else {
-        return Err(EngineError::ForeignTriangle(h.tri));
-    };
-    let mat = &job.setup.materials[job.geometry.material[k] as usize];
+    let mat = &job.setup.materials[h.material as usize];
     let s = shade(
         q,
-        h,
-        &job.geometry.verts[k],
+        &h.hit,
+        &h.verts,
         mat,
         &job.setup.lights,
         job.setup.max_depth,
-        DirectLighting::Mis,
+        job.setup.direct,
     );
     let shadow = match s.shadow {
         None => Child::Done(false),
         Some(sr) => {
-            st.shadow_rays += 1;
-            match trace(job, &sr.ray, sr.t_max, f32::NEG_INFINITY, true, st) {
-                RunResult::Miss => Child::Done(true),
-                RunResult::Occluded | RunResult::Hit(_) => Child::Done(false),
-                RunResult::Forward { to, t } => Child::Forward(to, Query::Shadow(sr), t),
+            c.trace.shadow_rays += 1;
+            let ray = &sr.ray;
+            match trace(
+                job,
+                ray,
+                sr.t_max,
+                f32::NEG_INFINITY,
+                true,
+                RayKind::Shadow,
+                None,
+                c,
+            )? {
+                Traced::Miss => Child::Done(true),
+                Traced::Occluded | Traced::Hit(_) => Child::Done(false),
+                Traced::Next(dest, t) => Child::Forward(dest, Query::Shadow(sr), t),
             }
         }
     };
@@ -427,19 +682,13 @@ fn eval_hit(
         vertex: s.vertex,
         shadow,
         next: Child::Done(Vec3::ZERO),
+        update: None,
     });
-    let next = match s.next {
-        None => Child::Done(Vec3::ZERO),
+    let (next, update) = match s.next {
+        None => (Child::Done(Vec3::ZERO), None),
         Some(nq) => {
-            st.indirect_rays += 1;
-            match trace(job, &nq.ray, f32::INFINITY, f32::NEG_INFINITY, false, st) {
-                RunResult::Miss | RunResult::Occluded => Child::Done(Vec3::ZERO),
-                RunResult::Forward { to, t } => Child::Forward(to, Query::Path(nq), t),
-                RunResult::Hit(h2) => match eval_hit(job, &nq, &h2, st, chain)? {
-                    Some(l) => Child::Done(l),
-                    None => Child::Deeper,
-                },
-            }
+            c.trace.indirect_rays += 1;
+            continuation(job, &nq, c, chain)?
         }
     };
     if let (Child::Done(visible), Child::Done(l)) = (&chain[idx].shadow, &next) {
@@ -448,12 +697,88 @@ fn eval_hit(
         return Ok(Some(v));
     }
     chain[idx].next = next;
+    chain[idx].update = update;
     Ok(None)
 }
 
-fn child_query<T>(c: Child<T>) -> Option<(WorkerId, Query, f32)> {
+/// A continuation ray. Without caches it is traced like any query. With
+/// them it is traced exactly inside the locality sphere of the leaf it
+/// starts in; a ray that hits nothing there is answered by the leaf's
+/// cache when the cache can, and otherwise traced on (returning the key
+/// under which its radiance must update the cache if that radiance is not
+/// known yet). A ray that leaves this worker's reach inside the sphere
+/// goes on uncached.
+fn continuation(
+    job: &EngineJob,
+    nq: &PathRay,
+    c: &mut Counts,
+    chain: &mut Vec<ChainVertex>,
+) -> Result<(Child<Vec3>, Option<CacheKey>), EngineError> {
+    let follow = |t: Traced, c: &mut Counts, chain: &mut Vec<ChainVertex>| {
+        Ok::<_, EngineError>(match t {
+            Traced::Miss | Traced::Occluded => Child::Done(Vec3::ZERO),
+            Traced::Next(dest, t) => Child::Forward(dest, Query::Path(*nq), t),
+            Traced::Hit(h) => match eval_hit(job, nq, &h, c, chain)? {
+                Some(l) => Child::Done(l),
+                None => Child::Deeper,
+            },
+        })
+    };
+    let inf = f32::INFINITY;
+    let cached = job.caches.as_ref().and_then(|caches| {
+        let tree = &job.setup.map.tree;
+        let leaf = tree.leaf_at(nq.ray.origin)?;
+        Some((
+            caches,
+            leaf,
+            caches.perimeter(&tree.leaves[leaf as usize].bounds, &nq.ray),
+        ))
+    });
+    let Some((caches, leaf, tp)) = cached else {
+        let t = trace(
+            job,
+            &nq.ray,
+            inf,
+            f32::NEG_INFINITY,
+            false,
+            RayKind::Indirect,
+            None,
+            c,
+        )?;
+        return Ok((follow(t, c, chain)?, None));
+    };
+    let inside = trace(
+        job,
+        &nq.ray,
+        tp,
+        f32::NEG_INFINITY,
+        false,
+        RayKind::Indirect,
+        None,
+        c,
+    )?;
+    if !matches!(inside, Traced::Miss) {
+        c.trace.cache.local += 1;
+        return Ok((follow(inside, c, chain)?, None));
+    }
+    if let Lookup::Answer(v) = caches.lookup(leaf, nq.ray.dir) {
+        c.trace.cache.lookups += 1;
+        return Ok((Child::Done(v), None));
+    }
+    c.trace.cache.global += 1;
+    let beyond = trace(job, &nq.ray, inf, tp, false, RayKind::Indirect, None, c)?;
+    match follow(beyond, c, chain)? {
+        Child::Done(v) => {
+            caches.update(leaf, nq.ray.dir, v);
+            Ok((Child::Done(v), None))
+        }
+        pending => Ok((pending, Some((leaf, nq.ray.dir)))),
+    }
+}
+
+fn child_query<T>(c: Child<T>) -> Option<(Dest, Query, f32)> {
     match c {
-        Child::Forward(to, q, t) => Some((to, q, t)),
+        Child::Forward(dest, q, t) => Some((dest, q, t)),
         _ => None,
     }
 }
@@ -494,7 +819,7 @@ impl Engine<'_> {
     }
 
     /// Starts camera samples until `max_inflight` are open.
-    fn originate(&mut self, work: &mut VecDeque<Work>) {
+    fn originate(&mut self) {
         let cap = self.job.setup.tuning.max_inflight.max(1) as usize;
         let job = self.job;
         let me = job.setup.me;
@@ -519,7 +844,7 @@ impl Engine<'_> {
                     index,
                 });
                 self.inflight += 1;
-                work.push_back(Work {
+                self.work.push_back(Work {
                     task: Task::Camera {
                         x: a.x0 + p % w,
                         y: a.y0 + p / w,
@@ -528,16 +853,22 @@ impl Engine<'_> {
                     resume: f32::NEG_INFINITY,
                     reply: ReplyTo { worker: me, slot },
                     from: me,
+                    pinned: None,
                 });
             }
         }
     }
 
-    fn apply(&mut self, o: Outcome) -> Result<(), EngineError> {
-        let me = self.job.setup.me;
-        match o {
-            Outcome::Error(e) => return Err(e),
-            Outcome::Forward(to, query, resume, reply) => {
+    /// Sends a query on: to a peer, or into the wait for a leaf.
+    fn route(
+        &mut self,
+        dest: Dest,
+        query: Query,
+        resume: f32,
+        reply: ReplyTo,
+    ) -> Result<(), EngineError> {
+        match dest {
+            Dest::Peer(to) => {
                 self.stats.forwarded_out += 1;
                 self.push_out(
                     to,
@@ -546,7 +877,114 @@ impl Engine<'_> {
                         resume,
                         reply,
                     },
-                )?;
+                )
+            }
+            Dest::Leaf(leaf) => {
+                self.stats.fetch_waits += 1;
+                let mut w = Work {
+                    task: Task::Query(query),
+                    resume,
+                    reply,
+                    from: self.job.setup.me,
+                    pinned: None,
+                };
+                if let Some(f) = self.job.locality.store.get(leaf) {
+                    // It arrived while this query was being traced.
+                    w.pinned = Some(f);
+                    self.work.push_back(w);
+                    return Ok(());
+                }
+                let list = self.waiting.entry(leaf).or_default();
+                list.push(w);
+                if list.len() == 1 {
+                    self.stats.fetch_requests += 1;
+                    let owner = self.job.setup.map.owner[leaf as usize];
+                    self.send_msg(owner as usize, PeerMsg::Fetch(vec![leaf]))?;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Ships the geometry of our leaves that a peer asked for.
+    fn serve(&mut self, from: WorkerId, leaves: Vec<u32>) -> Result<(), EngineError> {
+        let job = self.job;
+        for leaf in leaves {
+            let Ok(i) = job
+                .setup
+                .own_leaves
+                .binary_search_by_key(&leaf, |(l, _)| *l)
+            else {
+                return Err(EngineError::NotMyLeaf { from, leaf });
+            };
+            let g = &job.geometry;
+            let mut geometry = RegionGeometry::default();
+            for &id in &job.setup.own_leaves[i].1 {
+                let Ok(k) = g.ids.binary_search(&id) else {
+                    return Err(EngineError::ForeignTriangle(id));
+                };
+                geometry.ids.push(id);
+                geometry.verts.push(g.verts[k]);
+                geometry.material.push(g.material[k]);
+            }
+            self.stats.leaves_served += 1;
+            let msg = PeerMsg::Leaf(Box::new(LeafGeometry { leaf, geometry }));
+            self.send_msg(from as usize, msg)?;
+        }
+        Ok(())
+    }
+
+    /// Keeps a fetched leaf and resumes the work that waited for it.
+    fn receive_leaf(
+        &mut self,
+        from: WorkerId,
+        bytes: u64,
+        lg: LeafGeometry,
+    ) -> Result<(), EngineError> {
+        let job = self.job;
+        let leaf = lg.leaf;
+        let bad = |why| EngineError::BadLeaf { from, leaf, why };
+        if job.setup.map.owner.get(leaf as usize) != Some(&from) {
+            return Err(bad("the sender does not own it"));
+        }
+        let g = &lg.geometry;
+        if g.ids.len() != g.verts.len() || g.ids.len() != g.material.len() {
+            return Err(bad("its lists differ in length"));
+        }
+        if !g.ids.is_sorted_by(|a, b| a < b) {
+            return Err(bad("its triangle ids are not ascending"));
+        }
+        if g.material
+            .iter()
+            .any(|&m| m as usize >= job.setup.materials.len())
+        {
+            return Err(bad("it names a material the job does not define"));
+        }
+        if g.verts.iter().flatten().any(|p| !p.is_finite()) {
+            return Err(bad("it has a non-finite vertex"));
+        }
+        let Some(list) = self.waiting.remove(&leaf) else {
+            return Err(bad("it was not asked for"));
+        };
+        self.stats.fetched_leaves += 1;
+        self.stats.fetched_bytes += bytes;
+        let f = Arc::new(FetchedLeaf::build(leaf, lg.geometry, job.setup.magnitude));
+        if !job.locality.store.insert(f.clone()) {
+            job.locality.mark_too_large(leaf);
+        }
+        for mut w in list {
+            w.pinned = Some(f.clone());
+            self.work.push_back(w);
+        }
+        Ok(())
+    }
+
+    fn apply(&mut self, o: Outcome) -> Result<(), EngineError> {
+        let me = self.job.setup.me;
+        match o {
+            Outcome::Error(e) => return Err(e),
+            Outcome::Forward(dest, query, resume, reply) => {
+                self.route(dest, query, resume, reply)?;
             }
             Outcome::Answer(reply, a) => self.deliver(reply, a)?,
             Outcome::Chain(reply, chain) => {
@@ -563,22 +1001,15 @@ impl Engine<'_> {
                             Child::Done(l) => Wait::Done(l),
                             _ => Wait::Pending,
                         },
+                        update: cv.update,
                     });
                     let mine = ReplyTo { worker: me, slot };
                     for c in [child_query(cv.shadow), child_query(cv.next)]
                         .into_iter()
                         .flatten()
                     {
-                        let (to, query, resume) = c;
-                        self.stats.forwarded_out += 1;
-                        self.push_out(
-                            to,
-                            RayItem::Trace {
-                                query,
-                                resume,
-                                reply: mine,
-                            },
-                        )?;
+                        let (dest, query, resume) = c;
+                        self.route(dest, query, resume, mine)?;
                     }
                     parent = mine;
                 }
@@ -637,10 +1068,16 @@ impl Engine<'_> {
                     vertex,
                     shadow,
                     next,
+                    update,
                 } => {
                     match (a, &*shadow, &*next) {
                         (Answer::Visible(v), Wait::Pending, _) => *shadow = Wait::Done(v),
-                        (Answer::Radiance(l), _, Wait::Pending) => *next = Wait::Done(l),
+                        (Answer::Radiance(l), _, Wait::Pending) => {
+                            *next = Wait::Done(l);
+                            if let (Some((leaf, dir)), Some(c)) = (*update, &self.job.caches) {
+                                c.update(leaf, dir, l);
+                            }
+                        }
                         _ => return Err(bad),
                     }
                     let (Wait::Done(visible), Wait::Done(nl)) = (&*shadow, &*next) else {
@@ -719,18 +1156,23 @@ impl Engine<'_> {
         if items.is_empty() {
             return Ok(());
         }
+        self.send_msg(p, PeerMsg::Packet(items))
+    }
+
+    /// Sends behind whatever already waits for peer `p`, keeping order.
+    fn send_msg(&mut self, p: usize, msg: PeerMsg) -> Result<(), EngineError> {
         if !self.stalled[p].is_empty() {
-            self.stalled[p].push_back(items);
+            self.stalled[p].push_back(msg);
             return Ok(());
         }
-        let Some(tx) = &self.links.peers[p] else {
+        let Some(tx) = &self.links.peers.get(p).and_then(Option::as_ref) else {
             return Err(EngineError::LinkClosed("a peer"));
         };
-        match tx.try_send(items) {
+        match tx.try_send(msg) {
             Ok(()) => Ok(()),
-            Err(flume::TrySendError::Full(items)) => {
+            Err(flume::TrySendError::Full(msg)) => {
                 self.stats.backpressure_stalls += 1;
-                self.stalled[p].push_back(items);
+                self.stalled[p].push_back(msg);
                 Ok(())
             }
             Err(flume::TrySendError::Disconnected(_)) => Err(EngineError::LinkClosed("a peer")),

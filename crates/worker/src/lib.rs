@@ -9,6 +9,7 @@
 //! the scheduler. Shutdown is by a cancellation token every task selects on.
 
 pub mod engine;
+pub mod fetch;
 pub mod peers;
 
 use anyhow::{Context, bail};
@@ -263,6 +264,21 @@ async fn start_job(
     if setup.map.owner.iter().any(|&o| o as usize >= n) || me as usize >= n {
         bail!("processor map names a worker outside the job");
     }
+    if !setup.own_leaves.is_sorted_by(|a, b| a.0 < b.0)
+        || setup
+            .own_leaves
+            .iter()
+            .any(|(l, _)| setup.map.owner.get(*l as usize) != Some(&me))
+    {
+        bail!("the list of own leaves is not ascending or names a leaf of another worker");
+    }
+    if setup.leaf_tris.len() != setup.map.owner.len() {
+        bail!("one triangle count per leaf expected");
+    }
+    if let Some(c) = &setup.cache {
+        c.check()
+            .map_err(|e| anyhow::anyhow!("cache parameters: {e}"))?;
+    }
     let t = Instant::now();
     let (accel, geometry) = tokio::task::spawn_blocking({
         let mag = setup.magnitude;
@@ -314,12 +330,7 @@ async fn start_job(
     }
 
     let job = setup.job;
-    let ej = EngineJob {
-        setup,
-        workers: n,
-        accel,
-        geometry,
-    };
+    let ej = EngineJob::new(setup, n, accel, geometry);
     let links = Links {
         peers: outs,
         control: ctl.clone(),

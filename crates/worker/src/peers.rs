@@ -4,7 +4,7 @@
 //! Frames and bytes are counted per peer as they cross the socket.
 
 use crate::engine::Input;
-use locus_protocol::rays::{PeerMsg, RayItem};
+use locus_protocol::rays::PeerMsg;
 use locus_protocol::report::PeerTraffic;
 use locus_protocol::{Connection, MAX_FRAME_LEN, ProtocolError, handshake};
 use std::sync::Arc;
@@ -61,7 +61,7 @@ pub async fn dial(
     job: u64,
     me: u16,
     to: u16,
-    rx: flume::Receiver<Vec<RayItem>>,
+    rx: flume::Receiver<PeerMsg>,
     traffic: Arc<Traffic>,
     cancel: CancellationToken,
 ) -> Result<tokio::task::JoinHandle<()>, ProtocolError> {
@@ -71,11 +71,11 @@ pub async fn dial(
     Ok(tokio::spawn(async move {
         let c = &traffic.0[to as usize];
         loop {
-            let items = tokio::select! {
+            let msg = tokio::select! {
                 _ = cancel.cancelled() => break,
                 m = rx.recv_async() => match m { Ok(m) => m, Err(_) => break },
             };
-            match w.write_msg(&PeerMsg::Packet(items)).await {
+            match w.write_msg(&msg).await {
                 Ok(n) => {
                     c.msgs_sent.fetch_add(1, Relaxed);
                     c.bytes_sent.fetch_add(n as u64, Relaxed);
@@ -157,21 +157,23 @@ async fn serve_peer(
             _ = link.cancel.cancelled() => return Ok(()),
             m = r.read_msg::<PeerMsg>("peer") => m?,
         };
-        match m {
-            None => return Ok(()),
-            Some((PeerMsg::Packet(items), n)) => {
-                c.msgs_recv.fetch_add(1, Relaxed);
-                c.bytes_recv.fetch_add(n as u64, Relaxed);
-                if link
-                    .inbox
-                    .send_async(Input::Packet { from, items })
-                    .await
-                    .is_err()
-                {
-                    return Ok(());
-                }
-            }
-            Some((other, _)) => anyhow::bail!("{}: unexpected {other:?}", r.peer()),
+        let Some((m, n)) = m else {
+            return Ok(());
+        };
+        c.msgs_recv.fetch_add(1, Relaxed);
+        c.bytes_recv.fetch_add(n as u64, Relaxed);
+        let input = match m {
+            PeerMsg::Packet(items) => Input::Packet { from, items },
+            PeerMsg::Fetch(leaves) => Input::Fetch { from, leaves },
+            PeerMsg::Leaf(leaf) => Input::Leaf {
+                from,
+                bytes: n as u64,
+                leaf,
+            },
+            PeerMsg::Hello { .. } => anyhow::bail!("{}: a second Hello", r.peer()),
+        };
+        if link.inbox.send_async(input).await.is_err() {
+            return Ok(());
         }
     }
 }

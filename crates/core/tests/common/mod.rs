@@ -108,34 +108,7 @@ pub fn icosphere(level: u32, center: Vec3, radius: f32) -> (Vec<Vec3>, Vec<[u32;
 /// face an n x n grid so NEE samples many triangles. Radiance is
 /// Le / (1 - rho) everywhere inside.
 pub fn furnace_scene(rho: f32, le: f32, spp: u32, n: u32) -> Scene {
-    let mut mb = MeshBuilder::default();
-    let (lo, s) = (Vec3::splat(-1.0), 2.0);
-    let (x, y, z) = (Vec3::X * s, Vec3::Y * s, Vec3::Z * s);
-    mb.grid(lo, y, z, n, 0); // x = -1, normal +x
-    mb.grid(lo + x, z, y, n, 0); // x = +1, normal -x
-    mb.grid(lo, z, x, n, 0); // y = -1, normal +y
-    mb.grid(lo + y, x, z, n, 0); // y = +1, normal -y
-    mb.grid(lo, x, y, n, 0); // z = -1, normal +z
-    mb.grid(lo + z, y, x, n, 0); // z = +1, normal -z
-    let mats = vec![Material {
-        name: "furnace".into(),
-        albedo: Vec3::splat(rho),
-        emission: Vec3::splat(le),
-    }];
-    let cam = camera(
-        Vec3::new(0.1, -0.2, 0.05),
-        Vec3::new(1.0, 0.3, 0.7),
-        90.0,
-        24,
-        24,
-    );
-    let settings = RenderSettings {
-        spp,
-        max_depth: 200,
-        seed: 11,
-        ..Default::default()
-    };
-    let scene = scene_from(&mb, mats, cam, settings);
+    let scene = locus_core::generate::furnace(rho, le, spp, n);
     // Every face must point inward for the emission to be seen.
     for t in &scene.tris {
         let c = (t[0] + t[1] + t[2]) / 3.0;
