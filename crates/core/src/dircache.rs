@@ -10,18 +10,17 @@
 //! perimeter asks `L`'s cache about its direction; a reliable node answers,
 //! otherwise the rest of the ray is traced and its answer updates the node.
 //!
-//! The quantity a continuation query returns, and a node stores, is the
-//! radiance arriving along the ray **without the emission of the surface it
-//! hits first**: the radiance that surface reflects towards the ray's origin
-//! (its own direct light by next-event estimation plus its indirect light).
-//! With the cache on, the integrator counts emitters seen by continuation
-//! rays nowhere else, and next-event estimation at every vertex takes all of
-//! the direct light with weight one ([`DirectLighting::LightOnly`]); without
-//! that split the stored value would carry a MIS weight that depends on the
-//! pdf at the ray's origin, which differs across the leaf. So a cached answer
-//! counts nothing twice and misses nothing: direct light came from NEE at the
-//! asking vertex, the rest is what the node averages. Camera rays still see
-//! emitters directly.
+//! What a node stores, and what a continuation ray that reaches the
+//! perimeter returns, is the radiance arriving along the ray **without the
+//! emission of the surface it hits first**: the radiance that surface
+//! reflects towards the leaf (its own direct light by next-event estimation
+//! plus its indirect light). Light beyond the perimeter is counted by
+//! next-event estimation at the asking vertex with weight one; light inside
+//! the sphere is found both ways and combined by MIS, exactly as without
+//! caches ([`crate::integrator::shade`], `PathRay::emit_within`). A MIS
+//! weight on the stored value would depend on the pdf at the ray's origin,
+//! which differs across the leaf; with this split a cached answer counts
+//! nothing twice and misses nothing, and near lights keep MIS's low noise.
 //!
 //! # The quadtree
 //!
@@ -44,8 +43,6 @@
 //!
 //! Means and variances use Welford's update in f64, stable for large means
 //! with tiny variances.
-//!
-//! [`DirectLighting::LightOnly`]: crate::integrator::DirectLighting::LightOnly
 
 use crate::geometry::{Bounds, Ray};
 use glam::{DVec3, Vec3};
@@ -126,6 +123,31 @@ impl CacheParams {
         }
         Ok(())
     }
+}
+
+/// The locality sphere of a leaf: its centre, and `radius` leaf edges.
+pub fn locality_sphere(bounds: &Bounds, radius: f32) -> (DVec3, f64) {
+    (
+        bounds.center().as_dvec3(),
+        radius as f64 * bounds.extent().max_element() as f64,
+    )
+}
+
+/// Distance along `ray` at which it leaves `sphere`; 0 when the origin is
+/// already outside it.
+pub fn perimeter(sphere: (DVec3, f64), ray: &Ray) -> f32 {
+    let (c, r) = sphere;
+    let o = ray.origin.as_dvec3() - c;
+    let d = ray.dir.as_dvec3();
+    let a = d.length_squared();
+    let b = o.dot(d);
+    let cc = o.length_squared() - r * r;
+    if cc >= 0.0 || a == 0.0 {
+        return 0.0;
+    }
+    // cc < 0: one root ahead, one behind.
+    let disc = (b * b - a * cc).max(0.0);
+    ((-b + disc.sqrt()) / a) as f32
 }
 
 /// Equal-area map of a unit direction to `[0, 1)^2`.
@@ -376,19 +398,7 @@ impl LeafCaches {
     /// Distance along `ray` at which it leaves leaf `bounds`' locality
     /// sphere; 0 when the origin is already outside it.
     pub fn perimeter(&self, bounds: &Bounds, ray: &Ray) -> f32 {
-        let c = bounds.center().as_dvec3();
-        let r = self.params.radius as f64 * bounds.extent().max_element() as f64;
-        let o = ray.origin.as_dvec3() - c;
-        let d = ray.dir.as_dvec3();
-        let a = d.length_squared();
-        let b = o.dot(d);
-        let cc = o.length_squared() - r * r;
-        if cc >= 0.0 || a == 0.0 {
-            return 0.0;
-        }
-        // cc < 0: one root ahead, one behind.
-        let disc = (b * b - a * cc).max(0.0);
-        ((-b + disc.sqrt()) / a) as f32
+        perimeter(locality_sphere(bounds, self.params.radius), ray)
     }
 
     pub fn lookup(&self, leaf: u32, dir: Vec3) -> Lookup {

@@ -17,7 +17,7 @@
 //! shaded therefore never changes which random numbers it sees.
 
 use crate::accel::{Accel, Hit};
-use crate::dircache::{LeafCaches, Lookup};
+use crate::dircache::{LeafCaches, Lookup, locality_sphere, perimeter};
 use crate::geometry::{Ray, cosine_hemisphere, hit_point, offset_point, spawn_offset, tri_cross};
 use crate::light::LightSet;
 use crate::octree::Octree;
@@ -65,6 +65,10 @@ pub struct PathRay {
     pub prev_pdf: f32,
     /// Path throughput up to the origin, used only by Russian roulette.
     pub beta: Vec3,
+    /// Emission at the first hit counts (MIS-weighted) only when the hit
+    /// is nearer than this: the locality perimeter of the origin's leaf
+    /// when directional caches are on (see [`shade`]), infinity otherwise.
+    pub emit_within: f32,
 }
 
 impl PathRay {
@@ -75,6 +79,7 @@ impl PathRay {
             depth: 0,
             prev_pdf: 0.0,
             beta: Vec3::ONE,
+            emit_within: f32::INFINITY,
         }
     }
 }
@@ -107,21 +112,6 @@ impl ShadedVertex {
 }
 
 /// What shading a hit produces.
-/// How direct light is estimated at a path vertex.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub enum DirectLighting {
-    /// Next-event estimation and emitters hit by continuation rays, combined
-    /// by the power heuristic (the default; lowest variance).
-    #[default]
-    Mis,
-    /// Next-event estimation alone takes all direct light; continuation rays
-    /// (depth >= 1) return radiance without the emission of the surface
-    /// they hit. This is the quantity the directional cache stores (see
-    /// [`crate::dircache`]): it does not depend on where in the leaf the ray
-    /// started.
-    LightOnly,
-}
-
 pub struct Shaded {
     pub vertex: ShadedVertex,
     pub shadow: Option<ShadowRay>,
@@ -129,6 +119,18 @@ pub struct Shaded {
 }
 
 /// Shades the hit `h` of `q` on triangle `tri` with material `mat`.
+///
+/// With directional caches on, `locality` is the octree and the locality
+/// radius: light is then split at the perimeter of the locality sphere of
+/// the leaf holding the new vertex. A light point inside the sphere is
+/// reached both by next-event estimation and by the continuation ray
+/// (traced exactly there), and the two are combined by MIS as without
+/// caches; a light point beyond it is counted by next-event estimation
+/// alone (weight one), because a continuation ray that reaches the
+/// perimeter carries the radiance beyond it *without* the emission of the
+/// surface it hits first (`emit_within`). That quantity does not depend on
+/// where in the leaf the ray started, which is what lets the leaf's cache
+/// answer it (see [`crate::dircache`]).
 pub fn shade(
     q: &PathRay,
     h: &Hit,
@@ -136,7 +138,7 @@ pub fn shade(
     mat: &Material,
     lights: &LightSet,
     max_depth: u32,
-    direct: DirectLighting,
+    locality: Option<(&Octree, f32)>,
 ) -> Shaded {
     let mut out = Shaded {
         vertex: ShadedVertex {
@@ -151,13 +153,13 @@ pub fn shade(
     let wo = -q.ray.dir;
     let cos_o = ng.dot(wo);
     if mat.is_emissive() && cos_o > 0.0 {
-        let w = match (q.depth, direct) {
-            (0, _) => 1.0,
-            (_, DirectLighting::LightOnly) => 0.0,
-            (_, DirectLighting::Mis) => {
-                let pdf_l = lights.pdf_area(h.tri) * h.t * h.t / cos_o;
-                power_heuristic(q.prev_pdf, pdf_l)
-            }
+        let w = if q.depth == 0 {
+            1.0
+        } else if h.t < q.emit_within {
+            let pdf_l = lights.pdf_area(h.tri) * h.t * h.t / cos_o;
+            power_heuristic(q.prev_pdf, pdf_l)
+        } else {
+            0.0
         };
         out.vertex.emitted = mat.emission * w;
     }
@@ -171,6 +173,13 @@ pub fn shade(
     let origin = offset_point(p, ng, n, spawn_offset(tri));
     let base = vertex_dim(vertex);
     let f = mat.albedo / PI;
+    let sphere = locality.and_then(|(octree, radius)| {
+        let leaf = octree.leaf_at(origin)?;
+        Some(locality_sphere(
+            &octree.leaves[leaf as usize].bounds,
+            radius,
+        ))
+    });
 
     // Next-event estimation.
     if let Some(ls) = lights.sample(key.get1d(base), key.get2d(base + 1)) {
@@ -186,15 +195,13 @@ pub fn shade(
             if len > 0.0 {
                 let pdf_l = ls.pdf_area * dist2 / cos_l;
                 let pdf_b = cos_s / PI;
-                let w = match direct {
-                    DirectLighting::Mis => power_heuristic(pdf_l, pdf_b),
-                    DirectLighting::LightOnly => 1.0,
+                let ray = Ray::new(origin, seg / len);
+                let w = match sphere {
+                    Some(s) if len >= perimeter(s, &ray) => 1.0,
+                    _ => power_heuristic(pdf_l, pdf_b),
                 };
                 out.vertex.nee = f * ls.emission * (cos_s * w / pdf_l);
-                out.shadow = Some(ShadowRay {
-                    ray: Ray::new(origin, seg / len),
-                    t_max: len,
-                });
+                out.shadow = Some(ShadowRay { ray, t_max: len });
             }
         }
     }
@@ -216,12 +223,14 @@ pub fn shade(
         beta /= 1.0 - q_rr;
     }
     out.vertex.scale = scale;
+    let ray = Ray::new(origin, wi);
     out.next = Some(PathRay {
-        ray: Ray::new(origin, wi),
+        ray,
         key,
         depth: vertex,
         prev_pdf: pdf_b,
         beta,
+        emit_within: sphere.map_or(f32::INFINITY, |s| perimeter(s, &ray)),
     });
     out
 }
@@ -232,7 +241,6 @@ pub struct Integrator<'a> {
     pub accel: &'a Accel,
     pub lights: &'a LightSet,
     pub max_depth: u32,
-    pub direct: DirectLighting,
     /// Directional caches per octree leaf; None traces every ray.
     pub cache: Option<CacheUse<'a>>,
 }
@@ -269,7 +277,7 @@ impl Integrator<'_> {
             mat,
             self.lights,
             self.max_depth,
-            self.direct,
+            self.cache.map(|c| (c.octree, c.caches.params.radius)),
         );
         let visible = match s.shadow {
             Some(sr) => {
@@ -298,9 +306,9 @@ impl Integrator<'_> {
         let Some(leaf) = c.octree.leaf_at(nq.ray.origin) else {
             return self.trace(nq, stats);
         };
-        let tp = c
-            .caches
-            .perimeter(&c.octree.leaves[leaf as usize].bounds, &nq.ray);
+        // The perimeter [`shade`] used for this ray's emission and for the
+        // vertex's next-event weights.
+        let tp = nq.emit_within;
         if let Some(h) = self.accel.intersect(&nq.ray, 0.0, tp, stats) {
             stats.cache.local += 1;
             return self.shade_hit(nq, &h, stats);

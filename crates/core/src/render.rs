@@ -8,7 +8,7 @@
 use crate::accel::Accel;
 use crate::dircache::{CacheMemory, CacheParams, LeafCaches};
 use crate::image_io::Image;
-use crate::integrator::{CacheUse, DIM_PIXEL, DirectLighting, Integrator};
+use crate::integrator::{CacheUse, DIM_PIXEL, Integrator};
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::sampler::{SampleKey, mix64};
@@ -56,14 +56,13 @@ impl Prepared {
         }
     }
 
-    /// The integrator without caches, with MIS direct lighting.
+    /// The integrator without caches.
     pub fn integrator(&self, max_depth: u32) -> Integrator<'_> {
         Integrator {
             scene: &self.scene,
             accel: &self.accel,
             lights: &self.lights,
             max_depth,
-            direct: DirectLighting::Mis,
             cache: None,
         }
     }
@@ -86,9 +85,7 @@ pub struct RenderOptions {
     pub threads: usize,
     pub tile_size: u32,
     pub tile_order: TileOrder,
-    pub direct: DirectLighting,
-    /// Directional caches on the octree's leaves (forces
-    /// [`DirectLighting::LightOnly`], the quantity the caches store).
+    /// Directional caches on the octree's leaves.
     pub cache: Option<CacheParams>,
 }
 
@@ -101,7 +98,6 @@ impl RenderOptions {
             threads: 0,
             tile_size: 16,
             tile_order: TileOrder::Scanline,
-            direct: DirectLighting::Mis,
             cache: None,
         }
     }
@@ -190,11 +186,6 @@ pub fn render(
         .cache
         .map(|p| LeafCaches::new(prep.octree.leaves.len(), p));
     let integ = Integrator {
-        direct: if caches.is_some() {
-            DirectLighting::LightOnly
-        } else {
-            opts.direct
-        },
         cache: caches.as_ref().map(|c| CacheUse {
             octree: &prep.octree,
             caches: c,

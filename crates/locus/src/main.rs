@@ -774,6 +774,31 @@ fn write_farm_result(
         f.prediction.analytic_r,
         f.prediction.sampled_r
     );
+    let t = &f.totals;
+    let c = t.trace.cache;
+    if c.local + c.global + c.lookups > 0 {
+        println!(
+            "  directional caches: {} local, {} global, {} lookups (hit ratio {:.1}%), {} nodes in {} leaves, {:.1} MiB",
+            c.local,
+            c.global,
+            c.lookups,
+            100.0 * c.hit_ratio(),
+            t.cache_memory.nodes,
+            t.cache_memory.leaves_with_cache,
+            t.cache_memory.bytes as f64 / (1024.0 * 1024.0)
+        );
+    }
+    if t.fetch_requests > 0 {
+        println!(
+            "  fetched {} leaves ({:.2} MB on the wire) for {} waiting rays; {} crossings of fetched leaves; store peak {:.1} of {:.1} MiB per worker",
+            t.fetched_leaves,
+            t.fetched_bytes as f64 / 1e6,
+            t.fetch_waits,
+            t.fetched_leaf_traces,
+            t.fetch_cache_peak as f64 / (1024.0 * 1024.0),
+            t.fetch_cache_bound as f64 / (1024.0 * 1024.0)
+        );
+    }
     println!(
         "  worker  leaves  triangles  rays-local  fwd-out  queries-in  MB-sent  busy-s  idle-s  pred%  meas%"
     );

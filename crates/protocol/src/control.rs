@@ -10,7 +10,6 @@ use crate::submit::FetchPolicy;
 use crate::submit::JobRequest;
 use glam::Vec3;
 use locus_core::dircache::CacheParams;
-use locus_core::integrator::DirectLighting;
 use locus_core::light::LightSet;
 use locus_core::region::{ProcessorMap, WorkerId};
 use locus_core::scene::{Camera, Material};
@@ -123,7 +122,6 @@ pub struct JobSetup {
     /// Largest coordinate of the scene, for BVH padding.
     pub magnitude: f32,
     pub tuning: Tuning,
-    pub direct: DirectLighting,
     pub cache: Option<CacheParams>,
     pub fetch: FetchPolicy,
     pub fetch_budget: u64,

@@ -80,8 +80,7 @@ pub struct JobOptions {
     pub tile_size: u32,
     pub tuning: crate::control::Tuning,
     /// Directional caches per octree leaf (paper 000, section 2.4); None
-    /// traces every ray. With caches, direct light is next-event only
-    /// ([`locus_core::integrator::DirectLighting::LightOnly`]).
+    /// traces every ray.
     pub cache: Option<CacheParams>,
     pub fetch: FetchPolicy,
     /// Bytes of fetched leaf geometry (triangles plus BVH) a worker keeps.

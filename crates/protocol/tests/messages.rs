@@ -4,7 +4,7 @@
 use glam::Vec3;
 use locus_core::dircache::CacheParams;
 use locus_core::geometry::Ray;
-use locus_core::integrator::{DirectLighting, PathRay, ShadowRay};
+use locus_core::integrator::{PathRay, ShadowRay};
 use locus_core::light::LightSet;
 use locus_core::octree::{Octree, OctreeParams};
 use locus_core::region::ProcessorMap;
@@ -48,6 +48,7 @@ fn path_ray() -> impl Strategy<Value = PathRay> {
             depth,
             prev_pdf,
             beta,
+            emit_within: prev_pdf * 3.0,
         })
 }
 
@@ -138,7 +139,6 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
         map: ProcessorMap::new(&tree, owner),
         magnitude: 11.0,
         tuning: Tuning::default(),
-        direct: DirectLighting::LightOnly,
         cache: Some(CacheParams::default()),
         fetch: FetchPolicy::Hybrid,
         fetch_budget: 1 << 20,

@@ -14,7 +14,7 @@
 
 use locus_core::accel::Accel;
 use locus_core::geometry::Ray;
-use locus_core::integrator::{DIM_PIXEL, DirectLighting, PathRay, shade};
+use locus_core::integrator::{DIM_PIXEL, PathRay, shade};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::sampler::SampleKey;
@@ -130,15 +130,7 @@ pub fn preview(
                         };
                         let t = hit.tri as usize;
                         let mat = &scene.materials[scene.tri_material[t] as usize];
-                        let s = shade(
-                            &q,
-                            &hit,
-                            &scene.tris[t],
-                            mat,
-                            lights,
-                            bounces,
-                            DirectLighting::Mis,
-                        );
+                        let s = shade(&q, &hit, &scene.tris[t], mat, lights, bounces, None);
                         if let Some(sr) = s.shadow {
                             rays += 1;
                             leafwise(tree, accel, &sr.ray, sr.t_max, true, &mut cost);

@@ -18,7 +18,6 @@ pub mod job;
 pub mod partition;
 
 use anyhow::Context;
-use locus_core::integrator::DirectLighting;
 use locus_protocol::control::{
     JobSetup, Opening, Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler,
 };
@@ -429,11 +428,6 @@ impl Actor {
                 map: prep.map.clone(),
                 magnitude: prep.scene.magnitude(),
                 tuning: j.req.options.tuning,
-                direct: if j.req.options.cache.is_some() {
-                    DirectLighting::LightOnly
-                } else {
-                    DirectLighting::Mis
-                },
                 cache: j.req.options.cache,
                 fetch: j.req.options.fetch,
                 fetch_budget: j.req.options.fetch_budget,

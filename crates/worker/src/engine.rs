@@ -654,7 +654,9 @@ fn eval_hit(
         mat,
         &job.setup.lights,
         job.setup.max_depth,
-        job.setup.direct,
+        job.caches
+            .as_ref()
+            .map(|c| (&job.setup.map.tree, c.params.radius)),
     );
     let shadow = match s.shadow {
         None => Child::Done(false),
