@@ -6,7 +6,10 @@
 //! job's [`engine`] on a dedicated thread with a rayon pool for tracing,
 //! while tokio tasks move frames: one reader per incoming peer link, one
 //! writer per outgoing one, and the scheduler link. Rays never pass through
-//! the scheduler. Shutdown is by a cancellation token every task selects on.
+//! the scheduler. Under a fetch policy the engine may ask a peer for a
+//! leaf's triangles instead of forwarding a ray there ([`fetch`]: the
+//! byte-bounded store and the policies). Shutdown is by a cancellation
+//! token every task selects on.
 
 pub mod engine;
 pub mod fetch;
