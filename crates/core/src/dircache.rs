@@ -395,12 +395,6 @@ impl LeafCaches {
         }
     }
 
-    /// Distance along `ray` at which it leaves leaf `bounds`' locality
-    /// sphere; 0 when the origin is already outside it.
-    pub fn perimeter(&self, bounds: &Bounds, ray: &Ray) -> f32 {
-        perimeter(locality_sphere(bounds, self.params.radius), ray)
-    }
-
     pub fn lookup(&self, leaf: u32, dir: Vec3) -> Lookup {
         let Some(m) = self.caches.get(leaf as usize) else {
             return Lookup::Miss;
@@ -659,19 +653,13 @@ mod tests {
 
     #[test]
     fn perimeter_is_where_the_ray_leaves_the_sphere() {
-        let caches = LeafCaches::new(
-            1,
-            CacheParams {
-                radius: 2.0,
-                ..CacheParams::default()
-            },
-        );
         let b = Bounds::new(Vec3::ZERO, Vec3::ONE);
+        let sphere = locality_sphere(&b, 2.0);
         // Centre (0.5,0.5,0.5), radius 2: from the centre along +x, 2.
         let r = Ray::new(Vec3::splat(0.5), Vec3::X);
-        assert!((caches.perimeter(&b, &r) - 2.0).abs() < 1e-6);
+        assert!((perimeter(sphere, &r) - 2.0).abs() < 1e-6);
         // Origin outside the sphere: the perimeter is at the origin.
         let r = Ray::new(Vec3::new(10.0, 0.5, 0.5), -Vec3::X);
-        assert_eq!(caches.perimeter(&b, &r), 0.0);
+        assert_eq!(perimeter(sphere, &r), 0.0);
     }
 }

@@ -116,6 +116,9 @@ pub struct Shaded {
     pub vertex: ShadedVertex,
     pub shadow: Option<ShadowRay>,
     pub next: Option<PathRay>,
+    /// With `locality`: the leaf whose sphere split this vertex's light,
+    /// whose cache answers `next` beyond `next.emit_within`.
+    pub cache_leaf: Option<u32>,
 }
 
 /// Shades the hit `h` of `q` on triangle `tri` with material `mat`.
@@ -148,6 +151,7 @@ pub fn shade(
         },
         shadow: None,
         next: None,
+        cache_leaf: None,
     };
     let ng = tri_cross(tri).normalize();
     let wo = -q.ray.dir;
@@ -173,13 +177,12 @@ pub fn shade(
     let origin = offset_point(p, ng, n, spawn_offset(tri));
     let base = vertex_dim(vertex);
     let f = mat.albedo / PI;
-    let sphere = locality.and_then(|(octree, radius)| {
-        let leaf = octree.leaf_at(origin)?;
-        Some(locality_sphere(
-            &octree.leaves[leaf as usize].bounds,
-            radius,
-        ))
-    });
+    out.cache_leaf = locality.and_then(|(octree, _)| octree.leaf_at(origin));
+    let sphere = locality
+        .zip(out.cache_leaf)
+        .map(|((octree, radius), leaf)| {
+            locality_sphere(&octree.leaves[leaf as usize].bounds, radius)
+        });
 
     // Next-event estimation.
     if let Some(ls) = lights.sample(key.get1d(base), key.get2d(base + 1)) {
@@ -289,7 +292,7 @@ impl Integrator<'_> {
         let next = match s.next {
             Some(nq) => {
                 stats.indirect_rays += 1;
-                self.continue_path(&nq, stats)
+                self.continue_path(&nq, s.cache_leaf, stats)
             }
             None => Vec3::ZERO,
         };
@@ -297,13 +300,11 @@ impl Integrator<'_> {
     }
 
     /// A continuation ray: traced exactly inside the locality sphere of the
-    /// leaf it starts in, answered by that leaf's cache beyond it when the
-    /// cache can, traced (and the answer cached) otherwise.
-    fn continue_path(&self, nq: &PathRay, stats: &mut TraceStats) -> Vec3 {
-        let Some(c) = self.cache else {
-            return self.trace(nq, stats);
-        };
-        let Some(leaf) = c.octree.leaf_at(nq.ray.origin) else {
+    /// leaf it starts in (`leaf`, found by [`shade`]), answered by that
+    /// leaf's cache beyond it when the cache can, traced (and the answer
+    /// cached) otherwise.
+    fn continue_path(&self, nq: &PathRay, leaf: Option<u32>, stats: &mut TraceStats) -> Vec3 {
+        let (Some(c), Some(leaf)) = (self.cache, leaf) else {
             return self.trace(nq, stats);
         };
         // The perimeter [`shade`] used for this ray's emission and for the

@@ -49,6 +49,21 @@ pub fn compare(image: &Image, reference: &Image) -> Result<ErrorMetrics, ImageEr
     })
 }
 
+/// Mean of `channel` over the pixels and its standard error. Pixels are
+/// independent estimates when their sample keys are disjoint (as every
+/// pixel's are), so the error of the mean follows from their spread: the
+/// tolerance of every statistical test of an image mean.
+pub fn mean_and_standard_error(pixels: &[[f32; 3]], channel: usize) -> (f64, f64) {
+    let n = pixels.len() as f64;
+    let mean = pixels.iter().map(|p| p[channel] as f64).sum::<f64>() / n;
+    let var = pixels
+        .iter()
+        .map(|p| (p[channel] as f64 - mean).powi(2))
+        .sum::<f64>()
+        / (n - 1.0);
+    (mean, (var / n).sqrt())
+}
+
 /// Window edge and stride of [`ssim`].
 const SSIM_WINDOW: usize = 8;
 const SSIM_STRIDE: usize = 4;
@@ -134,6 +149,15 @@ mod tests {
         assert!((m.rel_mse - 100.0 / 6.0).abs() < 1e-9);
         assert_eq!(compare(&a, &a).unwrap().rmse, 0.0);
         assert!(compare(&a, &Image::new(1, 2)).is_err());
+    }
+
+    #[test]
+    fn mean_and_standard_error_of_known_values() {
+        let px = [[0.0, 1.0, 0.0], [0.0, 3.0, 0.0]];
+        let (m, se) = mean_and_standard_error(&px, 1);
+        assert_eq!(m, 2.0);
+        // Sample variance 2, over n = 2: se = 1.
+        assert!((se - 1.0).abs() < 1e-12);
     }
 
     /// SSIM is 1 for identical images and falls as noise grows, while the

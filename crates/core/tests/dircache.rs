@@ -3,6 +3,7 @@
 
 mod common;
 use locus_core::dircache::CacheParams;
+use locus_core::metrics::mean_and_standard_error;
 use locus_core::render::{Prepared, RenderOptions, render};
 
 /// With a locality radius that contains the whole scene, every ray that
@@ -51,16 +52,6 @@ fn cache_with_all_geometry_inside_the_radius_changes_no_bit() {
     );
 }
 
-/// Image mean and its standard error (pixels have disjoint sample keys,
-/// so they are independent estimates of the same uniform radiance).
-fn mean_se(px: &[[f32; 3]]) -> (f64, f64) {
-    let v: Vec<f64> = px.iter().map(|p| p[1] as f64).collect();
-    let n = v.len() as f64;
-    let m = v.iter().sum::<f64>() / n;
-    let var = v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0);
-    (m, (var / n).sqrt())
-}
-
 /// Inside a white furnace the radiance arriving from every direction at
 /// every point is Le / (1 - rho), and so is what a cache node averages: the
 /// cache's answers are exact in expectation. The cached render must agree
@@ -92,8 +83,8 @@ fn cache_is_unbiased_in_a_uniform_environment() {
     let expected = (le / (1.0 - rho)) as f64;
     let a = render(&prep, &plain, &|_, _| {});
     let b = render(&prep, &cached, &|_, _| {});
-    let (ma, sa) = mean_se(&a.image.pixels);
-    let (mb, sb) = mean_se(&b.image.pixels);
+    let (ma, sa) = mean_and_standard_error(&a.image.pixels, 1);
+    let (mb, sb) = mean_and_standard_error(&b.image.pixels, 1);
     let c = b.stats.cache;
     eprintln!(
         "furnace: uncached {ma:.5} (se {sa:.1e}), cached {mb:.5} (se {sb:.1e}), expected {expected}; cache {c:?}, hit ratio {:.3}",

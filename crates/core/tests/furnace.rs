@@ -4,6 +4,7 @@
 //! within a bound derived from the standard error of the render.
 
 mod common;
+use locus_core::metrics::mean_and_standard_error;
 use locus_core::render::{Prepared, RenderOptions, render};
 
 fn furnace(rho: f32, le: f32, spp: u32) -> (f64, f64, f64) {
@@ -12,13 +13,8 @@ fn furnace(rho: f32, le: f32, spp: u32) -> (f64, f64, f64) {
     let opts = RenderOptions::from_scene(&prep.scene);
     let out = render(&prep, &opts, &|_, _| {});
     assert_eq!(out.stats.invalid_samples, 0);
-    // Pixels are independent estimates (disjoint sample keys), so the
-    // standard error of the image mean follows from their spread.
-    let vals: Vec<f64> = out.image.pixels.iter().map(|p| p[1] as f64).collect();
-    let n = vals.len() as f64;
-    let mean = vals.iter().sum::<f64>() / n;
-    let var = vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (mean, (var / n).sqrt(), (le / (1.0 - rho)) as f64)
+    let (mean, se) = mean_and_standard_error(&out.image.pixels, 1);
+    (mean, se, (le / (1.0 - rho)) as f64)
 }
 
 #[test]

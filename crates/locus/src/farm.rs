@@ -12,6 +12,7 @@ use tokio_util::sync::CancellationToken;
 pub struct LocalFarm {
     pub scheduler: SocketAddr,
     pub token: String,
+    workers: usize,
     shutdown: CancellationToken,
     tasks: Vec<JoinHandle<anyhow::Result<()>>>,
 }
@@ -61,6 +62,7 @@ impl LocalFarm {
         Ok(Self {
             scheduler: addr,
             token,
+            workers,
             shutdown,
             tasks,
         })
@@ -70,11 +72,17 @@ impl LocalFarm {
         self.shutdown.clone()
     }
 
+    /// Runs one job. A job asking for "every worker" (0) gets all of this
+    /// farm's: workers register a moment after `start` returns, and the
+    /// scheduler would otherwise start the job with those registered so far.
     pub async fn render(
         &self,
-        req: JobRequest,
+        mut req: JobRequest,
         progress: &(dyn Fn(u32, u32) + Sync),
     ) -> anyhow::Result<JobResult> {
+        if req.options.workers == 0 {
+            req.options.workers = self.workers as u32;
+        }
         client::submit(&self.scheduler.to_string(), &self.token, req, progress).await
     }
 

@@ -258,67 +258,104 @@ fn on(b: bool) -> &'static str {
     if b { "on" } else { "off" }
 }
 
+/// One Markdown table: the configuration columns, then `cells` per row.
+fn table(
+    s: &mut String,
+    intro: &str,
+    header: &[&str],
+    rows: &[Row],
+    cells: impl Fn(&Row) -> Vec<String>,
+) {
+    let _ = writeln!(s, "{intro}\n");
+    let _ = writeln!(s, "| preset | cache | policy | {} |", header.join(" | "));
+    let _ = writeln!(s, "|---|---|---|{}", "---:|".repeat(header.len()));
+    for r in rows {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} |",
+            r.preset,
+            on(r.cache),
+            r.policy,
+            cells(r).join(" | ")
+        );
+    }
+    s.push('\n');
+}
+
 /// The three tables in Markdown.
 pub fn markdown(title: &str, rows: &[Row]) -> String {
     let mut s = format!("### {title}\n\n");
-    s += "Speed (Table 1): gains against the same preset without cache, forwarding.\n\n";
-    s += "| preset | cache | policy | render s | BVH nodes | triangle tests | time gain | tests gain |\n";
-    s += "|---|---|---|---:|---:|---:|---:|---:|\n";
-    for r in rows {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {} | {:.3} | {} | {} | {:.2} | {:.2} |",
-            r.preset,
-            on(r.cache),
-            r.policy,
-            r.render_s,
-            r.bvh_nodes,
-            r.tri_tests,
-            r.time_gain,
-            r.tests_gain
-        );
-    }
-    s += "\nError against the reference (Table 2); efficiency gain > 1 means less error at equal time.\n\n";
-    s += "| preset | cache | policy | RMSE | relMSE | SSIM | MSE ratio | efficiency gain |\n";
-    s += "|---|---|---|---:|---:|---:|---:|---:|\n";
-    for r in rows {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {} | {:.5} | {:.5} | {:.4} | {:.3} | {:.2} |",
-            r.preset,
-            on(r.cache),
-            r.policy,
-            r.rmse,
-            r.rel_mse,
-            r.ssim,
-            r.mse_ratio,
-            r.efficiency_gain
-        );
-    }
-    s += "\nRays (Table 3; hit ratio = lookups / (global + lookups)) and traffic between workers.\n\n";
-    s += "| preset | cache | policy | diffuse | local | global | lookups | hit ratio | forwarded | messages | MB sent | bytes ratio | fetched leaves | fetched MB | cache MB |\n";
-    s += "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n";
-    for r in rows {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {} | {} | {} | {} | {} | {:.1}% | {} | {} | {:.2} | {:.2} | {} | {:.2} | {:.2} |",
-            r.preset,
-            on(r.cache),
-            r.policy,
-            r.diffuse,
-            r.local,
-            r.global,
-            r.lookups,
-            100.0 * r.hit_ratio,
-            r.forwarded,
-            r.messages,
-            r.bytes as f64 / 1e6,
-            r.bytes_ratio,
-            r.fetched_leaves,
-            r.fetched_bytes as f64 / 1e6,
-            r.cache_bytes as f64 / (1024.0 * 1024.0)
-        );
-    }
+    table(
+        &mut s,
+        "Speed (Table 1): gains against the same preset without cache, forwarding.",
+        &[
+            "render s",
+            "BVH nodes",
+            "triangle tests",
+            "time gain",
+            "tests gain",
+        ],
+        rows,
+        |r| {
+            vec![
+                format!("{:.3}", r.render_s),
+                r.bvh_nodes.to_string(),
+                r.tri_tests.to_string(),
+                format!("{:.2}", r.time_gain),
+                format!("{:.2}", r.tests_gain),
+            ]
+        },
+    );
+    table(
+        &mut s,
+        "Error against the reference (Table 2); efficiency gain > 1 means less error at equal time.",
+        &["RMSE", "relMSE", "SSIM", "MSE ratio", "efficiency gain"],
+        rows,
+        |r| {
+            vec![
+                format!("{:.5}", r.rmse),
+                format!("{:.5}", r.rel_mse),
+                format!("{:.4}", r.ssim),
+                format!("{:.3}", r.mse_ratio),
+                format!("{:.2}", r.efficiency_gain),
+            ]
+        },
+    );
+    table(
+        &mut s,
+        "Rays (Table 3; hit ratio = lookups / (global + lookups)) and traffic between workers.",
+        &[
+            "diffuse",
+            "local",
+            "global",
+            "lookups",
+            "hit ratio",
+            "forwarded",
+            "messages",
+            "MB sent",
+            "bytes ratio",
+            "fetched leaves",
+            "fetched MB",
+            "cache MB",
+        ],
+        rows,
+        |r| {
+            vec![
+                r.diffuse.to_string(),
+                r.local.to_string(),
+                r.global.to_string(),
+                r.lookups.to_string(),
+                format!("{:.1}%", 100.0 * r.hit_ratio),
+                r.forwarded.to_string(),
+                r.messages.to_string(),
+                format!("{:.2}", r.bytes as f64 / 1e6),
+                format!("{:.2}", r.bytes_ratio),
+                r.fetched_leaves.to_string(),
+                format!("{:.2}", r.fetched_bytes as f64 / 1e6),
+                format!("{:.2}", r.cache_bytes as f64 / (1024.0 * 1024.0)),
+            ]
+        },
+    );
     s
 }
 

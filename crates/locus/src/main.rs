@@ -840,12 +840,21 @@ fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
             max_queued_jobs: cfg.scheduler.max_queued_jobs.unwrap_or(16),
         })
         .await?;
-        // Scripts read the bound address from this line.
-        println!("scheduler listening on {}", s.local_addr()?);
-        let shutdown = CancellationToken::new();
-        locus::cancel_on_signals(shutdown.clone());
-        s.run(shutdown).await
+        serve("scheduler", s.local_addr()?, |t| s.run(t)).await
     })
+}
+
+/// Prints the bound address (scripts read it from this line) and runs a
+/// daemon until SIGINT or SIGTERM.
+async fn serve<F: std::future::Future<Output = Result<()>>>(
+    what: &str,
+    addr: std::net::SocketAddr,
+    run: impl FnOnce(CancellationToken) -> F,
+) -> Result<()> {
+    println!("{what} listening on {addr}");
+    let shutdown = CancellationToken::new();
+    locus::cancel_on_signals(shutdown.clone());
+    run(shutdown).await
 }
 
 fn cmd_worker(a: WorkerArgs) -> Result<()> {
@@ -873,10 +882,7 @@ fn cmd_worker(a: WorkerArgs) -> Result<()> {
     };
     runtime()?.block_on(async {
         let worker = Worker::bind(wc).await?;
-        println!("worker listening on {}", worker.local_addr()?);
-        let shutdown = CancellationToken::new();
-        locus::cancel_on_signals(shutdown.clone());
-        worker.run(shutdown).await
+        serve("worker", worker.local_addr()?, |t| worker.run(t)).await
     })
 }
 

@@ -3,47 +3,15 @@
 //! they cannot be used and stay unbiased where their answers are exact in
 //! expectation.
 
+mod common;
+use common::{bits, runtime, single_machine};
 use locus_core::dircache::CacheParams;
-use locus_core::image_io::Image;
-use locus_core::render::{Prepared, RenderOptions, render};
+use locus_core::metrics::mean_and_standard_error;
 use locus_core::scene::Scene;
-use locus_protocol::submit::{FetchPolicy, JobOptions, JobResult};
-use std::path::PathBuf;
+use locus_protocol::submit::{FetchPolicy, JobOptions};
 
 fn small_cornell() -> Scene {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let mut s = Scene::load(&root.join("scenes/cornell-box/cornell.toml")).expect("cornell");
-    s.camera.width = 32;
-    s.camera.height = 24;
-    s.settings.spp = 3;
-    s.settings.max_depth = 6;
-    s.settings.seed = 5;
-    s.settings.octree.max_leaf_tris = 4;
-    s
-}
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
-}
-
-fn single_machine(scene: &Scene) -> Vec<u32> {
-    let prep = Prepared::new(scene.clone());
-    let mut o = RenderOptions::from_scene(scene);
-    o.threads = 2;
-    render(&prep, &o, &|_, _| {}).image.to_bits()
-}
-
-fn bits(r: &JobResult) -> Vec<u32> {
-    Image {
-        width: r.width,
-        height: r.height,
-        pixels: r.pixels.clone(),
-    }
-    .to_bits()
+    common::small_cornell(32, 24, 5)
 }
 
 /// Every policy, with a budget that holds the whole scene and one so small
@@ -131,14 +99,6 @@ fn farm_cache_with_all_geometry_inside_the_radius_changes_no_bit() {
     });
 }
 
-fn mean_se(px: &[[f32; 3]]) -> (f64, f64) {
-    let v: Vec<f64> = px.iter().map(|p| p[1] as f64).collect();
-    let n = v.len() as f64;
-    let m = v.iter().sum::<f64>() / n;
-    let var = v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0);
-    (m, (var / n).sqrt())
-}
-
 /// The white furnace on four workers with small regions, so that cache
 /// misses are traced across workers and their answers update the caches
 /// when they come back: the mean stays within 4 standard errors of the
@@ -177,7 +137,7 @@ fn farm_cache_is_unbiased_in_a_uniform_environment() {
         let r = farm.render(req, &|_, _| {}).await.expect("job");
         let t = &r.report.totals;
         let c = t.trace.cache;
-        let (m, se) = mean_se(&r.pixels);
+        let (m, se) = mean_and_standard_error(&r.pixels, 1);
         eprintln!(
             "farm furnace: {m:.5} (se {se:.1e}) vs {expected}; cache {c:?}, hit ratio {:.3}, forwards {}, cache {} nodes",
             c.hit_ratio(),

@@ -396,7 +396,7 @@ impl Actor {
         });
     }
 
-    fn on_prepared(&mut self, id: u64, prep: Box<job::Prepared>) {
+    fn on_prepared(&mut self, id: u64, mut prep: Box<job::Prepared>) {
         let Some(j) = self.job.as_mut().filter(|j| j.id == id) else {
             return;
         };
@@ -413,7 +413,7 @@ impl Actor {
             .iter()
             .map(|m| self.workers[m].reg.listen.clone())
             .collect();
-        let mut own_leaves = prep.own_leaves.clone();
+        let mut own_leaves = std::mem::take(&mut prep.own_leaves);
         for (w, m) in j.members.iter().enumerate() {
             let setup = JobSetup {
                 job: id,

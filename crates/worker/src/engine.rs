@@ -601,7 +601,7 @@ fn process_inner(
                 s.t_max,
                 w.resume,
                 true,
-                RayKind::Shadow,
+                RayKind::Secondary,
                 pinned,
                 c,
             )? {
@@ -616,7 +616,7 @@ fn process_inner(
             let kind = if q.depth == 0 {
                 RayKind::Camera
             } else {
-                RayKind::Indirect
+                RayKind::Secondary
             };
             match trace(job, &q.ray, f32::INFINITY, w.resume, false, kind, pinned, c)? {
                 Traced::Next(dest, t) => forward(Query::Path(q), dest, t)?,
@@ -669,7 +669,7 @@ fn eval_hit(
                 sr.t_max,
                 f32::NEG_INFINITY,
                 true,
-                RayKind::Shadow,
+                RayKind::Secondary,
                 None,
                 c,
             )? {
@@ -690,7 +690,7 @@ fn eval_hit(
         None => (Child::Done(Vec3::ZERO), None),
         Some(nq) => {
             c.trace.indirect_rays += 1;
-            continuation(job, &nq, c, chain)?
+            continuation(job, &nq, s.cache_leaf, c, chain)?
         }
     };
     if let (Child::Done(visible), Child::Done(l)) = (&chain[idx].shadow, &next) {
@@ -705,7 +705,7 @@ fn eval_hit(
 
 /// A continuation ray. Without caches it is traced like any query. With
 /// them it is traced exactly inside the locality sphere of the leaf it
-/// starts in; a ray that hits nothing there is answered by the leaf's
+/// starts in (`leaf`, from [`shade`]); a ray that hits nothing there is answered by the leaf's
 /// cache when the cache can, and otherwise traced on (returning the key
 /// under which its radiance must update the cache if that radiance is not
 /// known yet). A ray that leaves this worker's reach inside the sphere
@@ -713,6 +713,7 @@ fn eval_hit(
 fn continuation(
     job: &EngineJob,
     nq: &PathRay,
+    leaf: Option<u32>,
     c: &mut Counts,
     chain: &mut Vec<ChainVertex>,
 ) -> Result<(Child<Vec3>, Option<CacheKey>), EngineError> {
@@ -727,23 +728,17 @@ fn continuation(
         })
     };
     let inf = f32::INFINITY;
-    let cached = job.caches.as_ref().and_then(|caches| {
-        let tree = &job.setup.map.tree;
-        let leaf = tree.leaf_at(nq.ray.origin)?;
-        Some((
-            caches,
-            leaf,
-            caches.perimeter(&tree.leaves[leaf as usize].bounds, &nq.ray),
-        ))
-    });
-    let Some((caches, leaf, tp)) = cached else {
+    // `shade` found the leaf and used the perimeter `emit_within` for this
+    // ray's emission and its vertex's next-event weights.
+    let tp = nq.emit_within;
+    let (Some(caches), Some(leaf)) = (&job.caches, leaf) else {
         let t = trace(
             job,
             &nq.ray,
             inf,
             f32::NEG_INFINITY,
             false,
-            RayKind::Indirect,
+            RayKind::Secondary,
             None,
             c,
         )?;
@@ -755,7 +750,7 @@ fn continuation(
         tp,
         f32::NEG_INFINITY,
         false,
-        RayKind::Indirect,
+        RayKind::Secondary,
         None,
         c,
     )?;
@@ -768,7 +763,7 @@ fn continuation(
         return Ok((Child::Done(v), None));
     }
     c.trace.cache.global += 1;
-    let beyond = trace(job, &nq.ray, inf, tp, false, RayKind::Indirect, None, c)?;
+    let beyond = trace(job, &nq.ray, inf, tp, false, RayKind::Secondary, None, c)?;
     match follow(beyond, c, chain)? {
         Child::Done(v) => {
             caches.update(leaf, nq.ray.dir, v);

@@ -121,12 +121,12 @@ impl LeafStore {
     }
 }
 
-/// What a ray is, for the hybrid policy.
+/// What a ray is, for the hybrid policy: camera rays are coherent, shadow
+/// and continuation rays are not.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RayKind {
     Camera,
-    Shadow,
-    Indirect,
+    Secondary,
 }
 
 /// Bytes a forwarded query costs on the wire, query plus answer, for the
@@ -149,7 +149,6 @@ pub struct Locality {
     leaf_cost: Vec<u64>,
     /// Leaves the store cannot hold: always forwarded.
     too_large: Vec<AtomicBool>,
-    pub traces: AtomicU64,
 }
 
 impl Locality {
@@ -177,7 +176,6 @@ impl Locality {
                 .map(|l| setup.leaf_tris.get(l).copied().unwrap_or(0) as u64 * TRIANGLE_COST)
                 .collect(),
             too_large: (0..n).map(|_| AtomicBool::new(false)).collect(),
-            traces: AtomicU64::new(0),
         }
     }
 

@@ -4,7 +4,6 @@
 //! never holds more bytes than its bound.
 
 use glam::Vec3;
-use locus_core::accel::Accel;
 use locus_core::geometry::Ray;
 use locus_core::octree::{Octree, OctreeParams};
 use locus_core::sampler::SampleKey;
@@ -14,51 +13,57 @@ use locus_worker::fetch::{FetchedLeaf, LeafStore};
 use std::ops::ControlFlow;
 use std::sync::Arc;
 
-/// Random triangles plus a grid lying in the tree's splitting planes
-/// x = 0 and y = 0, where leaves share faces and triangles.
-fn scene() -> Vec<[Vec3; 3]> {
-    let mut tris = Vec::new();
-    for i in 0..1500u64 {
-        let k = SampleKey::new(i, 0, 3);
-        let c = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 10.0;
-        let s = if i % 10 == 0 { 4.0 } else { 0.6 };
-        let p = |d: u32| (Vec3::new(k.get1d(d), k.get1d(d + 1), k.get1d(d + 2)) * 2.0 - 1.0) * s;
-        tris.push([c + p(3), c + p(6), c + p(9)]);
-    }
-    for i in 0..10 {
-        for j in 0..10 {
-            let (a, b) = (-10.0 + 2.0 * i as f32, -10.0 + 2.0 * j as f32);
-            tris.push([
-                Vec3::new(0.0, a, b),
-                Vec3::new(0.0, a + 2.0, b),
-                Vec3::new(0.0, a, b + 2.0),
-            ]);
-            tris.push([
-                Vec3::new(a, 0.0, b),
-                Vec3::new(a, 0.0, b + 2.0),
-                Vec3::new(a + 2.0, 0.0, b),
-            ]);
-        }
-    }
-    tris
+/// A small generated conference room: walls, table and chairs, full of
+/// shared edges and axis-aligned faces, with small leaves.
+fn room() -> (locus_core::render::Prepared, Octree) {
+    use locus_core::generate::{RoomParams, conference_room, room_materials};
+    let p = RoomParams {
+        chairs_per_side: 2,
+        detail: 3,
+        leg_segments: 6,
+        ..RoomParams::default()
+    };
+    let scene = locus_core::scene::Scene::from_triangles(
+        "<room>".into(),
+        locus_core::scene::Camera {
+            position: Vec3::new(6.0, 1.5, 7.0),
+            look_at: Vec3::new(6.0, 1.0, 0.0),
+            up: Vec3::Y,
+            fov_y: 60.0,
+            width: 8,
+            height: 8,
+        },
+        Default::default(),
+        room_materials(),
+        conference_room(&p).tagged_triangles(),
+    );
+    let tree = Octree::build(
+        &scene.tris,
+        OctreeParams {
+            max_leaf_tris: 24,
+            max_depth: 7,
+        },
+    );
+    (locus_core::render::Prepared::new(scene), tree)
 }
 
-/// Random rays, every 5th along an axis inside a splitting plane.
-fn rays(n: u64) -> Vec<Ray> {
-    (0..n)
-        .map(|i| {
-            let k = SampleKey::new(i, 0, 9);
-            let o = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 12.0;
-            let d = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 2.0 - 1.0;
-            if i % 5 == 0 {
-                let a = (i / 5 % 3) as usize;
-                let mut d = Vec3::ZERO;
-                d[a] = if i % 2 == 0 { 1.0 } else { -1.0 };
-                let mut o2 = o;
-                o2[(a + 1) % 3] = 0.0;
-                return Ray::new(o2, d);
+/// Incoherent rays through the room; every 5th runs along an axis inside
+/// one of the root's splitting planes, where leaves share faces.
+fn rays(prep: &locus_core::render::Prepared, tree: &Octree, n: usize) -> Vec<Ray> {
+    let centre = tree.bounds.center();
+    locus_core::bench::incoherent_rays(prep, n, 9)
+        .into_iter()
+        .enumerate()
+        .map(|(i, r)| {
+            if i % 5 != 0 {
+                return r;
             }
-            Ray::new(o, d.normalize())
+            let a = i / 5 % 3;
+            let mut d = Vec3::ZERO;
+            d[a] = if i % 2 == 0 { 1.0 } else { -1.0 };
+            let mut o = r.origin;
+            o[(a + 1) % 3] = centre[(a + 1) % 3];
+            Ray::new(o, d)
         })
         .collect()
 }
@@ -80,22 +85,13 @@ fn fetched_leaves(tris: &[[Vec3; 3]], tree: &Octree, magnitude: f32) -> Vec<Arc<
 
 #[test]
 fn fetched_leaves_give_the_same_hits_as_the_whole_scene() {
-    let tris = scene();
-    let tree = Octree::build(
-        &tris,
-        OctreeParams {
-            max_leaf_tris: 24,
-            max_depth: 6,
-        },
-    );
+    let (prep, tree) = room();
     assert!(tree.leaves.len() > 50);
-    let magnitude = 16.0;
-    let all: Vec<u32> = (0..tris.len() as u32).collect();
-    let global = Accel::build(&tris, &all, magnitude);
-    let leaves = fetched_leaves(&tris, &tree, magnitude);
+    let global = &prep.accel;
+    let leaves = fetched_leaves(&prep.scene.tris, &tree, prep.scene.magnitude());
     let mut st = TraceStats::default();
     let (mut hits, mut leaf_visits) = (0, 0);
-    for (i, ray) in rays(4000).iter().enumerate() {
+    for (i, ray) in rays(&prep, &tree, 4000).iter().enumerate() {
         let want = global.intersect(ray, 0.0, f32::INFINITY, &mut st);
         let mut got = None;
         let _ = tree.walk(ray, 0.0, f32::INFINITY, |leaf, ta, tb| {
@@ -122,15 +118,8 @@ fn fetched_leaves_give_the_same_hits_as_the_whole_scene() {
 /// and hot leaves stay.
 #[test]
 fn the_leaf_store_never_exceeds_its_byte_bound() {
-    let tris = scene();
-    let tree = Octree::build(
-        &tris,
-        OctreeParams {
-            max_leaf_tris: 16,
-            max_depth: 6,
-        },
-    );
-    let leaves = fetched_leaves(&tris, &tree, 16.0);
+    let (prep, tree) = room();
+    let leaves = fetched_leaves(&prep.scene.tris, &tree, prep.scene.magnitude());
     let total: u64 = leaves.iter().map(|l| l.bytes()).sum();
     let bound = total / 5;
     let store = LeafStore::new(bound, leaves.len());
