@@ -1,12 +1,14 @@
 //! Ray queries through an obvhs CWBVH over a set of triangles.
 //!
-//! The BVH is built over padded triangle boxes (see [`Accel::build`]) and
-//! its primitive order is mapped back to global triangle ids, which stay the
-//! identity of a triangle everywhere in locus. Closest hits at equal
-//! distance resolve to the smaller global id, so the answer does not depend
-//! on BVH layout, and therefore not on which worker traced the ray.
+//! The BVH is built over padded triangle boxes (see [`Accel::build`]); the
+//! triangles are stored in BVH order with their global ids and materials,
+//! and the global id stays the identity of a triangle everywhere in locus.
+//! Closest hits at equal distance resolve to the smaller global id, so the
+//! answer does not depend on BVH layout, and therefore not on which worker
+//! traced the ray. [`crate::accel_set::AccelSet`] traces several such BVHs
+//! as one, which is how a worker bounds the memory a build needs.
 
-use crate::geometry::{Ray, TriHit, WatertightRay};
+use crate::geometry::{Bounds, Ray, TriHit, TriangleSet, WatertightRay};
 use crate::octree::Octree;
 use crate::stats::TraceStats;
 use glam::{UVec2, Vec3, Vec3A};
@@ -26,6 +28,39 @@ pub struct Hit {
     pub b2: f32,
 }
 
+/// A hit and the position of its triangle in the BVH that found it, so the
+/// triangle's vertices and material are read without a lookup.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AccelHit {
+    pub hit: Hit,
+    pub prim: u32,
+}
+
+/// A hit with the triangle it lies on: what shading needs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Surface {
+    pub hit: Hit,
+    pub verts: [Vec3; 3],
+    pub material: u32,
+}
+
+/// The closer of two hits; at equal distance the smaller global id, which
+/// makes the answer independent of which BVH found which.
+#[inline(always)]
+pub fn closer(a: Option<AccelHit>, b: Option<AccelHit>) -> Option<AccelHit> {
+    match (a, b) {
+        (Some(x), Some(y)) => {
+            if y.hit.t < x.hit.t || (y.hit.t == x.hit.t && y.hit.tri < x.hit.tri) {
+                Some(y)
+            } else {
+                Some(x)
+            }
+        }
+        (x, None) => x,
+        (None, y) => y,
+    }
+}
+
 pub struct Accel {
     bvh: CwBvh,
     /// Triangle vertices in BVH primitive order, so leaf visits read
@@ -33,6 +68,12 @@ pub struct Accel {
     verts: Vec<[Vec3; 3]>,
     /// Global triangle id of each BVH primitive.
     ids: Vec<u32>,
+    /// Material of each BVH primitive.
+    material: Vec<u32>,
+    /// Primitive positions ordered by global id, for serving triangles by id.
+    by_id: Vec<u32>,
+    /// Bounds of the padded triangle boxes.
+    bounds: Bounds,
 }
 
 /// How far (in t) the ray handed to obvhs starts behind the real origin.
@@ -69,40 +110,80 @@ fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
     }
 }
 
+/// Bytes a build holds per triangle at its peak beyond the result
+/// (measured: obvhs's PLOC build with its boxes, Morton keys and BVH2, at
+/// every preset, about 235 bytes plus 32 for the input boxes). Memory
+/// budgets size chunked builds with it.
+pub const BUILD_BYTES_PER_TRIANGLE: usize = 280;
+
 impl Accel {
-    /// Builds over the triangles `ids` of `all`. Each triangle's box is
-    /// padded by 2^-18 of `magnitude` (the largest coordinate the rays and
-    /// the scene reach), because obvhs's slab test rounds in f32 and could
-    /// otherwise reject a box that a ray grazes at a vertex or an edge.
+    /// Builds over the triangles `ids` of `all` (material 0 for every one).
+    /// Each triangle's box is padded by 2^-18 of `magnitude` (the largest
+    /// coordinate the rays and the scene reach), because obvhs's slab test
+    /// rounds in f32 and could otherwise reject a box that a ray grazes at
+    /// a vertex or an edge.
     pub fn build(all: &[[Vec3; 3]], ids: &[u32], magnitude: f32) -> Self {
         let verts: Vec<[Vec3; 3]> = ids.iter().map(|&i| all[i as usize]).collect();
         Self::build_indexed(ids, &verts, magnitude)
     }
 
     /// Builds over triangles given as parallel lists of global ids and
-    /// vertices: what a farm worker holds for its region.
+    /// vertices (material 0 for every one).
     pub fn build_indexed(ids: &[u32], verts: &[[Vec3; 3]], magnitude: f32) -> Self {
         assert_eq!(ids.len(), verts.len(), "one vertex triple per id");
+        Self::from_set(
+            TriangleSet {
+                ids: ids.to_vec(),
+                verts: verts.to_vec(),
+                material: vec![0; ids.len()],
+            },
+            magnitude,
+        )
+    }
+
+    /// Builds over a triangle set, which it keeps (in BVH order).
+    pub fn from_set(set: TriangleSet, magnitude: f32) -> Self {
+        assert!(set.is_consistent(), "one vertex triple and material per id");
         let pad = Vec3A::splat(magnitude * crate::geometry::SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
-        let boxes: Vec<Aabb> = verts
+        let mut bounds = Bounds::EMPTY;
+        let boxes: Vec<Aabb> = set
+            .verts
             .iter()
             .map(|t| {
                 let mut b = Aabb::from_points(&[t[0].into(), t[1].into(), t[2].into()]);
                 b.min -= pad;
                 b.max += pad;
+                bounds.grow(b.min.into());
+                bounds.grow(b.max.into());
                 b
             })
             .collect();
         let mut core = Duration::default();
-        let bvh = if boxes.is_empty() {
+        let mut bvh = if boxes.is_empty() {
             CwBvh::default()
         } else {
             build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut core)
         };
-        let order = &bvh.primitive_indices;
-        let verts = order.iter().map(|&p| verts[p as usize]).collect();
-        let ids = order.iter().map(|&p| ids[p as usize]).collect();
-        Self { bvh, verts, ids }
+        drop(boxes);
+        // Traversal reports positions in the primitive order, and the
+        // triangles are stored in that order: the index list is not needed
+        // past this point.
+        let order = std::mem::take(&mut bvh.primitive_indices);
+        bvh.exact_node_aabbs = None;
+        let verts = order.iter().map(|&p| set.verts[p as usize]).collect();
+        let ids: Vec<u32> = order.iter().map(|&p| set.ids[p as usize]).collect();
+        let material = order.iter().map(|&p| set.material[p as usize]).collect();
+        drop(set);
+        let mut by_id: Vec<u32> = (0..ids.len() as u32).collect();
+        by_id.sort_unstable_by_key(|&p| ids[p as usize]);
+        Self {
+            bvh,
+            verts,
+            ids,
+            material,
+            by_id,
+            bounds,
+        }
     }
 
     /// Number of triangles the BVH holds.
@@ -114,29 +195,61 @@ impl Accel {
         self.ids.is_empty()
     }
 
-    /// Heap bytes held: BVH nodes, primitive order, vertices and ids.
+    /// Bounds of every triangle box (padded); empty for an empty BVH.
+    pub fn bounds(&self) -> Bounds {
+        self.bounds
+    }
+
+    /// Heap bytes held: BVH nodes, vertices, ids, materials and the id
+    /// index.
     pub fn bytes(&self) -> usize {
         use std::mem::size_of_val;
         size_of_val(self.bvh.nodes.as_slice())
-            + size_of_val(self.bvh.primitive_indices.as_slice())
-            + self
-                .bvh
-                .exact_node_aabbs
-                .as_ref()
-                .map_or(0, |v| size_of_val(v.as_slice()))
             + size_of_val(self.verts.as_slice())
             + size_of_val(self.ids.as_slice())
+            + size_of_val(self.material.as_slice())
+            + size_of_val(self.by_id.as_slice())
+    }
+
+    /// Global ids, in BVH order.
+    pub fn ids(&self) -> &[u32] {
+        &self.ids
+    }
+
+    /// The triangle at BVH position `prim`: vertices and material.
+    #[inline(always)]
+    pub fn triangle(&self, prim: u32) -> ([Vec3; 3], u32) {
+        (self.verts[prim as usize], self.material[prim as usize])
+    }
+
+    /// The hit with its triangle.
+    #[inline(always)]
+    pub fn surface(&self, h: &AccelHit) -> Surface {
+        let (verts, material) = self.triangle(h.prim);
+        Surface {
+            hit: h.hit,
+            verts,
+            material,
+        }
+    }
+
+    /// Position of global id `id`, if this BVH holds it.
+    pub fn find(&self, id: u32) -> Option<u32> {
+        self.by_id
+            .binary_search_by_key(&id, |&p| self.ids[p as usize])
+            .ok()
+            .map(|k| self.by_id[k])
     }
 
     /// Closest hit with `t0 <= t < t1`; ties in t go to the smaller global id.
     #[inline]
-    pub fn intersect(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<Hit> {
+    pub fn closest(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<AccelHit> {
         if self.ids.is_empty() {
             return None;
         }
         let w = WatertightRay::new(ray);
         let mut r = bvh_ray(ray, t1);
-        let mut best: Option<Hit> = None;
+        let mut best: Option<AccelHit> = None;
         let mut state = self.bvh.new_traversal(r.direction);
         let mut node;
         let mut nodes = 0u64;
@@ -156,10 +269,13 @@ impl Accel {
                     let id = self.ids[p];
                     let better = match best {
                         None => true,
-                        Some(b) => t < b.t || (t == b.t && id < b.tri),
+                        Some(b) => t < b.hit.t || (t == b.hit.t && id < b.hit.tri),
                     };
                     if better {
-                        best = Some(Hit { tri: id, t, b1, b2 });
+                        best = Some(AccelHit {
+                            hit: Hit { tri: id, t, b1, b2 },
+                            prim: p as u32,
+                        });
                         // Equal-t primitives in other nodes are still
                         // visited: obvhs keeps nodes with entry <= tmax.
                         r.tmax = t + BVH_T_SHIFT;
@@ -171,6 +287,12 @@ impl Accel {
         stats.tri_tests += tests;
         stats.bvh_queries += 1;
         best
+    }
+
+    /// Closest hit with `t0 <= t < t1` (see [`Self::closest`]).
+    #[inline]
+    pub fn intersect(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<Hit> {
+        self.closest(ray, t0, t1, stats).map(|h| h.hit)
     }
 
     /// Whether anything blocks `[t0, t1)`.
@@ -214,8 +336,8 @@ impl Accel {
 
     /// Closest hit restricted to the leaves for which `selected(leaf)` is
     /// true: the octree is walked along the ray and each maximal run of
-    /// selected leaves is traced with the ray clipped to the run's interval,
-    /// exactly as a worker traces its own region.
+    /// selected leaves is traced with the ray clipped to the run's interval.
+    /// (A test oracle: workers trace through [`crate::region::trace_local`].)
     pub fn intersect_in_leaves(
         &self,
         octree: &Octree,

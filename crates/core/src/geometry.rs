@@ -106,6 +106,45 @@ impl Bounds {
     }
 }
 
+/// Triangles with their global ids and materials: a worker's region, a
+/// fetched leaf, or a part of a chunked BVH. The three lists run in
+/// parallel.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TriangleSet {
+    pub ids: Vec<u32>,
+    pub verts: Vec<[Vec3; 3]>,
+    pub material: Vec<u32>,
+}
+
+impl TriangleSet {
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+    pub fn with_capacity(n: usize) -> Self {
+        Self {
+            ids: Vec::with_capacity(n),
+            verts: Vec::with_capacity(n),
+            material: Vec::with_capacity(n),
+        }
+    }
+    pub fn push(&mut self, id: u32, verts: [Vec3; 3], material: u32) {
+        self.ids.push(id);
+        self.verts.push(verts);
+        self.material.push(material);
+    }
+    /// Whether the lists agree in length.
+    pub fn is_consistent(&self) -> bool {
+        self.ids.len() == self.verts.len() && self.ids.len() == self.material.len()
+    }
+    /// Heap bytes of the three lists (at their length, as shipped).
+    pub fn bytes(&self) -> usize {
+        self.len() * (4 + 36 + 4)
+    }
+}
+
 /// A ray/triangle hit: distance and the barycentric weights of v1 and v2.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TriHit {

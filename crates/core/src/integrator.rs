@@ -10,20 +10,20 @@
 //! (valid only if the shadow segment is unoccluded) and the continuation ray
 //! with its scale, and [`ShadedVertex::finish`] combines them as
 //! `(emitted + nee) + scale * L(next)`. The single-machine renderer and the
-//! farm both evaluate exactly this expression, in this order.
+//! farm both evaluate exactly this expression, in this order, through the
+//! one state machine of [`crate::path`].
 //!
 //! Sampling dimensions are keyed by path vertex: vertex `d` (1 for the first
 //! surface hit) uses dimensions `vertex_dim(d) ..+6`. Where a vertex is
 //! shaded therefore never changes which random numbers it sees.
 
-use crate::accel::{Accel, Hit};
-use crate::dircache::{LeafCaches, Lookup, locality_sphere, perimeter};
+use crate::accel::Hit;
+use crate::dircache::{locality_sphere, perimeter};
 use crate::geometry::{Ray, cosine_hemisphere, hit_point, offset_point, spawn_offset, tri_cross};
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::sampler::SampleKey;
-use crate::scene::{Material, Scene};
-use crate::stats::TraceStats;
+use crate::scene::Material;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 use std::f32::consts::PI;
@@ -236,94 +236,4 @@ pub fn shade(
         emit_within: sphere.map_or(f32::INFINITY, |s| perimeter(s, &ray)),
     });
     out
-}
-
-/// The path tracer over one machine's whole scene.
-pub struct Integrator<'a> {
-    pub scene: &'a Scene,
-    pub accel: &'a Accel,
-    pub lights: &'a LightSet,
-    pub max_depth: u32,
-    /// Directional caches per octree leaf; None traces every ray.
-    pub cache: Option<CacheUse<'a>>,
-}
-
-/// The caches and the octree whose leaves they belong to.
-#[derive(Clone, Copy)]
-pub struct CacheUse<'a> {
-    pub octree: &'a Octree,
-    pub caches: &'a LeafCaches,
-}
-
-impl Integrator<'_> {
-    pub fn radiance(&self, camera_ray: Ray, key: SampleKey, stats: &mut TraceStats) -> Vec3 {
-        stats.camera_rays += 1;
-        self.trace(&PathRay::camera(camera_ray, key), stats)
-    }
-
-    /// Radiance arriving along `q.ray` (see [`DirectLighting`] for what it
-    /// includes at depth >= 1).
-    pub fn trace(&self, q: &PathRay, stats: &mut TraceStats) -> Vec3 {
-        match self.accel.intersect(&q.ray, 0.0, f32::INFINITY, stats) {
-            Some(h) => self.shade_hit(q, &h, stats),
-            None => Vec3::ZERO,
-        }
-    }
-
-    fn shade_hit(&self, q: &PathRay, h: &Hit, stats: &mut TraceStats) -> Vec3 {
-        let scene = self.scene;
-        let mat = &scene.materials[scene.tri_material[h.tri as usize] as usize];
-        let s = shade(
-            q,
-            h,
-            &scene.tris[h.tri as usize],
-            mat,
-            self.lights,
-            self.max_depth,
-            self.cache.map(|c| (c.octree, c.caches.params.radius)),
-        );
-        let visible = match s.shadow {
-            Some(sr) => {
-                stats.shadow_rays += 1;
-                !self.accel.occluded(&sr.ray, 0.0, sr.t_max, stats)
-            }
-            None => false,
-        };
-        let next = match s.next {
-            Some(nq) => {
-                stats.indirect_rays += 1;
-                self.continue_path(&nq, s.cache_leaf, stats)
-            }
-            None => Vec3::ZERO,
-        };
-        s.vertex.finish(visible, next)
-    }
-
-    /// A continuation ray: traced exactly inside the locality sphere of the
-    /// leaf it starts in (`leaf`, found by [`shade`]), answered by that
-    /// leaf's cache beyond it when the cache can, traced (and the answer
-    /// cached) otherwise.
-    fn continue_path(&self, nq: &PathRay, leaf: Option<u32>, stats: &mut TraceStats) -> Vec3 {
-        let (Some(c), Some(leaf)) = (self.cache, leaf) else {
-            return self.trace(nq, stats);
-        };
-        // The perimeter [`shade`] used for this ray's emission and for the
-        // vertex's next-event weights.
-        let tp = nq.emit_within;
-        if let Some(h) = self.accel.intersect(&nq.ray, 0.0, tp, stats) {
-            stats.cache.local += 1;
-            return self.shade_hit(nq, &h, stats);
-        }
-        if let Lookup::Answer(v) = c.caches.lookup(leaf, nq.ray.dir) {
-            stats.cache.lookups += 1;
-            return v;
-        }
-        stats.cache.global += 1;
-        let v = match self.accel.intersect(&nq.ray, tp, f32::INFINITY, stats) {
-            Some(h) => self.shade_hit(nq, &h, stats),
-            None => Vec3::ZERO,
-        };
-        c.caches.update(leaf, nq.ray.dir, v);
-        v
-    }
 }

@@ -5,16 +5,25 @@
 //! locus. Two spatial structures are built over it: the [`octree`], whose
 //! leaves are the unit of data ownership in the farm, and the BVH of
 //! [`accel`] (obvhs CWBVH with the watertight test of [`geometry`]), which
-//! answers ray queries clipped to any parameter interval or restricted to any
-//! set of octree leaves. The path tracer of [`integrator`] draws every random
-//! number from [`sampler`] as a pure function of (pixel, sample, dimension,
-//! seed) and samples area lights from [`light`]; [`render`] runs it over
-//! tiles on a rayon pool and counts work in [`stats`]. Images leave through
-//! [`image_io`], are compared with [`metrics`], and reports are written by
-//! [`report`]. [`dircache`] is paper 000's directional cache: per octree
-//! leaf, the radiance arriving from beyond a locality radius, by direction. [`generate`] writes the generated conference-like room.
+//! answers ray queries clipped to any parameter interval; [`accel_set`]
+//! traces several BVHs as one, so a build never needs more memory than a
+//! budget allows. [`region`] is the processor map and the one routine that
+//! traces a ray through what a worker holds.
+//!
+//! [`path`] is the path state machine, the one implementation of every
+//! path vertex (trace, shade, next-event estimation, continuation,
+//! directional-cache lookup, finish) for one machine and the farm alike;
+//! the per-vertex physics is [`integrator`]'s `shade`. Every random number
+//! comes from [`sampler`] as a pure function of (pixel, sample, dimension,
+//! seed); area lights are sampled from [`light`]. [`render`] runs the
+//! kernel over tiles on a rayon pool and counts work in [`stats`]. Images
+//! leave through [`image_io`], are compared with [`metrics`], and reports
+//! are written by [`report`]. [`dircache`] is paper 000's directional
+//! cache: per octree leaf, the radiance arriving from beyond a locality
+//! radius, by direction. [`generate`] writes the generated scenes.
 
 pub mod accel;
+pub mod accel_set;
 pub mod bench;
 pub mod dircache;
 pub mod error;
@@ -26,6 +35,7 @@ pub mod light;
 pub mod mesh_io;
 pub mod metrics;
 pub mod octree;
+pub mod path;
 pub mod region;
 pub mod render;
 pub mod report;

@@ -182,13 +182,14 @@ impl Octree {
         let Some((a, b)) = self.bounds.clip(ray, t0, t1) else {
             return ControlFlow::Continue(());
         };
-        self.walk_node(0, ray, a, b, resume, &mut f)
+        let w = WalkRay::new(ray);
+        self.walk_node(0, &w, a, b, resume, &mut f)
     }
 
     fn walk_node<F>(
         &self,
         n: usize,
-        ray: &Ray,
+        ray: &WalkRay,
         ta: f32,
         tb: f32,
         resume: f32,
@@ -204,34 +205,50 @@ impl Octree {
             Node::Leaf { leaf } => f(leaf, ta.max(resume), tb),
             Node::Interior { first_child } => {
                 let m = self.node_bounds[n].center();
-                let mut cuts = [tb; 3];
+                // Plane crossings inside the interval, with their axes.
+                let mut cuts = [(tb, 3usize); 3];
                 let mut k = 0;
                 for a in 0..3 {
-                    if ray.dir[a] != 0.0 {
-                        let t = ((m[a] as f64 - ray.origin[a] as f64) / ray.dir[a] as f64) as f32;
+                    if ray.moves[a] {
+                        let t = ((m[a] as f64 - ray.o[a]) * ray.inv[a]) as f32;
                         if t > ta && t < tb {
-                            cuts[k] = t;
+                            cuts[k] = (t, a);
                             k += 1;
                         }
                     }
                 }
-                cuts[..k].sort_by(f32::total_cmp);
-                let mut start = ta;
-                for end in cuts[..k].iter().copied().chain([tb]) {
-                    if end > start {
-                        let tm = 0.5 * (start as f64 + end as f64);
-                        let mut oct = 0usize;
-                        for a in 0..3 {
-                            let upper = if ray.dir[a] == 0.0 {
-                                ray.origin[a] >= m[a]
-                            } else {
-                                ray.origin[a] as f64 + tm * ray.dir[a] as f64 >= m[a] as f64
-                            };
-                            oct |= (upper as usize) << a;
-                        }
-                        self.walk_node(first_child as usize + oct, ray, start, end, resume, f)?;
+                // A sorting network for at most three cuts (unused slots
+                // hold tb and stay last).
+                let swap = |c: &mut [(f32, usize); 3], i: usize, j: usize| {
+                    if c[j].0 < c[i].0 {
+                        c.swap(i, j);
                     }
-                    start = end;
+                };
+                swap(&mut cuts, 0, 1);
+                swap(&mut cuts, 1, 2);
+                swap(&mut cuts, 0, 1);
+                // The first piece's octant from its midpoint; each crossing
+                // then moves to the other half along its axis. Pieces are
+                // found from the same cuts in every tree that keeps this
+                // node, so ends agree wherever they are compared.
+                let first_end = if k > 0 { cuts[0].0 } else { tb };
+                let tm = 0.5 * (ta as f64 + first_end as f64);
+                let mut oct = 0usize;
+                for a in 0..3 {
+                    let upper = ray.o[a] + tm * ray.d[a] >= m[a] as f64;
+                    oct |= (upper as usize) << a;
+                }
+                let mut start = ta;
+                for (end, axis) in cuts[..k].iter().copied().chain([(tb, 3)]) {
+                    if end > start {
+                        if end > resume {
+                            self.walk_node(first_child as usize + oct, ray, start, end, resume, f)?;
+                        }
+                        start = end;
+                    }
+                    if axis < 3 {
+                        oct ^= 1 << axis;
+                    }
                 }
                 ControlFlow::Continue(())
             }
@@ -393,6 +410,38 @@ impl Octree {
             ControlFlow::Continue(())
         });
         v
+    }
+}
+
+/// A ray prepared for walking: origin, direction and inverse direction in
+/// f64. A plane crossing is `(m - o) * inv`; every worker and every
+/// collapsed tree computes each crossing with this same expression, so
+/// interval ends agree bit for bit wherever they are compared.
+struct WalkRay {
+    o: [f64; 3],
+    d: [f64; 3],
+    inv: [f64; 3],
+    /// Whether the ray moves along each axis (a zero component never
+    /// crosses that axis's planes).
+    moves: [bool; 3],
+}
+
+impl WalkRay {
+    #[inline(always)]
+    fn new(ray: &Ray) -> Self {
+        let o = [
+            ray.origin.x as f64,
+            ray.origin.y as f64,
+            ray.origin.z as f64,
+        ];
+        let d = [ray.dir.x as f64, ray.dir.y as f64, ray.dir.z as f64];
+        let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+        Self {
+            o,
+            d,
+            inv,
+            moves: [d[0] != 0.0, d[1] != 0.0, d[2] != 0.0],
+        }
     }
 }
 

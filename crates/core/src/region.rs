@@ -1,17 +1,25 @@
-//! Regions: which worker owns which octree leaf, and how a worker traces the
-//! part of a ray that crosses its own region.
+//! Regions: which worker owns which octree leaf, and how a worker traces
+//! the part of a ray that it can trace itself.
 //!
-//! The [`ProcessorMap`] is the top of the tree that every worker holds (paper
-//! 003, section 3.3): all leaf bounds and their owners, no triangles. Walking
-//! it along a ray yields the ray's processor vector: the ordered owners of
-//! the leaves it crosses. [`trace_run`] traces one maximal run of owned
-//! leaves with the ray clipped to the run's interval and says where the ray
-//! must go next. Because leaf intervals partition the ray, references are
-//! made from inflated leaf boxes and equal-distance hits resolve by global
-//! triangle id, chaining runs over any partition gives exactly the closest
-//! hit (and the occlusion answer) of one BVH over the whole scene.
+//! The [`ProcessorMap`] is the top of the tree that every worker holds
+//! (paper 003, section 3.3): all leaf bounds and their owners, no
+//! triangles. Walking it along a ray yields the ray's processor vector, the
+//! ordered owners of the leaves it crosses. A [`Route`] is the octree
+//! collapsed over any per-leaf label (every subtree of one label becomes
+//! one node), which is what rays walk: a worker labels the leaves it can
+//! trace `local` and the rest by owner, and walks a node per change of
+//! label rather than one per leaf.
+//!
+//! [`trace_local`] is the one piece of code that traces a ray through what
+//! a worker holds. It asks the local BVHs first, over the whole rest of the
+//! ray, and walks the route only as far as that answer needs: up to the
+//! hit, or to the first leaf it cannot trace. Because leaf intervals
+//! partition the ray, references are made from inflated leaf boxes and
+//! equal-distance hits resolve by global triangle id, chaining workers this
+//! way gives exactly the closest hit (and the occlusion answer) of one BVH
+//! over the whole scene.
 
-use crate::accel::{Accel, Hit};
+use crate::accel_set::{AccelSet, SetHit};
 use crate::geometry::Ray;
 use crate::octree::Octree;
 use crate::stats::TraceStats;
@@ -21,8 +29,47 @@ use std::ops::ControlFlow;
 /// Index of a worker in a job (its place in the job's worker list).
 pub type WorkerId = u16;
 
-/// On the wire a processor map is the tree and its owners; the routing
-/// tree is rebuilt (and the parts checked) on arrival.
+/// The octree collapsed over a label per leaf.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Route<L> {
+    tree: Octree,
+    labels: Vec<L>,
+}
+
+impl<L: Copy + PartialEq> Route<L> {
+    /// `label[leaf]` for every leaf of `tree`.
+    pub fn new(tree: &Octree, label: &[L]) -> Self {
+        let (tree, labels) = tree.collapse(label);
+        Self { tree, labels }
+    }
+
+    /// Nodes rays walk (for reports: how much the merge saved).
+    pub fn leaves(&self) -> usize {
+        self.labels.len()
+    }
+
+    /// The route node containing `p`, with its label and bounds.
+    #[inline]
+    pub fn containing(&self, p: glam::Vec3) -> Option<(L, &crate::geometry::Bounds)> {
+        let l = self.tree.leaf_at(p)? as usize;
+        Some((self.labels[l], &self.tree.leaves[l].bounds))
+    }
+
+    /// The labelled intervals along `ray` within `[t0, t1)` from `resume`,
+    /// front to back; adjacent intervals may carry the same label.
+    #[inline]
+    pub fn walk<F>(&self, ray: &Ray, t0: f32, t1: f32, resume: f32, mut f: F) -> ControlFlow<()>
+    where
+        F: FnMut(L, f32, f32) -> ControlFlow<()>,
+    {
+        self.tree.walk_from(ray, t0, t1, resume, |l, a, b| {
+            f(self.labels[l as usize], a, b)
+        })
+    }
+}
+
+/// On the wire a processor map is the tree and its owners; the route is
+/// rebuilt (and the parts checked) on arrival.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "MapParts", into = "MapParts")]
 pub struct ProcessorMap {
@@ -30,12 +77,8 @@ pub struct ProcessorMap {
     pub tree: Octree,
     /// Owner of each leaf.
     pub owner: Vec<WorkerId>,
-    /// `tree` with every single-owner subtree merged into one leaf
-    /// ([`Octree::collapse`]): what rays walk. It finds the same run
-    /// boundaries as `tree` while visiting a node per region crossing
-    /// rather than per leaf.
-    route: Octree,
-    route_owner: Vec<WorkerId>,
+    /// `tree` collapsed by owner.
+    pub route: Route<WorkerId>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -64,92 +107,27 @@ impl From<ProcessorMap> for MapParts {
     }
 }
 
-/// Where a traced run leaves the ray.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum RunResult {
-    /// The closest hit of the whole ray lies in this run.
-    Hit(Hit),
-    /// Something blocks the segment (any-hit queries).
-    Occluded,
-    /// Nothing here; the next leaf along the ray starts at `t` and belongs to
-    /// `to`.
-    Forward { to: WorkerId, t: f32 },
-    /// The ray leaves the scene (or its segment ends) without a hit.
-    Miss,
-}
-
 impl ProcessorMap {
     pub fn new(tree: &Octree, owner: Vec<WorkerId>) -> Self {
         assert_eq!(tree.leaves.len(), owner.len(), "one owner per leaf");
-        let (route, route_owner) = tree.collapse(&owner);
         Self {
+            route: Route::new(tree, &owner),
             tree: tree.without_triangles(),
             owner,
-            route,
-            route_owner,
         }
-    }
-
-    /// Nodes in the routing tree (for reports: how much the merge saved).
-    pub fn route_leaves(&self) -> usize {
-        self.route.leaves.len()
     }
 
     /// Owner of the first leaf on `[0, t_max)`, or `None` when the ray
     /// misses the scene.
     pub fn first_owner(&self, ray: &Ray, t_max: f32) -> Option<(WorkerId, f32)> {
         let mut first = None;
-        let _ = self.route.walk(ray, 0.0, t_max, |leaf, ta, _| {
-            first = Some((self.route_owner[leaf as usize], ta));
-            ControlFlow::Break(())
-        });
-        first
-    }
-
-    /// Traces, on worker `me` whose BVH is `accel`, the run of `me`'s leaves
-    /// that starts at `resume` on the segment `[0, t_max)`. With `any_hit`
-    /// the answer is `Occluded` instead of the closest hit.
-    #[allow(clippy::too_many_arguments)]
-    pub fn trace_run(
-        &self,
-        me: WorkerId,
-        accel: &Accel,
-        ray: &Ray,
-        t_max: f32,
-        resume: f32,
-        any_hit: bool,
-        stats: &mut TraceStats,
-    ) -> RunResult {
-        let mut run: Option<(f32, f32)> = None;
-        let mut next: Option<(WorkerId, f32)> = None;
         let _ = self
             .route
-            .walk_from(ray, 0.0, t_max, resume, |leaf, ta, tb| {
-                let o = self.route_owner[leaf as usize];
-                if o == me {
-                    run = Some(match run {
-                        Some((s, _)) => (s, tb),
-                        None => (ta, tb),
-                    });
-                    ControlFlow::Continue(())
-                } else {
-                    next = Some((o, ta));
-                    ControlFlow::Break(())
-                }
+            .walk(ray, 0.0, t_max, f32::NEG_INFINITY, |o, ta, _| {
+                first = Some((o, ta));
+                ControlFlow::Break(())
             });
-        if let Some((s, e)) = run {
-            if any_hit {
-                if accel.occluded(ray, s, e, stats) {
-                    return RunResult::Occluded;
-                }
-            } else if let Some(h) = accel.intersect(ray, s, e, stats) {
-                return RunResult::Hit(h);
-            }
-        }
-        match next {
-            Some((to, t)) => RunResult::Forward { to, t },
-            None => RunResult::Miss,
-        }
+        first
     }
 
     /// Triangles (global ids, ascending) referenced by the leaves of `w`.
@@ -165,4 +143,120 @@ impl ProcessorMap {
         ids.dedup();
         ids
     }
+}
+
+/// What the local BVHs hold along a ray beyond where it was first asked:
+/// computed once per ray and kept while the ray is traced piece by piece
+/// (a later piece starts beyond an earlier one, where the answer is the
+/// same: see [`trace_local`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Known {
+    #[default]
+    Unknown,
+    Closest(Option<SetHit>),
+    /// The segment is not blocked by anything local.
+    Clear,
+}
+
+/// Where tracing through local geometry ends.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RunEnd<L> {
+    /// The closest hit of the whole ray, in a local leaf.
+    Hit(SetHit),
+    /// Something local blocks the segment (any-hit queries).
+    Occluded,
+    /// The ray leaves the scene, or its segment ends, without a hit.
+    Miss,
+    /// The first leaf not traced here spans `[ta, tb)`; nothing local lies
+    /// on the ray before `ta`.
+    Foreign { label: L, ta: f32, tb: f32 },
+}
+
+/// Traces `ray` on `[0, t_max)` from `resume` through the leaves `local`
+/// accepts, whose triangles `accel` holds (it may hold others too).
+///
+/// The BVHs are asked first over the whole rest of the ray:
+/// - closest hit `h`: the route is walked until the interval holding `h`;
+///   if every interval up to it is local, `h` is the answer (any closer hit
+///   would lie in a local leaf, whose triangles `accel` has). Otherwise the
+///   first foreign interval is returned, and `h` (which lies in it or
+///   beyond) stays valid for the rest of the ray in `known`.
+/// - any hit: any triangle blocking the segment makes it occluded,
+///   whichever leaf it lies in, so the route is walked only when nothing
+///   local blocks it, to find the first foreign interval.
+#[allow(clippy::too_many_arguments)]
+pub fn trace_local<L: Copy + PartialEq>(
+    route: &Route<L>,
+    local: impl Fn(L) -> bool,
+    accel: &AccelSet,
+    ray: &Ray,
+    t_max: f32,
+    resume: f32,
+    any: bool,
+    known: &mut Known,
+    stats: &mut TraceStats,
+) -> RunEnd<L> {
+    let t0 = resume.max(0.0);
+    if let Known::Closest(Some(h)) = *known
+        && h.hit.hit.t < t0
+    {
+        // Only a caller that skipped a foreign interval holding the hit
+        // gets here; ask again rather than trust it.
+        *known = Known::Unknown;
+    }
+    if *known == Known::Unknown {
+        *known = if any {
+            if accel.occluded(ray, t0, t_max, stats) {
+                return RunEnd::Occluded;
+            }
+            Known::Clear
+        } else {
+            Known::Closest(accel.closest(ray, t0, t_max, stats))
+        };
+    }
+    let hit = match *known {
+        Known::Closest(h) => h,
+        _ => None,
+    };
+    // The usual case needs no walk: the piece of the ray that matters (up
+    // to the hit, or the whole segment when nothing local blocks it) lies
+    // in one local node. A box is convex, so its two ends decide; every
+    // triangle crossing that piece crosses the node, whose leaves reference
+    // it, so the local BVHs have seen it. (Points computed in f32 stray far
+    // less than the margin by which leaves reference triangles.)
+    let piece_end = match hit {
+        Some(h) => Some(h.hit.hit.t),
+        None if any && t_max.is_finite() => Some(t_max),
+        None => None,
+    };
+    if let Some(te) = piece_end {
+        // Located by the piece's middle: its start may lie on a face (a
+        // forwarded ray resumes on its region's border).
+        let (start, end) = (ray.at(t0), ray.at(te));
+        if let Some((label, b)) = route.containing(ray.at(0.5 * (t0 + te)))
+            && local(label)
+            && b.contains(start)
+            && b.contains(end)
+        {
+            return match hit {
+                Some(h) => RunEnd::Hit(h),
+                None => RunEnd::Miss,
+            };
+        }
+    }
+    let mut end = RunEnd::Miss;
+    let _ = route.walk(ray, 0.0, t_max, resume, |label, ta, tb| {
+        if !local(label) {
+            end = RunEnd::Foreign { label, ta, tb };
+            return ControlFlow::Break(());
+        }
+        match hit {
+            Some(h) if h.hit.hit.t < tb => {
+                end = RunEnd::Hit(h);
+                ControlFlow::Break(())
+            }
+            _ => ControlFlow::Continue(()),
+        }
+    });
+    end
 }

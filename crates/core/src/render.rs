@@ -7,41 +7,44 @@
 
 use crate::accel::Accel;
 use crate::dircache::{CacheMemory, CacheParams, LeafCaches};
+use crate::geometry::TriangleSet;
 use crate::image_io::Image;
-use crate::integrator::{CacheUse, DIM_PIXEL, Integrator};
 use crate::light::LightSet;
 use crate::octree::Octree;
-use crate::sampler::{SampleKey, mix64};
+use crate::path::{CacheUse, Kernel, PixelSum, WholeScene};
+use crate::sampler::mix64;
 use crate::scene::Scene;
 use crate::stats::TraceStats;
-use glam::Vec3;
 use serde::Serialize;
+use std::sync::OnceLock;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 /// A scene ready to trace.
 pub struct Prepared {
     pub scene: Scene,
-    pub octree: Octree,
+    /// A BVH over every triangle, with their materials.
     pub accel: Accel,
     pub lights: LightSet,
     pub timings: PrepTimings,
+    /// Built on first use: only directional caches need it on one machine.
+    octree: OnceLock<(Octree, f64)>,
 }
 
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct PrepTimings {
-    pub octree_s: f64,
     pub bvh_s: f64,
 }
 
 impl Prepared {
     pub fn new(scene: Scene) -> Self {
         let t = Instant::now();
-        let octree = Octree::build(&scene.tris, scene.settings.octree);
-        let octree_s = t.elapsed().as_secs_f64();
-        let t = Instant::now();
-        let ids: Vec<u32> = (0..scene.tris.len() as u32).collect();
-        let accel = Accel::build(&scene.tris, &ids, scene.magnitude());
+        let set = TriangleSet {
+            ids: (0..scene.tris.len() as u32).collect(),
+            verts: scene.tris.clone(),
+            material: scene.tri_material.clone(),
+        };
+        let accel = Accel::from_set(set, scene.magnitude());
         let bvh_s = t.elapsed().as_secs_f64();
         let lights = LightSet::build(&scene);
         if lights.is_empty() {
@@ -49,21 +52,41 @@ impl Prepared {
         }
         Self {
             scene,
-            octree,
             accel,
             lights,
-            timings: PrepTimings { octree_s, bvh_s },
+            timings: PrepTimings { bvh_s },
+            octree: OnceLock::new(),
         }
     }
 
-    /// The integrator without caches.
-    pub fn integrator(&self, max_depth: u32) -> Integrator<'_> {
-        Integrator {
-            scene: &self.scene,
-            accel: &self.accel,
+    /// The scene's octree (the one the farm partitions and the directional
+    /// caches live on), built on first use.
+    pub fn octree(&self) -> &Octree {
+        &self.octree_timed().0
+    }
+
+    /// Seconds the octree took, if it was built.
+    pub fn octree_s(&self) -> Option<f64> {
+        self.octree.get().map(|o| o.1)
+    }
+
+    fn octree_timed(&self) -> &(Octree, f64) {
+        self.octree.get_or_init(|| {
+            let t = Instant::now();
+            let o = Octree::build(&self.scene.tris, self.scene.settings.octree);
+            (o, t.elapsed().as_secs_f64())
+        })
+    }
+
+    /// The path kernel over this scene.
+    pub fn kernel<'a>(&'a self, max_depth: u32, cache: Option<CacheUse<'a>>) -> Kernel<'a> {
+        Kernel {
+            materials: &self.scene.materials,
             lights: &self.lights,
+            camera: &self.scene.camera,
+            seed: self.scene.settings.seed,
             max_depth,
-            cache: None,
+            cache,
         }
     }
 }
@@ -140,29 +163,20 @@ pub fn tiles(width: u32, height: u32, size: u32, order: TileOrder) -> Vec<Tile> 
 
 /// The value of one pixel: its samples in index order, averaged.
 pub fn render_pixel(
-    integ: &Integrator,
-    camera: &crate::scene::Camera,
+    kernel: &Kernel,
+    tracer: &WholeScene,
     x: u32,
     y: u32,
     spp: u32,
-    seed: u64,
     stats: &mut TraceStats,
 ) -> [f32; 3] {
-    let pixel = y as u64 * camera.width as u64 + x as u64;
-    let mut sum = glam::DVec3::ZERO;
+    let mut sum = PixelSum::default();
+    let mut chain = Vec::new();
     for s in 0..spp {
-        let key = SampleKey::new(pixel, s, seed);
-        let ray = camera.ray(x, y, key.get2d(DIM_PIXEL));
-        let l: Vec3 = integ.radiance(ray, key, stats);
-        stats.samples += 1;
-        if l.is_finite() {
-            sum += l.as_dvec3();
-        } else {
-            stats.invalid_samples += 1;
-        }
+        let l = kernel.sample(tracer, x, y, s, &mut chain, stats);
+        sum.add(l, stats);
     }
-    let m = sum / spp as f64;
-    [m.x as f32, m.y as f32, m.z as f32]
+    sum.mean(spp)
 }
 
 pub struct RenderOutput {
@@ -184,14 +198,16 @@ pub fn render(
     let cam = &prep.scene.camera;
     let caches = opts
         .cache
-        .map(|p| LeafCaches::new(prep.octree.leaves.len(), p));
-    let integ = Integrator {
-        cache: caches.as_ref().map(|c| CacheUse {
-            octree: &prep.octree,
+        .map(|p| LeafCaches::new(prep.octree().leaves.len(), p));
+    let mut kernel = prep.kernel(
+        opts.max_depth,
+        caches.as_ref().map(|c| CacheUse {
+            octree: prep.octree(),
             caches: c,
         }),
-        ..prep.integrator(opts.max_depth)
-    };
+    );
+    kernel.seed = opts.seed;
+    let tracer = WholeScene(&prep.accel);
     let tl = tiles(cam.width, cam.height, opts.tile_size, opts.tile_order);
     let total = tl.len();
     let done = AtomicUsize::new(0);
@@ -207,9 +223,7 @@ pub fn render(
                 let mut px = Vec::with_capacity(((t.x1 - t.x0) * (t.y1 - t.y0)) as usize);
                 for y in t.y0..t.y1 {
                     for x in t.x0..t.x1 {
-                        px.push(render_pixel(
-                            &integ, cam, x, y, opts.spp, opts.seed, &mut st,
-                        ));
+                        px.push(render_pixel(&kernel, &tracer, x, y, opts.spp, &mut st));
                     }
                 }
                 progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);

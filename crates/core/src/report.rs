@@ -9,6 +9,7 @@ use serde::Serialize;
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct PhaseTimes {
     pub load_s: f64,
+    /// 0 when no octree was needed (directional caches off).
     pub octree_s: f64,
     pub bvh_s: f64,
     pub render_s: f64,
@@ -24,8 +25,9 @@ pub struct RenderReport {
     pub threads_used: usize,
     pub triangles: usize,
     pub load: LoadStats,
-    pub octree_leaves: usize,
-    pub octree_references: usize,
+    /// The octree's leaves and references, when caches needed one.
+    pub octree_leaves: Option<usize>,
+    pub octree_references: Option<usize>,
     pub emitters: usize,
     pub times: PhaseTimes,
     pub stats: TraceStats,

@@ -257,9 +257,15 @@ fn corner_and_face_rays(oct: &Octree, n: u64) -> Vec<Ray> {
         .collect()
 }
 
+/// Workers chained along the processor vector, each tracing what it holds
+/// with [`trace_local`] (its BVH first, the route only as far as needed),
+/// give exactly the closest hit and the occlusion of one BVH over the
+/// scene: for contiguous and scattered owners, and for regions built as one
+/// BVH or as many small parts.
 #[test]
 fn processor_vector_chains_match_one_bvh() {
-    use locus_core::region::{ProcessorMap, RunResult};
+    use locus_core::accel_set::{AccelSet, build_parts};
+    use locus_core::region::{Known, ProcessorMap, RunEnd, trace_local};
     let tris = scene();
     let oct = region_octree(&tris);
     let all: Vec<u32> = (0..tris.len() as u32).collect();
@@ -267,6 +273,7 @@ fn processor_vector_chains_match_one_bvh() {
     let n = oct.leaf_count();
     let mut test_rays = rays(1500, 9);
     test_rays.extend(corner_and_face_rays(&oct, 1500));
+    let tri = |id: u32| (tris[id as usize], 0);
     for workers in [1u16, 2, 3, 5, 8] {
         // Scattered owners stress forwarding; contiguous ones are what the
         // partitioners produce.
@@ -283,11 +290,19 @@ fn processor_vector_chains_match_one_bvh() {
                 })
                 .collect();
             let map = ProcessorMap::new(&oct, owner.clone());
-            let accels: Vec<Accel> = (0..workers)
+            // Odd workers hold their region as parts of at most 60 triangles.
+            let accels: Vec<AccelSet> = (0..workers)
                 .map(|w| {
+                    if w % 2 == 1 {
+                        let leaves: Vec<(u32, &[u32])> = (0..n)
+                            .filter(|&l| owner[l] == w)
+                            .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
+                            .collect();
+                        return AccelSet::from_parts(build_parts(&leaves, 60, 12.0, &tri));
+                    }
                     let ids = ProcessorMap::region_triangles(&oct, &owner, w);
                     let verts: Vec<[Vec3; 3]> = ids.iter().map(|&i| tris[i as usize]).collect();
-                    Accel::build_indexed(&ids, &verts, 12.0)
+                    AccelSet::single(Accel::build_indexed(&ids, &verts, 12.0))
                 })
                 .collect();
             let mut st = TraceStats::default();
@@ -299,22 +314,35 @@ fn processor_vector_chains_match_one_bvh() {
                     let mut occluded = false;
                     if let Some((mut w, mut t)) = map.first_owner(r, t_max) {
                         loop {
-                            match map.trace_run(w, &accels[w as usize], r, t_max, t, any, &mut st) {
-                                RunResult::Hit(h) => {
-                                    got = Some(h);
+                            let mut known = Known::Unknown;
+                            let a = &accels[w as usize];
+                            let me = w;
+                            match trace_local(
+                                &map.route,
+                                |o| o == me,
+                                a,
+                                r,
+                                t_max,
+                                t,
+                                any,
+                                &mut known,
+                                &mut st,
+                            ) {
+                                RunEnd::Hit(h) => {
+                                    got = Some(a.surface(&h).hit);
                                     break;
                                 }
-                                RunResult::Occluded => {
+                                RunEnd::Occluded => {
                                     occluded = true;
                                     break;
                                 }
-                                RunResult::Forward { to, t: t2 } => {
-                                    assert!(to != w && t2 >= t, "forward goes on along the ray");
+                                RunEnd::Foreign { label, ta, .. } => {
+                                    assert!(label != w && ta >= t, "forward goes on along the ray");
                                     forwards += 1;
-                                    w = to;
-                                    t = t2;
+                                    w = label;
+                                    t = ta;
                                 }
-                                RunResult::Miss => break,
+                                RunEnd::Miss => break,
                             }
                         }
                     }

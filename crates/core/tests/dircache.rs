@@ -19,7 +19,7 @@ fn cache_with_all_geometry_inside_the_radius_changes_no_bit() {
     scene.settings.spp = 4;
     scene.settings.octree.max_leaf_tris = 4;
     let prep = Prepared::new(scene);
-    assert!(prep.octree.leaf_count() > 4);
+    assert!(prep.octree().leaf_count() > 4);
     let mut plain = RenderOptions::from_scene(&prep.scene);
     plain.threads = 2;
     let want = render(&prep, &plain, &|_, _| {});

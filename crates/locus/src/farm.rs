@@ -1,9 +1,11 @@
 //! The embedded farm: the scheduler and N workers in one process, linked
-//! over real loopback TCP with the same code the daemons run.
+//! over real loopback TCP with the same code the daemons run. Jobs are
+//! handed to the scheduler in-process, so the scene is read once and never
+//! copied or re-parsed on its way in.
 
 use anyhow::Context;
 use locus_protocol::submit::{JobRequest, JobResult};
-use locus_scheduler::{Scheduler, SchedulerConfig, client};
+use locus_scheduler::{Scheduler, SchedulerConfig, SchedulerHandle, client};
 use locus_worker::{Worker, WorkerConfig};
 use std::net::SocketAddr;
 use tokio::task::JoinHandle;
@@ -12,6 +14,7 @@ use tokio_util::sync::CancellationToken;
 pub struct LocalFarm {
     pub scheduler: SocketAddr,
     pub token: String,
+    handle: SchedulerHandle,
     workers: usize,
     shutdown: CancellationToken,
     tasks: Vec<JoinHandle<anyhow::Result<()>>>,
@@ -45,6 +48,7 @@ impl LocalFarm {
         })
         .await?;
         let addr = sched.local_addr()?;
+        let handle = sched.handle();
         let mut tasks = vec![tokio::spawn(sched.run(shutdown.clone()))];
         for i in 0..workers {
             let w = Worker::bind(WorkerConfig {
@@ -55,6 +59,7 @@ impl LocalFarm {
                 threads: threads_per_worker.max(1),
                 memory_budget: 0,
                 name: format!("embedded-{i}"),
+                dedicated: false,
             })
             .await?;
             tasks.push(tokio::spawn(w.run(shutdown.clone())));
@@ -62,6 +67,7 @@ impl LocalFarm {
         Ok(Self {
             scheduler: addr,
             token,
+            handle,
             workers,
             shutdown,
             tasks,
@@ -83,7 +89,12 @@ impl LocalFarm {
         if req.options.workers == 0 {
             req.options.workers = self.workers as u32;
         }
-        client::submit(&self.scheduler.to_string(), &self.token, req, progress).await
+        let mut rx = self.handle.submit(req).await?;
+        loop {
+            if let Some(r) = client::take(rx.recv().await, progress) {
+                return r;
+            }
+        }
     }
 
     /// Cancels every task and waits for them.

@@ -396,12 +396,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         None => None,
     };
     let prep = Prepared::new(scene);
-    tracing::info!(
-        leaves = prep.octree.leaf_count(),
-        octree_s = prep.timings.octree_s,
-        bvh_s = prep.timings.bvh_s,
-        "acceleration built"
-    );
+    tracing::info!(bvh_s = prep.timings.bvh_s, "acceleration built");
     let (w, h) = (prep.scene.camera.width, prep.scene.camera.height);
     let ntiles = locus_core::render::tiles(w, h, opts.tile_size, opts.tile_order).len();
     let pb = progress_bar(ntiles as u64, "render");
@@ -437,12 +432,12 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         },
         triangles: prep.scene.tris.len(),
         load: prep.scene.load_stats.clone(),
-        octree_leaves: prep.octree.leaf_count(),
-        octree_references: prep.octree.reference_count(),
+        octree_leaves: prep.octree_s().map(|_| prep.octree().leaf_count()),
+        octree_references: prep.octree_s().map(|_| prep.octree().reference_count()),
         emitters: prep.lights.tris.len(),
         times: PhaseTimes {
             load_s,
-            octree_s: prep.timings.octree_s,
+            octree_s: prep.octree_s().unwrap_or(0.0),
             bvh_s: prep.timings.bvh_s,
             render_s: out.render_s,
         },
@@ -471,7 +466,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         png.display(),
         json.display(),
         load_s,
-        prep.timings.octree_s,
+        prep.octree_s().unwrap_or(0.0),
         prep.timings.bvh_s,
         out.render_s,
         report.samples_per_second,
@@ -879,6 +874,7 @@ fn cmd_worker(a: WorkerArgs) -> Result<()> {
             .name
             .clone()
             .unwrap_or_else(|| format!("worker-{}", std::process::id())),
+        dedicated: true,
     };
     runtime()?.block_on(async {
         let worker = Worker::bind(wc).await?;

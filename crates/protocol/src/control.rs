@@ -8,8 +8,8 @@
 use crate::report::WorkerStats;
 use crate::submit::FetchPolicy;
 use crate::submit::JobRequest;
-use glam::Vec3;
 use locus_core::dircache::CacheParams;
+pub use locus_core::geometry::TriangleSet;
 use locus_core::light::LightSet;
 use locus_core::region::{ProcessorMap, WorkerId};
 use locus_core::scene::{Camera, Material};
@@ -28,8 +28,12 @@ pub struct Registration {
     pub listen: String,
     /// Threads its compute pool runs.
     pub cores: u32,
-    /// Bytes of scene data it accepts to hold.
+    /// Bytes of memory the worker's process may use (0: no limit); its
+    /// region, BVH builds, fetched leaves and caches are planned to fit.
     pub memory_budget: u64,
+    /// Resident bytes of the worker's process when it registered (0 when
+    /// unknown): what the budget must hold besides any job.
+    pub resident: u64,
     pub name: String,
 }
 
@@ -61,10 +65,12 @@ pub enum SchedulerToWorker {
         worker: u32,
     },
     StartJob(Box<JobSetup>),
-    /// Part of the worker's region geometry; `last` closes the shipment.
+    /// One BVH part of the worker's region: the triangles of `leaves`
+    /// (ascending, each triangle once); `last` closes the shipment.
     Geometry {
         job: u64,
-        chunk: RegionGeometry,
+        leaves: Vec<u32>,
+        chunk: TriangleSet,
         last: bool,
     },
     Tile(TileAssignment),
@@ -124,30 +130,30 @@ pub struct JobSetup {
     pub tuning: Tuning,
     pub cache: Option<CacheParams>,
     pub fetch: FetchPolicy,
-    pub fetch_budget: u64,
+    /// How the worker keeps to its memory budget.
+    pub plan: MemoryPlan,
     /// Triangles (global ids, ascending) of each leaf this worker owns, in
     /// leaf order: what it ships to a peer that fetches the leaf.
     pub own_leaves: Vec<(u32, Vec<u32>)>,
     /// Triangle references of every leaf, for the adaptive policy's
     /// rent-or-buy rule.
     pub leaf_tris: Vec<u32>,
+    /// Triangles the region's geometry shipment holds in all, so the
+    /// worker refuses a longer shipment.
+    pub region_triangles: u64,
 }
 
-/// Triangles of a region: global ids ascending, with vertices and material.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct RegionGeometry {
-    pub ids: Vec<u32>,
-    pub verts: Vec<[Vec3; 3]>,
-    pub material: Vec<u32>,
-}
-
-impl RegionGeometry {
-    pub fn len(&self) -> usize {
-        self.ids.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.ids.is_empty()
-    }
+/// How a worker keeps to its memory budget in one job, as the scheduler
+/// planned it (see the scheduler's `memory` module): BVHs are built in
+/// parts of at most `part_triangles`, fetched geometry stays under
+/// `fetch_bytes`, and the directional caches under `cache_nodes` nodes.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MemoryPlan {
+    /// The budget planned for, in bytes (0: none).
+    pub budget: u64,
+    pub part_triangles: u32,
+    pub fetch_bytes: u64,
+    pub cache_nodes: u64,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -7,8 +7,7 @@
 //! its own) or forwards the item unchanged but for `resume` to the next
 //! owner. Rays travel with their exact bits.
 
-use glam::Vec3;
-use locus_core::integrator::{PathRay, ShadowRay};
+pub use locus_core::path::{Answer, Query};
 use locus_core::region::WorkerId;
 use serde::{Deserialize, Serialize};
 
@@ -30,7 +29,7 @@ pub enum PeerMsg {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LeafGeometry {
     pub leaf: u32,
-    pub geometry: crate::control::RegionGeometry,
+    pub geometry: locus_core::geometry::TriangleSet,
 }
 
 /// Where an answer goes: the pending slot of the worker that asked.
@@ -38,20 +37,6 @@ pub struct LeafGeometry {
 pub struct ReplyTo {
     pub worker: WorkerId,
     pub slot: u32,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Query {
-    /// Radiance arriving along the ray (see `PathRay`).
-    Path(PathRay),
-    /// Whether the segment is unoccluded.
-    Shadow(ShadowRay),
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Answer {
-    Radiance(Vec3),
-    Visible(bool),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

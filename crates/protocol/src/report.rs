@@ -48,10 +48,32 @@ pub struct WorkerStats {
     /// Rays that waited for a fetch, and ray crossings of fetched leaves.
     pub fetch_waits: u64,
     pub fetched_leaf_traces: u64,
+    /// CPU seconds the worker spent on the job: its whole process's when it
+    /// runs alone (a daemon), otherwise its own threads' (engine, tracing
+    /// pool, builder); counted by the kernel, not estimated.
+    pub cpu_s: f64,
+    /// Peak resident memory of the worker's process during the job, read
+    /// from the kernel (VmHWM, reset at the job's start); 0 when the worker
+    /// shares its process (the embedded farm), where it cannot be told
+    /// apart.
+    pub peak_rss: u64,
+    /// The budget the worker kept to (0: none).
+    pub memory_budget: u64,
+    /// Bytes of the region's own BVH parts, geometry included.
+    pub region_bytes: u64,
+    /// BVH parts the worker's geometry was built in (at the end).
+    pub parts: u32,
+    /// Most bytes of fetched geometry held at once, merged into parts or
+    /// waiting to be.
+    pub fetched_held_peak: u64,
+    /// Rebuilds of BVH parts that merged fetched leaves, and their time.
+    pub rebuilds: u32,
+    pub rebuild_s: f64,
 }
 
-/// Job totals: counters add up, the BVH build time is the slowest
-/// worker's, and per-peer traffic stays with each worker.
+/// Job totals: counters add up; the BVH build time, the peaks and the
+/// budget are the largest worker's; per-peer traffic stays with each
+/// worker.
 impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
     fn add_assign(&mut self, o: &WorkerStats) {
         self.trace += o.trace;
@@ -78,6 +100,14 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.fetch_cache_bound = self.fetch_cache_bound.max(o.fetch_cache_bound);
         self.fetch_waits += o.fetch_waits;
         self.fetched_leaf_traces += o.fetched_leaf_traces;
+        self.cpu_s += o.cpu_s;
+        self.peak_rss = self.peak_rss.max(o.peak_rss);
+        self.memory_budget = self.memory_budget.max(o.memory_budget);
+        self.region_bytes += o.region_bytes;
+        self.parts += o.parts;
+        self.fetched_held_peak = self.fetched_held_peak.max(o.fetched_held_peak);
+        self.rebuilds += o.rebuilds;
+        self.rebuild_s += o.rebuild_s;
     }
 }
 
@@ -91,11 +121,28 @@ pub struct WorkerSummary {
     pub stats: WorkerStats,
 }
 
+/// Where a job's time went, phase by phase (seconds of wall time).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Phases {
+    /// Reading and parsing the scene, on the submitting side (0 when the
+    /// client did not say).
+    pub load_s: f64,
+    /// Everything the scheduler does before distribution: the three below
+    /// and cutting out the regions.
+    pub prepare_s: f64,
+    pub octree_s: f64,
+    /// Cost prediction: the preview's BVH and its rays.
+    pub preview_s: f64,
+    /// Assigning leaves to workers.
     pub partition_s: f64,
+    /// From the end of preparation until every worker is ready: shipping
+    /// regions, building their BVHs, linking the peers.
     pub distribution_s: f64,
+    /// The slowest worker's region BVH build (part of distribution).
+    pub bvh_s: f64,
+    /// From the first tile handed out until the last tile is in.
     pub render_s: f64,
+    /// From the submission until the result is sent.
     pub total_s: f64,
 }
 
@@ -121,6 +168,9 @@ pub struct FarmReport {
     pub cost_model: String,
     pub leaves: u32,
     pub triangles: u64,
+    /// Nodes of the processor map's route (the octree collapsed by owner):
+    /// how ragged the region borders are.
+    pub route_leaves: u32,
     pub phases: Phases,
     pub prediction: Prediction,
     pub workers: Vec<WorkerSummary>,

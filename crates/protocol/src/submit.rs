@@ -113,6 +113,8 @@ pub struct JobRequest {
     pub tris: Vec<[Vec3; 3]>,
     pub tri_material: Vec<u32>,
     pub options: JobOptions,
+    /// Seconds the client took to read the scene, for the report.
+    pub load_s: f64,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

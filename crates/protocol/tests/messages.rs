@@ -141,7 +141,13 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
         tuning: Tuning::default(),
         cache: Some(CacheParams::default()),
         fetch: FetchPolicy::Hybrid,
-        fetch_budget: 1 << 20,
+        plan: MemoryPlan {
+            budget: seed,
+            part_triangles: 1 << 20,
+            fetch_bytes: 1 << 20,
+            cache_nodes: 1000,
+        },
+        region_triangles: n as u64,
     }
 }
 
@@ -157,7 +163,7 @@ proptest! {
         let verts: Vec<[Vec3; 3]> = tris(n, job);
         roundtrip(&PeerMsg::Leaf(Box::new(LeafGeometry {
             leaf: from as u32,
-            geometry: RegionGeometry {
+            geometry: TriangleSet {
                 ids: (0..verts.len() as u32).collect(),
                 material: vec![0; verts.len()],
                 verts,
@@ -169,12 +175,12 @@ proptest! {
     fn control_messages_roundtrip(n in 1usize..40, seed in any::<u64>(), workers in 1u16..6, count in any::<u32>(), reason in ".{0,40}") {
         let s = setup(n, seed, workers);
         let t = tris(n, seed);
-        let chunk = RegionGeometry { ids: (0..n as u32).collect(), verts: t, material: vec![0; n] };
+        let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n] };
         let tile = TileAssignment { job: seed, tile: count, x0: 0, y0: 0, x1: 4, y1: 3 };
         for m in [
             SchedulerToWorker::Welcome { worker: count },
             SchedulerToWorker::StartJob(Box::new(s)),
-            SchedulerToWorker::Geometry { job: seed, chunk, last: count % 2 == 0 },
+            SchedulerToWorker::Geometry { job: seed, leaves: vec![1, 2, count], chunk, last: count % 2 == 0 },
             SchedulerToWorker::Tile(tile),
             SchedulerToWorker::NoMoreTiles { job: seed },
             SchedulerToWorker::EndJob { job: seed },
@@ -192,7 +198,7 @@ proptest! {
         ] {
             roundtrip(&m);
         }
-        roundtrip(&Opening::Register(Registration { listen: reason.clone(), cores: count, memory_budget: seed, name: reason.clone() }));
+        roundtrip(&Opening::Register(Registration { listen: reason.clone(), cores: count, memory_budget: seed, resident: seed / 3, name: reason.clone() }));
     }
 
     #[test]
@@ -206,6 +212,7 @@ proptest! {
             tri_material: vec![0; n],
             tris: t,
             options: JobOptions { workers, partitioner: Partitioner::Morton, cost_model: CostModel::Analytic, ..Default::default() },
+            load_s: 0.25,
         };
         roundtrip(&Opening::Submit(Box::new(req)));
         let report = FarmReport { scene: reason.clone(), seed, load_imbalance: n as f64, ..Default::default() };

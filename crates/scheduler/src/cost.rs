@@ -12,7 +12,8 @@
 //! [`preview`] at full resolution is also how the bench measures per-leaf
 //! cost to judge both predictions.
 
-use locus_core::accel::Accel;
+use locus_core::accel::{Accel, Hit};
+use locus_core::accel_set::AccelSet;
 use locus_core::geometry::Ray;
 use locus_core::integrator::{DIM_PIXEL, PathRay, shade};
 use locus_core::light::LightSet;
@@ -20,7 +21,32 @@ use locus_core::octree::Octree;
 use locus_core::sampler::SampleKey;
 use locus_core::scene::Scene;
 use locus_core::stats::TraceStats;
+use std::collections::HashMap;
 use std::ops::ControlFlow;
+
+/// What the preview traces through: one BVH, or a set built in parts.
+pub trait Geometry: Sync {
+    fn closest(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> Option<Hit>;
+    fn occluded(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> bool;
+}
+
+impl Geometry for Accel {
+    fn closest(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> Option<Hit> {
+        self.intersect(ray, t0, t1, st)
+    }
+    fn occluded(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> bool {
+        Accel::occluded(self, ray, t0, t1, st)
+    }
+}
+
+impl Geometry for AccelSet {
+    fn closest(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> Option<Hit> {
+        AccelSet::closest(self, ray, t0, t1, st).map(|h| h.hit.hit)
+    }
+    fn occluded(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> bool {
+        AccelSet::occluded(self, ray, t0, t1, st)
+    }
+}
 
 pub fn analytic(tree: &Octree) -> Vec<f64> {
     tree.leaves
@@ -33,15 +59,47 @@ pub fn analytic(tree: &Octree) -> Vec<f64> {
         .collect()
 }
 
-/// Per-leaf work of a preview and the rays it traced.
+/// Per-leaf work of a preview, the rays it traced, and how often a ray
+/// went on from one leaf straight into another: a ray crossing from one
+/// worker's leaf into another's is a forwarded query, so these counts are
+/// the traffic a partition's borders cause.
 pub struct Preview {
     pub cost: Vec<f64>,
     pub rays: u64,
+    /// Crossings per pair of leaves `(a, b)` with `a < b`, either way.
+    pub crossings: HashMap<(u32, u32), u32>,
+}
+
+/// What one thread of the preview counts.
+struct Tally {
+    cost: Vec<u64>,
+    rays: u64,
+    crossings: HashMap<(u32, u32), u32>,
+}
+
+impl Tally {
+    fn new(n: usize) -> Self {
+        Self {
+            cost: vec![0; n],
+            rays: 0,
+            crossings: HashMap::new(),
+        }
+    }
+    fn merge(mut self, o: Tally) -> Tally {
+        for (x, y) in self.cost.iter_mut().zip(o.cost) {
+            *x += y;
+        }
+        self.rays += o.rays;
+        for (k, v) in o.crossings {
+            *self.crossings.entry(k).or_default() += v;
+        }
+        self
+    }
 }
 
 /// The sampled prediction the scheduler uses: about 4096 preview pixels
 /// (every pixel of a small image), one bounce.
-pub fn sampled(scene: &Scene, tree: &Octree, accel: &Accel, lights: &LightSet) -> Preview {
+pub fn sampled(scene: &Scene, tree: &Octree, accel: &dyn Geometry, lights: &LightSet) -> Preview {
     let pixels = scene.camera.width as f64 * scene.camera.height as f64;
     let div = (pixels / 4096.0).sqrt().floor().max(1.0) as u32;
     preview(
@@ -71,7 +129,7 @@ pub struct Quality {
 /// Measures per-leaf cost with the full workload at one sample per pixel
 /// (every pixel, the scene's full path depth, an independent seed) and
 /// compares both predictions with it.
-pub fn quality(scene: &Scene, tree: &Octree, accel: &Accel, lights: &LightSet) -> Quality {
+pub fn quality(scene: &Scene, tree: &Octree, accel: &dyn Geometry, lights: &LightSet) -> Quality {
     let analytic = analytic(tree);
     let sampled = sampled(scene, tree, accel, lights);
     let measured = preview(
@@ -98,7 +156,7 @@ pub fn quality(scene: &Scene, tree: &Octree, accel: &Accel, lights: &LightSet) -
 pub fn preview(
     scene: &Scene,
     tree: &Octree,
-    accel: &Accel,
+    accel: &dyn Geometry,
     lights: &LightSet,
     div: u32,
     bounces: u32,
@@ -109,11 +167,11 @@ pub fn preview(
     let div = div.max(1);
     let (w, h) = (cam.width.div_ceil(div), cam.height.div_ceil(div));
     let n = tree.leaves.len();
-    let (cost, rays) = (0..h)
+    let t = (0..h)
         .into_par_iter()
         .fold(
-            || (vec![0u64; n], 0u64),
-            |(mut cost, mut rays), py| {
+            || Tally::new(n),
+            |mut t, py| {
                 for px in 0..w {
                     let (x, y) = (
                         (px * div).min(cam.width - 1),
@@ -122,18 +180,17 @@ pub fn preview(
                     let key = SampleKey::new(y as u64 * cam.width as u64 + x as u64, 0, seed);
                     let mut q = PathRay::camera(cam.ray(x, y, key.get2d(DIM_PIXEL)), key);
                     for _ in 0..=bounces {
-                        rays += 1;
-                        let Some(hit) =
-                            leafwise(tree, accel, &q.ray, f32::INFINITY, false, &mut cost)
+                        t.rays += 1;
+                        let Some(hit) = leafwise(tree, accel, &q.ray, f32::INFINITY, false, &mut t)
                         else {
                             break;
                         };
-                        let t = hit.tri as usize;
-                        let mat = &scene.materials[scene.tri_material[t] as usize];
-                        let s = shade(&q, &hit, &scene.tris[t], mat, lights, bounces, None);
+                        let i = hit.tri as usize;
+                        let mat = &scene.materials[scene.tri_material[i] as usize];
+                        let s = shade(&q, &hit, &scene.tris[i], mat, lights, bounces, None);
                         if let Some(sr) = s.shadow {
-                            rays += 1;
-                            leafwise(tree, accel, &sr.ray, sr.t_max, true, &mut cost);
+                            t.rays += 1;
+                            leafwise(tree, accel, &sr.ray, sr.t_max, true, &mut t);
                         }
                         match s.next {
                             Some(nq) => q = nq,
@@ -141,21 +198,14 @@ pub fn preview(
                         }
                     }
                 }
-                (cost, rays)
+                t
             },
         )
-        .reduce(
-            || (vec![0u64; n], 0u64),
-            |(mut a, ra), (b, rb)| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                (a, ra + rb)
-            },
-        );
+        .reduce(|| Tally::new(n), Tally::merge);
     Preview {
-        cost: cost.into_iter().map(|c| c as f64).collect(),
-        rays,
+        cost: t.cost.into_iter().map(|c| c as f64).collect(),
+        rays: t.rays,
+        crossings: t.crossings,
     }
 }
 
@@ -163,21 +213,27 @@ pub fn preview(
 /// work to its leaf.
 fn leafwise(
     tree: &Octree,
-    accel: &Accel,
+    accel: &dyn Geometry,
     ray: &Ray,
     t_max: f32,
     any: bool,
-    cost: &mut [u64],
+    t: &mut Tally,
 ) -> Option<locus_core::accel::Hit> {
     let mut found = None;
+    let mut prev: Option<u32> = None;
     let _ = tree.walk(ray, 0.0, t_max, |leaf, ta, tb| {
+        if let Some(p) = prev.replace(leaf)
+            && p != leaf
+        {
+            *t.crossings.entry((p.min(leaf), p.max(leaf))).or_default() += 1;
+        }
         let mut st = TraceStats::default();
         let hit = if any {
             accel.occluded(ray, ta, tb, &mut st).then_some(None)
         } else {
-            accel.intersect(ray, ta, tb, &mut st).map(Some)
+            accel.closest(ray, ta, tb, &mut st).map(Some)
         };
-        cost[leaf as usize] += st.bvh_nodes + st.tri_tests;
+        t.cost[leaf as usize] += st.bvh_nodes + st.tri_tests;
         match hit {
             Some(h) => {
                 found = h;

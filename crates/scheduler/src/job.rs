@@ -1,33 +1,61 @@
 //! Preparing a job on the scheduler: checking the submitted scene, building
-//! the octree, predicting leaf costs, partitioning, and cutting out each
-//! worker's region geometry.
+//! the octree, predicting leaf costs, partitioning within the workers'
+//! shares and memory budgets, and planning each worker's BVH parts and
+//! memory ([`crate::memory`]).
 
-use crate::{cost, partition};
-use locus_core::accel::Accel;
+use crate::{cost, memory, partition};
+use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
 use locus_core::scene::{LoadStats, Scene};
-use locus_protocol::control::RegionGeometry;
+use locus_protocol::control::MemoryPlan;
 use locus_protocol::submit::{CostModel, JobRequest, Partitioner};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Instant;
 
 pub struct Prepared {
-    pub scene: Scene,
+    pub scene: Arc<Scene>,
     pub map: ProcessorMap,
     pub lights: LightSet,
-    pub regions: Vec<RegionGeometry>,
     /// Per worker: its leaves with their triangle lists.
     pub own_leaves: Vec<Vec<(u32, Vec<u32>)>>,
+    /// Per worker: its BVH parts, each a run of its leaves.
+    pub parts: Vec<Vec<Vec<u32>>>,
+    /// Per worker: triangles its shipment holds (a triangle in two parts
+    /// counts twice).
+    pub region_triangles: Vec<u64>,
+    pub plans: Vec<MemoryPlan>,
     /// Triangle references per leaf.
     pub leaf_tris: Vec<u32>,
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
     pub preview_rays: u64,
     pub leaves: u32,
-    pub seconds: f64,
+    pub timings: PrepTimings,
 }
+
+/// Where preparation's time went.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PrepTimings {
+    pub total_s: f64,
+    pub octree_s: f64,
+    pub preview_s: f64,
+    pub partition_s: f64,
+}
+
+/// What the scheduler knows of a worker when it plans a job.
+#[derive(Clone, Copy, Debug)]
+pub struct Member {
+    pub cores: u32,
+    pub budget: u64,
+    pub resident: u64,
+}
+
+/// Triangles per part of the scheduler's own preview BVH: keeps its build
+/// within about 200 MB whatever the scene's size.
+const PREVIEW_PART: usize = 512 << 10;
 
 /// Rejects a request that would make tracing panic or lie.
 pub fn validate(req: &JobRequest) -> Result<(), String> {
@@ -101,63 +129,158 @@ pub fn octree_for(scene: &Scene, workers: usize) -> Octree {
     tree
 }
 
-pub fn prepare(req: &JobRequest, workers: usize) -> Prepared {
+/// Builds the job's octree, predicts leaf costs, partitions the leaves
+/// among `members` by their cores within their memory budgets, and plans
+/// each worker's parts and memory. Fails when the budgets cannot hold the
+/// scene.
+pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, String> {
     let t = Instant::now();
-    let scene = Scene {
+    let workers = members.len().max(1);
+    let scene = Arc::new(Scene {
         path: PathBuf::from(&req.name),
         camera: req.camera.clone(),
         settings: req.settings.clone(),
         materials: req.materials.clone(),
-        tris: req.tris.clone(),
-        tri_material: req.tri_material.clone(),
+        tris: std::mem::take(&mut req.tris),
+        tri_material: std::mem::take(&mut req.tri_material),
         load_stats: LoadStats::default(),
-    };
+    });
+    let t_oct = Instant::now();
     let tree = octree_for(&scene, workers);
-    let all: Vec<u32> = (0..scene.tris.len() as u32).collect();
-    let accel = Accel::build(&scene.tris, &all, scene.magnitude());
+    let octree_s = t_oct.elapsed().as_secs_f64();
+    let t_pre = Instant::now();
     let lights = LightSet::build(&scene);
     let analytic = cost::analytic(&tree);
-    let pv = cost::sampled(&scene, &tree, &accel, &lights);
+    let (sampled, preview_rays, crossings) = match req.options.cost_model {
+        CostModel::Analytic => (analytic.clone(), 0, Default::default()),
+        CostModel::Sampled => {
+            let leaves: Vec<(u32, &[u32])> = tree
+                .leaves
+                .iter()
+                .enumerate()
+                .map(|(i, l)| (i as u32, l.tris.as_slice()))
+                .collect();
+            let tri = |id: u32| (scene.tris[id as usize], scene.tri_material[id as usize]);
+            let accel = AccelSet::from_parts(build_parts(
+                &leaves,
+                PREVIEW_PART.max(scene.tris.len().div_ceil(MAX_PARTS)),
+                scene.magnitude(),
+                &tri,
+            ));
+            let pv = cost::sampled(&scene, &tree, &accel, &lights);
+            (pv.cost, pv.rays, pv.crossings)
+        }
+    };
+    let preview_s = t_pre.elapsed().as_secs_f64();
+    let t_part = Instant::now();
+    let caches = req.options.cache.is_some();
+    let usable: Vec<Option<u64>> = members
+        .iter()
+        .map(|m| memory::usable(m.budget, m.resident))
+        .collect();
+    let caps: Vec<Option<u64>> = usable
+        .iter()
+        .map(|&u| memory::region_cap(u, caches))
+        .collect();
+    let cores: f64 = members.iter().map(|m| m.cores.max(1) as f64).sum();
+    let targets: Vec<f64> = members
+        .iter()
+        .map(|m| m.cores.max(1) as f64 / cores)
+        .collect();
+    let refs: Vec<u64> = tree.leaves.iter().map(|l| l.tris.len() as u64).collect();
+    let lim = partition::Limits {
+        targets: &targets,
+        caps: &caps,
+        refs: &refs,
+    };
     let chosen = match req.options.cost_model {
         CostModel::Analytic => &analytic,
-        CostModel::Sampled => &pv.cost,
+        CostModel::Sampled => &sampled,
     };
     let owner = match req.options.partitioner {
         Partitioner::RegionGrowing => {
-            partition::region_growing(&tree, &tree.face_neighbours(), chosen, workers)
+            let graph = partition::LeafGraph::new(&tree, &crossings);
+            partition::region_growing(&tree, &graph, chosen, &lim)?
         }
-        Partitioner::Morton => partition::morton(chosen, workers),
+        Partitioner::Morton => partition::morton(chosen, &lim)?,
     };
-    let regions = (0..workers as u16)
-        .map(|w| {
-            let ids = ProcessorMap::region_triangles(&tree, &owner, w);
-            RegionGeometry {
-                verts: ids.iter().map(|&i| scene.tris[i as usize]).collect(),
-                material: ids
-                    .iter()
-                    .map(|&i| scene.tri_material[i as usize])
-                    .collect(),
-                ids,
-            }
-        })
-        .collect();
+    let partition_s = t_part.elapsed().as_secs_f64();
     let mut own_leaves = vec![Vec::new(); workers];
     for (i, (l, &o)) in tree.leaves.iter().zip(&owner).enumerate() {
         let mut ids = l.tris.clone();
         ids.sort_unstable();
+        ids.dedup();
         own_leaves[o as usize].push((i as u32, ids));
     }
-    Prepared {
+    let mut plans = Vec::with_capacity(workers);
+    let mut parts = Vec::with_capacity(workers);
+    let mut region_triangles = Vec::with_capacity(workers);
+    for (w, m) in members.iter().enumerate() {
+        let held: u64 = own_leaves[w].iter().map(|(_, t)| t.len() as u64).sum();
+        let plan = memory::plan(
+            m.budget,
+            usable[w],
+            held,
+            req.options.cache.map(|c| c.max_nodes_total as u64),
+            req.options.fetch_budget,
+        );
+        let (p, n) = cut_parts(&own_leaves[w], plan.part_triangles as u64);
+        plans.push(plan);
+        parts.push(p);
+        region_triangles.push(n);
+    }
+    Ok(Prepared {
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
-        own_leaves,
         analytic_share: cost::shares(&analytic, &owner, workers),
-        sampled_share: cost::shares(&pv.cost, &owner, workers),
-        preview_rays: pv.rays,
+        sampled_share: cost::shares(&sampled, &owner, workers),
+        preview_rays,
         leaves: tree.leaves.len() as u32,
         map: ProcessorMap::new(&tree, owner),
+        own_leaves,
+        parts,
+        region_triangles,
+        plans,
         lights,
-        regions,
         scene,
-        seconds: t.elapsed().as_secs_f64(),
+        timings: PrepTimings {
+            total_s: t.elapsed().as_secs_f64(),
+            octree_s,
+            preview_s,
+            partition_s,
+        },
+    })
+}
+
+/// Cuts a worker's leaves (in leaf order) into runs of at most `max`
+/// triangle references; returns the runs and the distinct triangles they
+/// hold, run by run.
+fn cut_parts(own: &[(u32, Vec<u32>)], max: u64) -> (Vec<Vec<u32>>, u64) {
+    let mut runs: Vec<Vec<u32>> = Vec::new();
+    let mut spans: Vec<(usize, usize)> = Vec::new();
+    let (mut start, mut count) = (0, 0u64);
+    for (i, (_, t)) in own.iter().enumerate() {
+        if i > start && count + t.len() as u64 > max.max(1) {
+            spans.push((start, i));
+            start = i;
+            count = 0;
+        }
+        count += t.len() as u64;
     }
+    if start < own.len() {
+        spans.push((start, own.len()));
+    }
+    let mut total = 0;
+    for (a, b) in spans {
+        runs.push(own[a..b].iter().map(|(l, _)| *l).collect());
+        total += part_triangles(&own[a..b]).len() as u64;
+    }
+    (runs, total)
+}
+
+/// The distinct triangles (ascending) of a run of leaves.
+pub fn part_triangles(run: &[(u32, Vec<u32>)]) -> Vec<u32> {
+    let mut ids: Vec<u32> = run.iter().flat_map(|(_, t)| t.iter().copied()).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    ids
 }

@@ -3,7 +3,7 @@
 //! authenticated handshake and a `Hello` naming the job and the sender.
 //! Frames and bytes are counted per peer as they cross the socket.
 
-use crate::engine::Input;
+use crate::engine::{Event, Input};
 use locus_protocol::rays::PeerMsg;
 use locus_protocol::report::PeerTraffic;
 use locus_protocol::{Connection, MAX_FRAME_LEN, ProtocolError, handshake};
@@ -18,7 +18,7 @@ use tracing::{debug, warn};
 /// What incoming links of the running job feed.
 pub struct JobLink {
     pub job: u64,
-    pub inbox: flume::Sender<Input>,
+    pub inbox: flume::Sender<Event>,
     pub traffic: Arc<Traffic>,
     pub cancel: CancellationToken,
 }
@@ -172,7 +172,7 @@ async fn serve_peer(
             },
             PeerMsg::Hello { .. } => anyhow::bail!("{}: a second Hello", r.peer()),
         };
-        if link.inbox.send_async(input).await.is_err() {
+        if link.inbox.send_async(Event::Input(input)).await.is_err() {
             return Ok(());
         }
     }

@@ -1,15 +1,13 @@
 //! Fetched geometry against its owner: a leaf shipped to another worker
 //! and traced there over the ray's interval in that leaf finds exactly the
-//! hits of a BVH over the whole scene; and the store of fetched leaves
-//! never holds more bytes than its bound.
+//! hits of a BVH over the whole scene.
 
 use glam::Vec3;
 use locus_core::geometry::Ray;
 use locus_core::octree::{Octree, OctreeParams};
-use locus_core::sampler::SampleKey;
 use locus_core::stats::TraceStats;
-use locus_protocol::control::RegionGeometry;
-use locus_worker::fetch::{FetchedLeaf, LeafStore};
+use locus_protocol::control::TriangleSet;
+use locus_worker::fetch::FetchedLeaf;
 use std::ops::ControlFlow;
 use std::sync::Arc;
 
@@ -73,7 +71,7 @@ fn fetched_leaves(tris: &[[Vec3; 3]], tree: &Octree, magnitude: f32) -> Vec<Arc<
         .iter()
         .enumerate()
         .map(|(i, l)| {
-            let g = RegionGeometry {
+            let g = TriangleSet {
                 ids: l.tris.clone(),
                 verts: l.tris.iter().map(|&t| tris[t as usize]).collect(),
                 material: vec![0; l.tris.len()],
@@ -110,58 +108,4 @@ fn fetched_leaves_give_the_same_hits_as_the_whole_scene() {
     // The rays tested something: most hit, and they crossed many leaves.
     assert!(hits > 1500, "{hits} hits");
     assert!(leaf_visits > 4000 * 3, "{leaf_visits} leaf visits");
-}
-
-/// A store a fifth of the scene's size, under a workload that touches
-/// every leaf in three sweeps (a scan, the worst case for an LRU) and a
-/// skewed phase: the bytes held never exceed the bound, evictions happen,
-/// and hot leaves stay.
-#[test]
-fn the_leaf_store_never_exceeds_its_byte_bound() {
-    let (prep, tree) = room();
-    let leaves = fetched_leaves(&prep.scene.tris, &tree, prep.scene.magnitude());
-    let total: u64 = leaves.iter().map(|l| l.bytes()).sum();
-    let bound = total / 5;
-    let store = LeafStore::new(bound, leaves.len());
-    let (mut inserted, mut found) = (0u64, 0u64);
-    let mut touch = |l: usize| {
-        if store.get(l as u32).is_some() {
-            found += 1;
-        } else {
-            inserted += 1;
-            store.insert(leaves[l].clone());
-        }
-        assert!(store.weight() <= bound, "{} > {bound}", store.weight());
-    };
-    let n = leaves.len();
-    for sweep in 0..3 {
-        for i in 0..n {
-            touch((i * 7 + sweep) % n);
-        }
-    }
-    // Skewed: a tenth of the leaves take most accesses.
-    for i in 0..20 * n {
-        let k = SampleKey::new(i as u64, 0, 4);
-        let l = if k.get1d(0) < 0.8 {
-            (k.get1d(1) * (n / 10) as f32) as usize
-        } else {
-            (k.get1d(1) * n as f32) as usize
-        };
-        touch(l.min(n - 1));
-    }
-    eprintln!(
-        "{n} leaves, {total} bytes, bound {bound}: {inserted} inserts, {found} found, peak {}",
-        store.peak()
-    );
-    assert!(store.peak() <= bound);
-    assert!(inserted > n as u64 + 10, "no evictions: {inserted} inserts");
-    assert!(
-        found > 10 * n as u64,
-        "hot leaves did not stay: {found} found"
-    );
-    // A leaf larger than a shard's share is refused, not half-kept.
-    let tiny = LeafStore::new(4 * 64, 4);
-    let big = leaves.iter().max_by_key(|l| l.bytes()).unwrap();
-    assert!(!tiny.insert(big.clone()));
-    assert_eq!(tiny.weight(), 0);
 }

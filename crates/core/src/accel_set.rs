@@ -1,0 +1,343 @@
+//! Several BVHs traced as one: the triangles a worker can trace, built in
+//! parts so that no build needs more memory than its budget allows.
+//!
+//! An obvhs build holds about [`BUILD_BYTES_PER_TRIANGLE`] bytes per
+//! triangle at its peak, five times what the finished BVH keeps; a worker
+//! holding a million triangles under a budget of a few hundred megabytes
+//! cannot build them at once. [`build_parts`] cuts a list of octree leaves,
+//! in leaf order (the octree's depth-first order, which is Morton order),
+//! into runs of at most `max_part` triangles and builds one BVH per run:
+//! each part is a compact piece of space, so a ray enters few of them.
+//!
+//! A query visits the parts the ray's segment crosses in order of entry
+//! and stops at the first part that starts beyond the closest hit so far;
+//! ties go to the smaller global id across parts as within one, so the
+//! answer is the one a single BVH over the union would give.
+
+use crate::accel::{Accel, AccelHit, BUILD_BYTES_PER_TRIANGLE, Surface, closer};
+use crate::geometry::{Bounds, Ray, TriangleSet};
+use crate::stats::TraceStats;
+use glam::Vec3;
+use std::sync::Arc;
+
+/// One BVH of a set, and the octree leaves whose triangles it holds.
+pub struct Part {
+    pub accel: Accel,
+    /// Octree leaves (ascending) this part was built from; empty when it
+    /// was not built from leaves.
+    pub leaves: Vec<u32>,
+    /// The BVH's bounds, grown slightly so that the f32 slab test below is
+    /// conservative.
+    bounds: Bounds,
+}
+
+impl Part {
+    pub fn new(accel: Accel, leaves: Vec<u32>) -> Self {
+        let b = accel.bounds();
+        let bounds = if b.is_empty() {
+            b
+        } else {
+            let g = b.extent().max_element() * 1e-5 + b.max_abs() * 1e-6;
+            Bounds::new(b.min - Vec3::splat(g), b.max + Vec3::splat(g))
+        };
+        Self {
+            accel,
+            leaves,
+            bounds,
+        }
+    }
+
+    /// Entry and exit of the ray's segment `[t0, t1)` into the part's
+    /// bounds, or None when it misses them.
+    #[inline(always)]
+    fn span(&self, o: Vec3, inv: Vec3, t0: f32, t1: f32) -> Option<f32> {
+        let a = (self.bounds.min - o) * inv;
+        let b = (self.bounds.max - o) * inv;
+        let lo = a.min(b).max_element().max(t0);
+        let hi = a.max(b).min_element().min(t1);
+        // NaN (0 * inf on a face) compares false and keeps the part.
+        if lo > hi { None } else { Some(lo) }
+    }
+}
+
+/// A hit in one part of a set.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SetHit {
+    pub hit: AccelHit,
+    pub part: u32,
+}
+
+/// The most parts a set may have: a query keeps their entries on the stack.
+pub const MAX_PARTS: usize = 256;
+
+/// Several BVHs queried as one.
+#[derive(Clone, Default)]
+pub struct AccelSet {
+    parts: Vec<Arc<Part>>,
+}
+
+fn inverse(d: Vec3) -> Vec3 {
+    let inv = |x: f32| {
+        if x.abs() < 1e-30 {
+            1e30f32.copysign(x)
+        } else {
+            1.0 / x
+        }
+    };
+    Vec3::new(inv(d.x), inv(d.y), inv(d.z))
+}
+
+impl AccelSet {
+    pub fn single(accel: Accel) -> Self {
+        Self {
+            parts: vec![Arc::new(Part::new(accel, Vec::new()))],
+        }
+    }
+
+    /// A set of at most [`MAX_PARTS`] parts.
+    pub fn from_parts(parts: Vec<Arc<Part>>) -> Self {
+        assert!(parts.len() <= MAX_PARTS, "at most {MAX_PARTS} parts");
+        Self { parts }
+    }
+
+    pub fn parts(&self) -> &[Arc<Part>] {
+        &self.parts
+    }
+
+    /// Triangles over all parts (a triangle in two parts counts twice).
+    pub fn len(&self) -> usize {
+        self.parts.iter().map(|p| p.accel.len()).sum()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Heap bytes of every part.
+    pub fn bytes(&self) -> usize {
+        self.parts
+            .iter()
+            .map(|p| p.accel.bytes() + p.leaves.len() * 4)
+            .sum()
+    }
+
+    /// Closest hit with `t0 <= t < t1` over every part; ties in t go to the
+    /// smaller global id.
+    #[inline]
+    pub fn closest(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<SetHit> {
+        if let [p] = self.parts.as_slice() {
+            return p
+                .accel
+                .closest(ray, t0, t1, stats)
+                .map(|hit| SetHit { hit, part: 0 });
+        }
+        let inv = inverse(ray.dir);
+        let mut entries = [(0f32, 0u16); MAX_PARTS];
+        let mut n = 0;
+        for (i, p) in self.parts.iter().enumerate() {
+            if let Some(e) = p.span(ray.origin, inv, t0, t1) {
+                // Insertion sort by entry: sets have few parts.
+                let mut k = n;
+                while k > 0 && entries[k - 1].0 > e {
+                    entries[k] = entries[k - 1];
+                    k -= 1;
+                }
+                entries[k] = (e, i as u16);
+                n += 1;
+            }
+        }
+        let mut best: Option<SetHit> = None;
+        for &(entry, i) in &entries[..n] {
+            // A part entered beyond the best hit cannot hold a closer one;
+            // one entered exactly there may hold an equal-t smaller id.
+            let hi = match best {
+                Some(b) if entry > b.hit.hit.t => break,
+                Some(b) => next_up(b.hit.hit.t).min(t1),
+                None => t1,
+            };
+            let h = self.parts[i as usize].accel.closest(ray, t0, hi, stats);
+            let h = h.map(|hit| SetHit {
+                hit,
+                part: i as u32,
+            });
+            best = match (best, h) {
+                (Some(b), Some(h)) => {
+                    if closer(Some(b.hit), Some(h.hit)) == Some(h.hit) {
+                        Some(h)
+                    } else {
+                        Some(b)
+                    }
+                }
+                (b, None) => b,
+                (None, h) => h,
+            };
+        }
+        best
+    }
+
+    /// Whether anything in any part blocks `[t0, t1)`.
+    #[inline]
+    pub fn occluded(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> bool {
+        if let [p] = self.parts.as_slice() {
+            return p.accel.occluded(ray, t0, t1, stats);
+        }
+        let inv = inverse(ray.dir);
+        self.parts.iter().any(|p| {
+            p.span(ray.origin, inv, t0, t1).is_some() && p.accel.occluded(ray, t0, t1, stats)
+        })
+    }
+
+    #[inline(always)]
+    pub fn surface(&self, h: &SetHit) -> Surface {
+        self.parts[h.part as usize].accel.surface(&h.hit)
+    }
+
+    /// Vertices and material of global triangle `id`, if a part holds it.
+    pub fn find(&self, id: u32) -> Option<([Vec3; 3], u32)> {
+        self.parts.iter().find_map(|p| {
+            let prim = p.accel.find(id)?;
+            Some(p.accel.triangle(prim))
+        })
+    }
+}
+
+/// The next f32 above a finite `t`, so that a query's exclusive end admits
+/// hits at exactly `t`.
+#[inline(always)]
+pub fn next_up(t: f32) -> f32 {
+    if t.is_nan() || t == f32::INFINITY {
+        t
+    } else if t == 0.0 {
+        f32::from_bits(1)
+    } else if t > 0.0 {
+        f32::from_bits(t.to_bits() + 1)
+    } else {
+        f32::from_bits(t.to_bits() - 1)
+    }
+}
+
+/// Triangles per part that a build may hold at once within `budget`
+/// bytes, at least `floor` (a budget too small for even that is refused
+/// by the scheduler before any build).
+pub fn part_size_for(budget: u64, floor: usize) -> usize {
+    ((budget / BUILD_BYTES_PER_TRIANGLE as u64) as usize).max(floor)
+}
+
+/// Cuts `leaves` (ascending leaf ids, each with its triangle ids) into runs
+/// of at most `max_part` distinct triangles and builds one part per run.
+/// `triangle(id)` gives a triangle's vertices and material; a leaf larger
+/// than `max_part` is a part of its own.
+pub fn build_parts(
+    leaves: &[(u32, &[u32])],
+    max_part: usize,
+    magnitude: f32,
+    triangle: &dyn Fn(u32) -> ([Vec3; 3], u32),
+) -> Vec<Arc<Part>> {
+    let mut parts = Vec::new();
+    let mut ids: Vec<u32> = Vec::new();
+    let mut run: Vec<u32> = Vec::new();
+    let flush = |ids: &mut Vec<u32>, run: &mut Vec<u32>, parts: &mut Vec<Arc<Part>>| {
+        if run.is_empty() {
+            return;
+        }
+        ids.sort_unstable();
+        ids.dedup();
+        let mut set = TriangleSet::with_capacity(ids.len());
+        for &id in ids.iter() {
+            let (v, m) = triangle(id);
+            set.push(id, v, m);
+        }
+        ids.clear();
+        let accel = Accel::from_set(set, magnitude);
+        parts.push(Arc::new(Part::new(accel, std::mem::take(run))));
+    };
+    for &(leaf, tris) in leaves {
+        // Counting with duplicates overestimates a run, which is the safe
+        // side for memory.
+        if !run.is_empty() && ids.len() + tris.len() > max_part.max(1) {
+            flush(&mut ids, &mut run, &mut parts);
+        }
+        ids.extend_from_slice(tris);
+        run.push(leaf);
+    }
+    flush(&mut ids, &mut run, &mut parts);
+    parts
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::octree::{Octree, OctreeParams};
+    use crate::sampler::SampleKey;
+
+    fn soup() -> Vec<[Vec3; 3]> {
+        let mut v = Vec::new();
+        for i in 0..3000u64 {
+            let k = SampleKey::new(i, 0, 5);
+            let p = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 10.0;
+            let a = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) - 0.5;
+            let b = Vec3::new(k.get1d(6), k.get1d(7), k.get1d(8)) - 0.5;
+            v.push([p, p + a, p + b]);
+        }
+        v
+    }
+
+    /// Parts of every size give exactly the hits and occlusion of one BVH
+    /// over the union, including equal-distance ties between parts.
+    #[test]
+    fn parts_answer_as_one_bvh() {
+        let mut tris = soup();
+        // Exact duplicates in different places of the leaf order: equal-t
+        // hits that must resolve to the smaller id.
+        for i in 0..200 {
+            tris.push(tris[i * 7]);
+        }
+        let oct = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 16,
+                max_depth: 6,
+            },
+        );
+        let all: Vec<u32> = (0..tris.len() as u32).collect();
+        let one = Accel::build(&tris, &all, 12.0);
+        let leaves: Vec<(u32, &[u32])> = oct
+            .leaves
+            .iter()
+            .enumerate()
+            .map(|(i, l)| (i as u32, l.tris.as_slice()))
+            .collect();
+        let tri = |id: u32| (tris[id as usize], 0);
+        let mut st = TraceStats::default();
+        for max_part in [40usize, 300, 1000, 1 << 20] {
+            let set = AccelSet::from_parts(build_parts(&leaves, max_part, 12.0, &tri));
+            assert!(max_part < 1 << 20 || set.parts().len() == 1);
+            assert!(max_part > 40 || set.parts().len() > 50);
+            let mut hits = 0;
+            for i in 0..3000u64 {
+                let k = SampleKey::new(i, 1, 9);
+                let o = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 12.0 - 1.0;
+                let d = (Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) - 0.5).normalize();
+                let r = Ray::new(o, d);
+                let t1 = if i % 4 == 0 { 3.0 } else { f32::INFINITY };
+                let a = one.intersect(&r, 0.0, t1, &mut st);
+                let b = set.closest(&r, 0.0, t1, &mut st).map(|h| h.hit.hit);
+                assert_eq!(a, b, "part size {max_part}, ray {i}");
+                assert_eq!(
+                    one.occluded(&r, 0.0, t1, &mut st),
+                    set.occluded(&r, 0.0, t1, &mut st)
+                );
+                hits += a.is_some() as usize;
+            }
+            assert!(hits > 500, "only {hits} hits");
+        }
+    }
+
+    #[test]
+    fn next_up_is_the_next_float() {
+        assert_eq!(next_up(1.0), 1.0 + f32::EPSILON);
+        assert!(next_up(0.0) > 0.0);
+        assert!(next_up(-1.0) > -1.0 && next_up(-1.0) < -0.9999);
+        assert_eq!(next_up(f32::INFINITY), f32::INFINITY);
+    }
+}

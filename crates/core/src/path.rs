@@ -1,0 +1,440 @@
+//! The path state machine: how every path vertex is evaluated, once, for
+//! the single machine and the farm alike (pbrt-v4's CPU and wavefront
+//! integrators share their per-vertex code the same way).
+//!
+//! A work item is a camera sample or a [`Query`]: a path ray ("the radiance
+//! arriving along it") or a shadow segment ("is it unoccluded"). The
+//! [`Kernel`] traces it through a [`Tracer`], which either finishes the
+//! segment (a hit, a miss, an occluder) or says where it must go on
+//! ([`Traced::Next`]). A hit is shaded ([`crate::integrator::shade`]); its
+//! shadow segment and its continuation are traced the same way,
+//! depth-first, and with directional caches on the continuation is traced
+//! exactly inside its leaf's locality sphere and answered by the leaf's
+//! cache beyond it when the cache can. Everything that stays with the
+//! tracer is finished in one call; a vertex that waits for a child that
+//! must go elsewhere is left in a chain of [`ChainVertex`]es, each the
+//! continuation of the one before, which the farm keeps in pending slots
+//! until the answers come back and then finishes with the very same
+//! [`ShadedVertex::finish`].
+//!
+//! The single machine's tracer ([`WholeScene`]) never says `Next`, so every
+//! item finishes at once; that is the only difference between one machine
+//! and a farm worker, and why their images agree bit for bit by
+//! construction. [`PixelSum`] is the one pixel mean both use.
+
+use crate::accel::{Accel, Surface};
+use crate::dircache::{LeafCaches, Lookup};
+use crate::geometry::Ray;
+use crate::integrator::{DIM_PIXEL, PathRay, ShadedVertex, ShadowRay, shade};
+use crate::light::LightSet;
+use crate::octree::Octree;
+use crate::region::WorkerId;
+use crate::sampler::SampleKey;
+use crate::scene::{Camera, Material};
+use crate::stats::TraceStats;
+use glam::{DVec3, Vec3};
+use serde::{Deserialize, Serialize};
+
+/// A question about one ray that any worker holding the right geometry
+/// can answer.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Query {
+    /// Radiance arriving along the ray (see [`PathRay`]).
+    Path(PathRay),
+    /// Whether the segment is unoccluded.
+    Shadow(ShadowRay),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Answer {
+    Radiance(Vec3),
+    Visible(bool),
+}
+
+/// Where a query goes on when this tracer cannot finish it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Dest {
+    /// To the owner of the next leaf along the ray.
+    Peer(WorkerId),
+    /// Back here once that leaf's geometry has arrived (demand-driven).
+    Leaf(u32),
+}
+
+/// What tracing one segment found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Traced {
+    Hit(Surface),
+    Occluded,
+    Miss,
+    /// Go on at `t` elsewhere.
+    Next(Dest, f32),
+}
+
+/// What a ray is, for policies that treat camera rays apart.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RayKind {
+    Camera,
+    Secondary,
+}
+
+/// Traces segments through the geometry at hand.
+pub trait Tracer {
+    /// The closest hit of `ray` on `[0, t_max)` from `resume` (with `any`:
+    /// whether anything blocks it), or where it must go on.
+    fn trace(
+        &self,
+        ray: &Ray,
+        t_max: f32,
+        resume: f32,
+        any: bool,
+        kind: RayKind,
+        stats: &mut TraceStats,
+    ) -> Traced;
+}
+
+/// The tracer of one machine: a BVH over the whole scene.
+pub struct WholeScene<'a>(pub &'a Accel);
+
+impl Tracer for WholeScene<'_> {
+    #[inline]
+    fn trace(
+        &self,
+        ray: &Ray,
+        t_max: f32,
+        resume: f32,
+        any: bool,
+        _kind: RayKind,
+        stats: &mut TraceStats,
+    ) -> Traced {
+        let t0 = resume.max(0.0);
+        if any {
+            if self.0.occluded(ray, t0, t_max, stats) {
+                Traced::Occluded
+            } else {
+                Traced::Miss
+            }
+        } else {
+            match self.0.closest(ray, t0, t_max, stats) {
+                Some(h) => Traced::Hit(self.0.surface(&h)),
+                None => Traced::Miss,
+            }
+        }
+    }
+}
+
+/// The directional caches and the octree whose leaves they belong to.
+#[derive(Clone, Copy)]
+pub struct CacheUse<'a> {
+    pub octree: &'a Octree,
+    pub caches: &'a LeafCaches,
+}
+
+/// A directional cache entry to update when a continuation's radiance is
+/// known: the leaf and the ray's direction.
+pub type CacheKey = (u32, Vec3);
+
+/// What a work item is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Task {
+    Query(Query),
+    /// A camera sample, whose ray is made where it is traced.
+    Camera {
+        x: u32,
+        y: u32,
+        sample: u32,
+    },
+}
+
+/// A child query of a vertex.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Child<T> {
+    Done(T),
+    /// Must go on elsewhere, resuming at `f32`.
+    Forward(Dest, Query, f32),
+    /// The next vertex of the chain.
+    Deeper,
+}
+
+/// A vertex shaded here whose shadow answer or continuation is pending.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ChainVertex {
+    pub vertex: ShadedVertex,
+    pub shadow: Child<bool>,
+    pub next: Child<Vec3>,
+    /// The cache entry the continuation's radiance updates when it comes.
+    pub update: Option<CacheKey>,
+}
+
+/// How a work item ended here.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Outcome {
+    Answer(Answer),
+    /// The query goes on elsewhere, resuming at `resume`.
+    Forward {
+        dest: Dest,
+        query: Query,
+        resume: f32,
+    },
+    /// Vertices `start..end` of the caller's chain wait on forwarded
+    /// children; vertex k+1 is the continuation of vertex k.
+    Chain {
+        start: u32,
+        end: u32,
+    },
+}
+
+/// Everything that evaluating a vertex needs besides the geometry.
+pub struct Kernel<'a> {
+    pub materials: &'a [Material],
+    pub lights: &'a LightSet,
+    pub camera: &'a Camera,
+    pub seed: u64,
+    pub max_depth: u32,
+    /// Directional caches per octree leaf; None traces every ray.
+    pub cache: Option<CacheUse<'a>>,
+}
+
+impl Kernel<'_> {
+    /// The key of a camera sample.
+    #[inline]
+    pub fn sample_key(&self, x: u32, y: u32, sample: u32) -> SampleKey {
+        SampleKey::new(
+            y as u64 * self.camera.width as u64 + x as u64,
+            sample,
+            self.seed,
+        )
+    }
+
+    /// Evaluates one work item as far as `tracer` can take it. Vertices
+    /// that wait on forwarded children are appended to `chain`.
+    pub fn process<T: Tracer>(
+        &self,
+        tracer: &T,
+        task: Task,
+        resume: f32,
+        chain: &mut Vec<ChainVertex>,
+        st: &mut TraceStats,
+    ) -> Outcome {
+        let query = match task {
+            Task::Query(q) => q,
+            Task::Camera { x, y, sample } => {
+                let key = self.sample_key(x, y, sample);
+                st.camera_rays += 1;
+                let ray = self.camera.ray(x, y, key.get2d(DIM_PIXEL));
+                Query::Path(PathRay::camera(ray, key))
+            }
+        };
+        match query {
+            Query::Shadow(s) => {
+                match tracer.trace(&s.ray, s.t_max, resume, true, RayKind::Secondary, st) {
+                    Traced::Next(dest, t) => Outcome::Forward {
+                        dest,
+                        query,
+                        resume: t,
+                    },
+                    Traced::Miss => Outcome::Answer(Answer::Visible(true)),
+                    Traced::Occluded | Traced::Hit(_) => Outcome::Answer(Answer::Visible(false)),
+                }
+            }
+            Query::Path(q) => {
+                let kind = if q.depth == 0 {
+                    RayKind::Camera
+                } else {
+                    RayKind::Secondary
+                };
+                match tracer.trace(&q.ray, f32::INFINITY, resume, false, kind, st) {
+                    Traced::Next(dest, t) => Outcome::Forward {
+                        dest,
+                        query,
+                        resume: t,
+                    },
+                    Traced::Miss | Traced::Occluded => {
+                        Outcome::Answer(Answer::Radiance(Vec3::ZERO))
+                    }
+                    Traced::Hit(h) => {
+                        let start = chain.len();
+                        match self.eval_hit(tracer, &q, &h, chain, st) {
+                            Some(l) => Outcome::Answer(Answer::Radiance(l)),
+                            None => Outcome::Chain {
+                                start: start as u32,
+                                end: chain.len() as u32,
+                            },
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The radiance of one camera sample on a tracer that finishes every
+    /// segment (one machine).
+    pub fn sample<T: Tracer>(
+        &self,
+        tracer: &T,
+        x: u32,
+        y: u32,
+        sample: u32,
+        chain: &mut Vec<ChainVertex>,
+        st: &mut TraceStats,
+    ) -> Vec3 {
+        let task = Task::Camera { x, y, sample };
+        match self.process(tracer, task, f32::NEG_INFINITY, chain, st) {
+            Outcome::Answer(Answer::Radiance(l)) => l,
+            other => unreachable!("a tracer that never forwards left {other:?}"),
+        }
+    }
+
+    /// Shades hit `h` of `q` and evaluates its shadow and continuation
+    /// queries as far as they stay with the tracer. Returns the vertex's
+    /// radiance when everything finished; otherwise leaves this vertex (and
+    /// the pending ones below it) at the end of `chain` and returns None.
+    fn eval_hit<T: Tracer>(
+        &self,
+        tracer: &T,
+        q: &PathRay,
+        h: &Surface,
+        chain: &mut Vec<ChainVertex>,
+        st: &mut TraceStats,
+    ) -> Option<Vec3> {
+        let mat = &self.materials[h.material as usize];
+        let s = shade(
+            q,
+            &h.hit,
+            &h.verts,
+            mat,
+            self.lights,
+            self.max_depth,
+            self.cache.map(|c| (c.octree, c.caches.params.radius)),
+        );
+        let shadow = match s.shadow {
+            None => Child::Done(false),
+            Some(sr) => {
+                st.shadow_rays += 1;
+                let ray = &sr.ray;
+                match tracer.trace(
+                    ray,
+                    sr.t_max,
+                    f32::NEG_INFINITY,
+                    true,
+                    RayKind::Secondary,
+                    st,
+                ) {
+                    Traced::Miss => Child::Done(true),
+                    Traced::Occluded | Traced::Hit(_) => Child::Done(false),
+                    Traced::Next(dest, t) => Child::Forward(dest, Query::Shadow(sr), t),
+                }
+            }
+        };
+        let idx = chain.len();
+        chain.push(ChainVertex {
+            vertex: s.vertex,
+            shadow,
+            next: Child::Done(Vec3::ZERO),
+            update: None,
+        });
+        let (next, update) = match s.next {
+            None => (Child::Done(Vec3::ZERO), None),
+            Some(nq) => {
+                st.indirect_rays += 1;
+                self.continuation(tracer, &nq, s.cache_leaf, chain, st)
+            }
+        };
+        if let (Child::Done(visible), Child::Done(l)) = (&chain[idx].shadow, &next) {
+            let v = chain[idx].vertex.finish(*visible, *l);
+            chain.truncate(idx);
+            return Some(v);
+        }
+        chain[idx].next = next;
+        chain[idx].update = update;
+        None
+    }
+
+    /// A continuation ray. Without caches it is traced like any query.
+    /// With them it is traced exactly inside the locality sphere of the
+    /// leaf it starts in (`leaf`, from [`shade`]); a ray that hits nothing
+    /// there is answered by the leaf's cache when the cache can, and
+    /// otherwise traced on; its radiance updates the cache at once when it
+    /// is known here, or (the returned key) when its answer comes back.
+    fn continuation<T: Tracer>(
+        &self,
+        tracer: &T,
+        nq: &PathRay,
+        leaf: Option<u32>,
+        chain: &mut Vec<ChainVertex>,
+        st: &mut TraceStats,
+    ) -> (Child<Vec3>, Option<CacheKey>) {
+        let follow = |t: Traced, chain: &mut Vec<ChainVertex>, st: &mut TraceStats| match t {
+            Traced::Miss | Traced::Occluded => Child::Done(Vec3::ZERO),
+            Traced::Next(dest, t) => Child::Forward(dest, Query::Path(*nq), t),
+            Traced::Hit(h) => match self.eval_hit(tracer, nq, &h, chain, st) {
+                Some(l) => Child::Done(l),
+                None => Child::Deeper,
+            },
+        };
+        let (Some(c), Some(leaf)) = (self.cache, leaf) else {
+            let t = tracer.trace(
+                &nq.ray,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                false,
+                RayKind::Secondary,
+                st,
+            );
+            return (follow(t, chain, st), None);
+        };
+        // `shade` found the leaf and used the perimeter `emit_within` for
+        // this ray's emission and its vertex's next-event weights.
+        let tp = nq.emit_within;
+        let inside = tracer.trace(
+            &nq.ray,
+            tp,
+            f32::NEG_INFINITY,
+            false,
+            RayKind::Secondary,
+            st,
+        );
+        if !matches!(inside, Traced::Miss) {
+            st.cache.local += 1;
+            return (follow(inside, chain, st), None);
+        }
+        if let Lookup::Answer(v) = c.caches.lookup(leaf, nq.ray.dir) {
+            st.cache.lookups += 1;
+            return (Child::Done(v), None);
+        }
+        st.cache.global += 1;
+        let beyond = tracer.trace(&nq.ray, f32::INFINITY, tp, false, RayKind::Secondary, st);
+        match follow(beyond, chain, st) {
+            Child::Done(v) => {
+                c.caches.update(leaf, nq.ray.dir, v);
+                (Child::Done(v), None)
+            }
+            pending => (pending, Some((leaf, nq.ray.dir))),
+        }
+    }
+}
+
+/// A pixel's samples summed in sample-index order (f64), with non-finite
+/// values dropped and counted: the one pixel mean of one machine and the
+/// farm.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PixelSum {
+    sum: DVec3,
+}
+
+impl PixelSum {
+    #[inline]
+    pub fn add(&mut self, l: Vec3, st: &mut TraceStats) {
+        st.samples += 1;
+        if l.is_finite() {
+            self.sum += l.as_dvec3();
+        } else {
+            st.invalid_samples += 1;
+        }
+    }
+
+    /// The mean over `spp` samples.
+    pub fn mean(&self, spp: u32) -> [f32; 3] {
+        let m = self.sum / spp.max(1) as f64;
+        [m.x as f32, m.y as f32, m.z as f32]
+    }
+}

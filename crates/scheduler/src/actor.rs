@@ -1,0 +1,471 @@
+//! The scheduler's actor: it alone owns the worker registry, the queue and
+//! the running job, and every connection task talks to it through one
+//! bounded channel, so no state is shared between tasks.
+//!
+//! A job moves through its phases in one direction only: preparing,
+//! distributing, rendering, collecting. Events may arrive in any order (a
+//! worker can finish every tile of a tiny job before the last worker
+//! reports ready), and none moves a job back: readiness is counted, tiles
+//! are handed out as soon as a worker asks, and reports are taken once the
+//! last tile is in.
+
+use crate::distribute;
+use crate::job::{self, Member};
+use crate::report::build_report;
+use locus_protocol::control::{Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler};
+use locus_protocol::report::WorkerStats;
+use locus_protocol::submit::{JobRequest, JobResult, SchedulerToClient};
+use std::collections::{BTreeMap, VecDeque};
+use std::net::SocketAddr;
+use std::time::Instant;
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+pub enum Event {
+    Joined {
+        id: u32,
+        reg: Registration,
+        addr: SocketAddr,
+        tx: mpsc::Sender<SchedulerToWorker>,
+    },
+    Left {
+        id: u32,
+        reason: String,
+    },
+    FromWorker {
+        id: u32,
+        msg: WorkerToScheduler,
+    },
+    Submit {
+        req: Box<JobRequest>,
+        client: mpsc::Sender<SchedulerToClient>,
+    },
+    Prepared {
+        job: u64,
+        prep: Result<Box<job::Prepared>, String>,
+    },
+}
+
+pub struct WorkerEntry {
+    pub reg: Registration,
+    pub addr: SocketAddr,
+    pub tx: mpsc::Sender<SchedulerToWorker>,
+    busy: bool,
+}
+
+struct Queued {
+    req: Box<JobRequest>,
+    client: mpsc::Sender<SchedulerToClient>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Phase {
+    Preparing,
+    Distributing,
+    Rendering,
+    Collecting,
+}
+
+pub struct Running {
+    pub id: u64,
+    /// The request without its triangles (the scene lives in `prep`).
+    pub req: Box<JobRequest>,
+    client: mpsc::Sender<SchedulerToClient>,
+    /// Registry ids; the position is the job's worker id.
+    pub members: Vec<u32>,
+    phase: Phase,
+    pub prep: Option<Box<job::Prepared>>,
+    tiles: Vec<TileAssignment>,
+    next_tile: usize,
+    done: u32,
+    told_no_more: Vec<bool>,
+    film: Vec<[f32; 3]>,
+    ready: usize,
+    pub reports: Vec<Option<WorkerStats>>,
+    pub started: Instant,
+    pub t_prepared: Option<Instant>,
+    pub t_ready: Option<Instant>,
+    pub t_first_tile: Option<Instant>,
+    pub t_rendered: Option<Instant>,
+}
+
+impl Running {
+    /// Moves forward to `p`; never back.
+    fn advance(&mut self, p: Phase) {
+        self.phase = self.phase.max(p);
+    }
+}
+
+pub struct Actor {
+    pub workers: BTreeMap<u32, WorkerEntry>,
+    queue: VecDeque<Queued>,
+    job: Option<Running>,
+    next_job: u64,
+    max_queue: usize,
+    events: mpsc::Sender<Event>,
+}
+
+impl Actor {
+    pub fn new(max_queue: usize, events: mpsc::Sender<Event>) -> Self {
+        Self {
+            workers: BTreeMap::new(),
+            queue: VecDeque::new(),
+            job: None,
+            next_job: 1,
+            max_queue,
+            events,
+        }
+    }
+
+    pub async fn run(mut self, mut rx: mpsc::Receiver<Event>, shutdown: CancellationToken) {
+        loop {
+            let ev = tokio::select! {
+                _ = shutdown.cancelled() => break,
+                e = rx.recv() => match e { Some(e) => e, None => break },
+            };
+            match ev {
+                Event::Joined { id, reg, addr, tx } => {
+                    self.workers.insert(
+                        id,
+                        WorkerEntry {
+                            reg,
+                            addr,
+                            tx,
+                            busy: false,
+                        },
+                    );
+                    self.try_start();
+                }
+                Event::Left { id, reason } => {
+                    if let Some(w) = self.workers.remove(&id) {
+                        info!(worker = id, addr = %w.addr, %reason, "worker left");
+                        if self.job.as_ref().is_some_and(|j| j.members.contains(&id)) {
+                            self.fail(format!(
+                                "worker {id} ({}) left during the job: {reason}",
+                                w.reg.listen
+                            ));
+                        }
+                    }
+                }
+                Event::Submit { req, client } => self.submit(req, client),
+                Event::Prepared { job, prep } => self.on_prepared(job, prep),
+                Event::FromWorker { id, msg } => self.on_worker(id, msg),
+            }
+        }
+        if self.job.is_some() {
+            self.fail("the scheduler is shutting down".into());
+        }
+    }
+
+    fn submit(&mut self, req: Box<JobRequest>, client: mpsc::Sender<SchedulerToClient>) {
+        let refuse = |reason: String| {
+            let _ = client.try_send(SchedulerToClient::Failed { job: 0, reason });
+        };
+        if self.queue.len() >= self.max_queue {
+            refuse(format!(
+                "the scheduler's queue is full ({} jobs waiting)",
+                self.queue.len()
+            ));
+        } else if let Err(reason) = job::validate(&req) {
+            refuse(format!("invalid job {}: {reason}", req.name));
+        } else {
+            self.queue.push_back(Queued { req, client });
+            self.try_start();
+        }
+    }
+
+    fn try_start(&mut self) {
+        if self.job.is_some() {
+            return;
+        }
+        let Some(q) = self.queue.front() else { return };
+        let idle: Vec<u32> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| !w.busy)
+            .map(|(&i, _)| i)
+            .collect();
+        let want = match q.req.options.workers {
+            0 => idle.len().max(1),
+            n => n as usize,
+        };
+        if idle.len() < want {
+            info!(want, have = idle.len(), "job waiting for workers");
+            return;
+        }
+        let q = self.queue.pop_front().expect("peeked");
+        let members: Vec<u32> = idle[..want].to_vec();
+        let info: Vec<Member> = members
+            .iter()
+            .map(|m| {
+                let w = self.workers.get_mut(m).expect("idle");
+                w.busy = true;
+                Member {
+                    cores: w.reg.cores,
+                    budget: w.reg.memory_budget,
+                    resident: w.reg.resident,
+                }
+            })
+            .collect();
+        let id = self.next_job;
+        self.next_job += 1;
+        info!(job = id, scene = %q.req.name, workers = want, "job starting");
+        let _ = q.client.try_send(SchedulerToClient::Accepted {
+            job: id,
+            workers: want as u32,
+        });
+        let cam = q.req.camera.clone();
+        let tiles = locus_core::render::tiles(
+            cam.width,
+            cam.height,
+            q.req.options.tile_size,
+            locus_core::render::TileOrder::Scanline,
+        )
+        .into_iter()
+        .enumerate()
+        .map(|(i, t)| TileAssignment {
+            job: id,
+            tile: i as u32,
+            x0: t.x0,
+            y0: t.y0,
+            x1: t.x1,
+            y1: t.y1,
+        })
+        .collect();
+        // The triangles go to preparation; the job keeps the rest.
+        let mut full = q.req;
+        let tris = std::mem::take(&mut full.tris);
+        let mats = std::mem::take(&mut full.tri_material);
+        let meta = full.clone();
+        full.tris = tris;
+        full.tri_material = mats;
+        self.job = Some(Running {
+            id,
+            film: vec![[0.0; 3]; (cam.width * cam.height) as usize],
+            req: meta,
+            client: q.client,
+            reports: vec![None; want],
+            told_no_more: vec![false; want],
+            members,
+            phase: Phase::Preparing,
+            prep: None,
+            tiles,
+            next_tile: 0,
+            done: 0,
+            ready: 0,
+            started: Instant::now(),
+            t_prepared: None,
+            t_ready: None,
+            t_first_tile: None,
+            t_rendered: None,
+        });
+        let events = self.events.clone();
+        tokio::spawn(async move {
+            let prep = tokio::task::spawn_blocking(move || job::prepare(*full, &info)).await;
+            let prep = match prep {
+                Ok(Ok(p)) => Ok(Box::new(p)),
+                Ok(Err(e)) => Err(e),
+                Err(e) => Err(format!("preparation crashed: {e}")),
+            };
+            let _ = events.send(Event::Prepared { job: id, prep }).await;
+        });
+    }
+
+    fn on_prepared(&mut self, id: u64, prep: Result<Box<job::Prepared>, String>) {
+        let Some(j) = self.job.as_mut().filter(|j| j.id == id) else {
+            return;
+        };
+        let mut prep = match prep {
+            Ok(p) => p,
+            Err(e) => {
+                self.fail(format!("job {id} could not be prepared: {e}"));
+                return;
+            }
+        };
+        j.t_prepared = Some(Instant::now());
+        j.advance(Phase::Distributing);
+        info!(
+            job = id,
+            leaves = prep.leaves,
+            seconds = prep.timings.total_s,
+            "partitioned"
+        );
+        let txs: Vec<_> = j
+            .members
+            .iter()
+            .map(|m| {
+                let w = &self.workers[m];
+                (w.reg.listen.clone(), w.tx.clone())
+            })
+            .collect();
+        distribute::ship(id, &j.req, &mut prep, txs);
+        j.prep = Some(prep);
+    }
+
+    fn member(&self, id: u32) -> Option<usize> {
+        self.job.as_ref()?.members.iter().position(|&m| m == id)
+    }
+
+    fn on_worker(&mut self, id: u32, msg: WorkerToScheduler) {
+        let Some(w) = self.member(id) else {
+            warn!(
+                worker = id,
+                "message from a worker outside the running job ignored"
+            );
+            return;
+        };
+        let j = self.job.as_mut().expect("member of a job");
+        let job_of = match &msg {
+            WorkerToScheduler::Ready { job }
+            | WorkerToScheduler::NeedTiles { job, .. }
+            | WorkerToScheduler::Report { job, .. }
+            | WorkerToScheduler::Failed { job, .. } => *job,
+            WorkerToScheduler::TileDone(t) => t.job,
+        };
+        if job_of != j.id {
+            warn!(worker = id, "message for another job ignored");
+            return;
+        }
+        match msg {
+            WorkerToScheduler::Ready { .. } => {
+                j.ready += 1;
+                if j.ready == j.members.len() {
+                    j.t_ready = Some(Instant::now());
+                    j.advance(Phase::Rendering);
+                    info!(job = j.id, "all workers ready");
+                }
+            }
+            WorkerToScheduler::NeedTiles { count, .. } => {
+                let tx = &self.workers[&id].tx;
+                for _ in 0..count {
+                    if j.next_tile < j.tiles.len() {
+                        let t = j.tiles[j.next_tile];
+                        if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
+                            // The worker asked for it, so its queue has
+                            // room unless it is gone, which ends the job.
+                            break;
+                        }
+                        j.next_tile += 1;
+                        j.t_first_tile.get_or_insert_with(Instant::now);
+                    } else if !j.told_no_more[w] {
+                        j.told_no_more[w] = true;
+                        let _ = tx.try_send(SchedulerToWorker::NoMoreTiles { job: j.id });
+                    }
+                }
+            }
+            WorkerToScheduler::TileDone(r) => self.on_tile(id, r),
+            WorkerToScheduler::Report { stats, .. } => {
+                if j.phase != Phase::Collecting {
+                    self.fail(format!("worker {w} reported before the last tile was in"));
+                    return;
+                }
+                j.reports[w] = Some(*stats);
+                if j.reports.iter().all(Option::is_some) {
+                    self.finish();
+                }
+            }
+            WorkerToScheduler::Failed { reason, .. } => {
+                let addr = self.workers[&id].reg.listen.clone();
+                self.fail(format!("worker {w} ({addr}): {reason}"));
+            }
+        }
+    }
+
+    fn on_tile(&mut self, id: u32, r: locus_protocol::control::TileResult) {
+        let j = self.job.as_mut().expect("member of a job");
+        let Some(t) = j.tiles.get(r.tile as usize).copied() else {
+            warn!(
+                worker = id,
+                tile = r.tile,
+                "result for an unknown tile ignored"
+            );
+            return;
+        };
+        if r.pixels.len() != t.pixels() as usize {
+            let reason = format!(
+                "worker {id} sent tile {} with {} pixels, expected {}",
+                r.tile,
+                r.pixels.len(),
+                t.pixels()
+            );
+            self.fail(reason);
+            return;
+        }
+        let width = j.req.camera.width;
+        let mut k = 0;
+        for y in t.y0..t.y1 {
+            for x in t.x0..t.x1 {
+                j.film[(y * width + x) as usize] = r.pixels[k];
+                k += 1;
+            }
+        }
+        j.done += 1;
+        let _ = j.client.try_send(SchedulerToClient::Progress {
+            job: j.id,
+            tiles_done: j.done,
+            tiles: j.tiles.len() as u32,
+        });
+        if j.done as usize == j.tiles.len() {
+            j.advance(Phase::Collecting);
+            j.t_rendered = Some(Instant::now());
+            for m in &j.members {
+                let _ = self.workers[m]
+                    .tx
+                    .try_send(SchedulerToWorker::EndJob { job: j.id });
+            }
+        }
+    }
+
+    fn release(&mut self) -> Option<Running> {
+        let j = self.job.take()?;
+        for m in &j.members {
+            if let Some(w) = self.workers.get_mut(m) {
+                w.busy = false;
+            }
+        }
+        Some(j)
+    }
+
+    fn fail(&mut self, reason: String) {
+        let Some(j) = self.release() else { return };
+        warn!(job = j.id, %reason, "job failed");
+        for m in &j.members {
+            if let Some(w) = self.workers.get(m) {
+                let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
+                    job: j.id,
+                    reason: reason.clone(),
+                });
+            }
+        }
+        let _ = j
+            .client
+            .try_send(SchedulerToClient::Failed { job: j.id, reason });
+        self.try_start();
+    }
+
+    fn finish(&mut self) {
+        let Some(mut j) = self.release() else { return };
+        let report = build_report(&j, &self.workers);
+        info!(
+            job = j.id,
+            render_s = report.phases.render_s,
+            imbalance = report.load_imbalance,
+            forwarded = report.forwarded_fraction,
+            "job done"
+        );
+        let result = JobResult {
+            job: j.id,
+            width: j.req.camera.width,
+            height: j.req.camera.height,
+            pixels: std::mem::take(&mut j.film),
+            report,
+        };
+        let client = j.client;
+        // The result can be large; a dedicated task waits for room.
+        tokio::spawn(async move {
+            let _ = client.send(SchedulerToClient::Done(Box::new(result))).await;
+        });
+        self.try_start();
+    }
+}

@@ -1,0 +1,98 @@
+//! Distribution: each worker gets its job setup (processor map, lights,
+//! materials, own leaves, memory plan) and then its region one BVH part at
+//! a time, each part's triangles cut from the scene as it is sent, so
+//! neither side ever holds a second copy of a whole region.
+
+use crate::job::{self, Prepared};
+use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
+use locus_protocol::submit::JobRequest;
+use tokio::sync::mpsc;
+
+/// Starts one task per worker (a slow link does not hold the others)
+/// that sends the setup and the parts. `txs[w]` is worker `w`'s listen
+/// address and control channel.
+pub fn ship(
+    id: u64,
+    req: &JobRequest,
+    prep: &mut Prepared,
+    txs: Vec<(String, mpsc::Sender<SchedulerToWorker>)>,
+) {
+    let peers: Vec<String> = txs.iter().map(|(a, _)| a.clone()).collect();
+    let mut own_leaves = std::mem::take(&mut prep.own_leaves);
+    for (w, (_, tx)) in txs.into_iter().enumerate() {
+        let own = std::mem::take(&mut own_leaves[w]);
+        // Each part's (leaf, triangles) run, by position in `own`.
+        let runs: Vec<(usize, usize)> = {
+            let mut at = 0;
+            prep.parts[w]
+                .iter()
+                .map(|p| {
+                    let r = (at, at + p.len());
+                    at += p.len();
+                    r
+                })
+                .collect()
+        };
+        let runs: Vec<(Vec<u32>, Vec<u32>)> = runs
+            .into_iter()
+            .map(|(a, b)| {
+                let run = &own[a..b];
+                (
+                    run.iter().map(|(l, _)| *l).collect(),
+                    job::part_triangles(run),
+                )
+            })
+            .collect();
+        let setup = JobSetup {
+            job: id,
+            me: w as u16,
+            peers: peers.clone(),
+            camera: prep.scene.camera.clone(),
+            spp: prep.scene.settings.spp,
+            max_depth: prep.scene.settings.max_depth,
+            seed: prep.scene.settings.seed,
+            materials: prep.scene.materials.clone(),
+            lights: prep.lights.clone(),
+            map: prep.map.clone(),
+            magnitude: prep.scene.magnitude(),
+            tuning: req.options.tuning,
+            cache: req.options.cache,
+            fetch: req.options.fetch,
+            plan: prep.plans[w],
+            own_leaves: own,
+            leaf_tris: prep.leaf_tris.clone(),
+            region_triangles: prep.region_triangles[w],
+        };
+        let scene = prep.scene.clone();
+        tokio::spawn(async move {
+            tx.send(SchedulerToWorker::StartJob(Box::new(setup)))
+                .await?;
+            let n = runs.len();
+            if n == 0 {
+                // A worker without leaves still closes its shipment.
+                let last = SchedulerToWorker::Geometry {
+                    job: id,
+                    leaves: Vec::new(),
+                    chunk: TriangleSet::default(),
+                    last: true,
+                };
+                return tx.send(last).await;
+            }
+            for (k, (leaves, ids)) in runs.into_iter().enumerate() {
+                let mut chunk = TriangleSet::with_capacity(ids.len());
+                for id in ids {
+                    let i = id as usize;
+                    chunk.push(id, scene.tris[i], scene.tri_material[i]);
+                }
+                tx.send(SchedulerToWorker::Geometry {
+                    job: id,
+                    leaves,
+                    chunk,
+                    last: k + 1 == n,
+                })
+                .await?;
+            }
+            Ok::<_, mpsc::error::SendError<SchedulerToWorker>>(())
+        });
+    }
+}

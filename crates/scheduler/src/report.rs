@@ -1,0 +1,102 @@
+//! The report of a finished job: per-worker counters as the workers
+//! counted them, and the job's derived figures.
+
+use crate::actor::{Running, WorkerEntry};
+use crate::cost;
+use locus_protocol::report::{FarmReport, Phases, Prediction, WorkerStats, WorkerSummary};
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmReport {
+    let prep = j.prep.as_ref().expect("prepared before reporting");
+    let stats: Vec<WorkerStats> = j
+        .reports
+        .iter()
+        .map(|r| r.clone().unwrap_or_default())
+        .collect();
+    let work: Vec<f64> = stats
+        .iter()
+        .map(|s| (s.trace.bvh_nodes + s.trace.tri_tests) as f64)
+        .collect();
+    let total_work: f64 = work.iter().sum();
+    let measured: Vec<f64> = work
+        .iter()
+        .map(|w| {
+            if total_work > 0.0 {
+                w / total_work
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let mut totals = WorkerStats::default();
+    let mut bytes = 0u64;
+    for s in &stats {
+        totals += s;
+        bytes += s.peers.iter().map(|p| p.bytes_sent).sum::<u64>();
+    }
+    let busy: Vec<f64> = stats.iter().map(|s| s.busy_s).collect();
+    let mean_busy = busy.iter().sum::<f64>() / busy.len().max(1) as f64;
+    let max_busy = busy.iter().cloned().fold(0.0, f64::max);
+    let end = j.t_rendered.unwrap_or_else(Instant::now);
+    let prepared = j.t_prepared.unwrap_or(j.started);
+    let ready = j.t_ready.unwrap_or(end);
+    let render_s = (end - j.t_first_tile.unwrap_or(end)).as_secs_f64();
+    let t = &prep.timings;
+    let samples = totals.trace.samples;
+    FarmReport {
+        scene: j.req.name.clone(),
+        width: j.req.camera.width,
+        height: j.req.camera.height,
+        spp: j.req.settings.spp,
+        max_depth: j.req.settings.max_depth,
+        seed: j.req.settings.seed,
+        partitioner: format!("{:?}", j.req.options.partitioner),
+        cost_model: format!("{:?}", j.req.options.cost_model),
+        leaves: prep.leaves,
+        triangles: prep.scene.tris.len() as u64,
+        route_leaves: prep.map.route.leaves() as u32,
+        phases: Phases {
+            load_s: j.req.load_s,
+            prepare_s: (prepared - j.started).as_secs_f64(),
+            octree_s: t.octree_s,
+            preview_s: t.preview_s,
+            partition_s: t.partition_s,
+            distribution_s: ready.saturating_duration_since(prepared).as_secs_f64(),
+            bvh_s: stats.iter().map(|s| s.bvh_build_s).fold(0.0, f64::max),
+            render_s,
+            total_s: j.started.elapsed().as_secs_f64(),
+        },
+        prediction: Prediction {
+            analytic_r: cost::correlation(&prep.analytic_share, &measured),
+            sampled_r: cost::correlation(&prep.sampled_share, &measured),
+            preview_rays: prep.preview_rays,
+        },
+        workers: stats
+            .iter()
+            .enumerate()
+            .map(|(w, s)| WorkerSummary {
+                id: w as u16,
+                addr: workers
+                    .get(&j.members[w])
+                    .map(|e| e.reg.listen.clone())
+                    .unwrap_or_default(),
+                predicted_cost_share: match j.req.options.cost_model {
+                    locus_protocol::submit::CostModel::Analytic => prep.analytic_share[w],
+                    locus_protocol::submit::CostModel::Sampled => prep.sampled_share[w],
+                },
+                measured_cost_share: measured[w],
+                stats: s.clone(),
+            })
+            .collect(),
+        load_imbalance: if mean_busy > 0.0 {
+            max_busy / mean_busy
+        } else {
+            1.0
+        },
+        forwarded_fraction: totals.forwarded_out as f64 / totals.trace.rays().max(1) as f64,
+        bytes_per_sample: bytes as f64 / samples.max(1) as f64,
+        samples_per_s: samples as f64 / render_s.max(1e-9),
+        totals,
+    }
+}

@@ -1,0 +1,169 @@
+//! The pool side of the engine: batches of work items traced through the
+//! core's path kernel ([`locus_core::path::Kernel`]) with this worker's
+//! [`Tracer`], which traces what the worker's [`Reach`] holds and says
+//! where everything else must go.
+
+use super::EngineJob;
+use crate::fetch::FetchedLeaf;
+use crate::reach::{Label, Reach};
+use crate::sys;
+use locus_core::geometry::Ray;
+use locus_core::path::{ChainVertex, Dest, Outcome, RayKind, Task, Traced, Tracer};
+use locus_core::region::{Known, RunEnd, WorkerId, trace_local};
+use locus_core::stats::TraceStats;
+use locus_protocol::rays::ReplyTo;
+use std::cell::Cell;
+use std::sync::Arc;
+
+/// One item of work: what to trace, where on the ray to resume, and where
+/// its answer goes.
+pub struct Work {
+    pub task: Task,
+    pub resume: f32,
+    pub reply: ReplyTo,
+    /// The worker it came from (this one for local work), for errors.
+    pub from: WorkerId,
+    /// The fetched leaf this work waited for, held so that it is traced
+    /// here even by a batch whose snapshot predates the leaf.
+    pub pinned: Option<Arc<FetchedLeaf>>,
+}
+
+/// What a traced batch hands back to the engine.
+pub struct Batch {
+    /// Per item: where its answer goes, and how it ended here.
+    pub items: Vec<(ReplyTo, Outcome)>,
+    /// The vertices `Outcome::Chain` ranges point into.
+    pub chain: Vec<ChainVertex>,
+    pub stats: TraceStats,
+    pub fetched_leaf_traces: u64,
+    pub cpu_s: f64,
+    /// A query from a peer that did not start in a leaf this worker holds:
+    /// the peer computed another processor vector, or the item was
+    /// corrupted.
+    pub misrouted: Option<WorkerId>,
+}
+
+/// This worker's tracer for one work item.
+struct ItemTracer<'a> {
+    job: &'a EngineJob,
+    reach: &'a Reach,
+    pinned: Option<&'a Arc<FetchedLeaf>>,
+    fetched_traces: Cell<u64>,
+}
+
+impl ItemTracer<'_> {
+    /// Traces fetched leaf `f` over `[ta, tb)`.
+    fn trace_leaf(
+        &self,
+        f: &FetchedLeaf,
+        ray: &Ray,
+        ta: f32,
+        tb: f32,
+        any: bool,
+        st: &mut TraceStats,
+    ) -> Option<Traced> {
+        self.fetched_traces.set(self.fetched_traces.get() + 1);
+        if any {
+            f.accel
+                .occluded(ray, ta, tb, st)
+                .then_some(Traced::Occluded)
+        } else {
+            f.accel
+                .closest(ray, ta, tb, st)
+                .map(|h| Traced::Hit(f.accel.surface(&h)))
+        }
+    }
+}
+
+impl Tracer for ItemTracer<'_> {
+    fn trace(
+        &self,
+        ray: &Ray,
+        t_max: f32,
+        resume: f32,
+        any: bool,
+        kind: RayKind,
+        st: &mut TraceStats,
+    ) -> Traced {
+        let reach = self.reach;
+        let mut known = Known::Unknown;
+        let mut resume = resume;
+        loop {
+            let end = trace_local(
+                &reach.route,
+                |l| l == Label::Local,
+                &reach.accel,
+                ray,
+                t_max,
+                resume,
+                any,
+                &mut known,
+                st,
+            );
+            let (label, ta, tb) = match end {
+                RunEnd::Hit(h) => return Traced::Hit(reach.accel.surface(&h)),
+                RunEnd::Occluded => return Traced::Occluded,
+                RunEnd::Miss => return Traced::Miss,
+                RunEnd::Foreign { label, ta, tb } => (label, ta, tb),
+            };
+            match label {
+                Label::Pending(i) => {
+                    let f = &reach.pending[i as usize];
+                    if let Some(t) = self.trace_leaf(f, ray, ta, tb, any, st) {
+                        return t;
+                    }
+                    resume = tb;
+                }
+                Label::Remote { owner, leaf } => {
+                    if let Some(p) = self.pinned.filter(|p| p.leaf == leaf) {
+                        if let Some(t) = self.trace_leaf(p, ray, ta, tb, any, st) {
+                            return t;
+                        }
+                        resume = tb;
+                    } else if leaf != u32::MAX && self.job.locality.wants_fetch(leaf, kind) {
+                        return Traced::Next(Dest::Leaf(leaf), ta);
+                    } else {
+                        return Traced::Next(Dest::Peer(owner), ta);
+                    }
+                }
+                Label::Local => unreachable!("trace_local stops only at foreign leaves"),
+            }
+        }
+    }
+}
+
+/// Traces a batch of work through `reach`.
+pub fn trace_batch(job: &EngineJob, reach: &Reach, work: Vec<Work>) -> Batch {
+    let cpu0 = sys::thread_cpu_s();
+    let kernel = job.kernel();
+    let me = job.setup.me;
+    let mut b = Batch {
+        items: Vec::with_capacity(work.len()),
+        chain: Vec::new(),
+        stats: TraceStats::default(),
+        fetched_leaf_traces: 0,
+        cpu_s: 0.0,
+        misrouted: None,
+    };
+    for w in work {
+        let tracer = ItemTracer {
+            job,
+            reach,
+            pinned: w.pinned.as_ref(),
+            fetched_traces: Cell::new(0),
+        };
+        let o = kernel.process(&tracer, w.task, w.resume, &mut b.chain, &mut b.stats);
+        b.fetched_leaf_traces += tracer.fetched_traces.get();
+        if let Outcome::Forward { resume, .. } = o
+            && resume == w.resume
+            && w.from != me
+        {
+            // The sender computed the same processor vector; a query that
+            // does not start in a leaf of ours was corrupted or misrouted.
+            b.misrouted = Some(w.from);
+        }
+        b.items.push((w.reply, o));
+    }
+    b.cpu_s = sys::thread_cpu_s() - cpu0;
+    b
+}

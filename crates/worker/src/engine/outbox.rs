@@ -1,0 +1,234 @@
+//! What a worker sends to its peers: ray items gathered into packets per
+//! peer, and the messages that did not fit a peer's channel yet.
+//!
+//! A packet leaves when it holds `packet_items` items, when its oldest item
+//! has waited `flush_after`, or when the engine has nothing else to do
+//! ([`Outbox::flush_all`]): full packets while the worker is busy (fewer
+//! frames, fewer wake-ups), no waiting when it is idle.
+//!
+//! Sends never block the engine: two workers blocked on sending to each
+//! other would deadlock. A message that does not fit its peer's bounded
+//! channel waits here, in order, and while any waits the engine starts no
+//! new camera sample: that is the backpressure. What can wait here is
+//! bounded by the work in flight in the whole farm (every worker keeps at
+//! most `max_inflight` samples open, each with at most two queries per
+//! path vertex), so these queues are bounded too.
+
+use locus_core::region::WorkerId;
+use locus_protocol::rays::{PeerMsg, RayItem};
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("the link to worker {0} closed while the job was running")]
+pub struct LinkClosed(pub WorkerId);
+
+pub struct Outbox {
+    peers: Vec<Option<flume::Sender<PeerMsg>>>,
+    out: Vec<Vec<RayItem>>,
+    since: Vec<Option<Instant>>,
+    stalled: Vec<VecDeque<PeerMsg>>,
+    packet_items: usize,
+    flush_after: Duration,
+    /// Times a message found its peer's channel full.
+    pub stalls: u64,
+    /// Packets sent, for reports.
+    pub packets: u64,
+}
+
+impl Outbox {
+    /// `peers[w]` is the channel to worker `w` (None for this worker).
+    pub fn new(
+        peers: Vec<Option<flume::Sender<PeerMsg>>>,
+        packet_items: usize,
+        flush_after: Duration,
+    ) -> Self {
+        let n = peers.len();
+        Self {
+            peers,
+            out: (0..n).map(|_| Vec::new()).collect(),
+            since: vec![None; n],
+            stalled: (0..n).map(|_| VecDeque::new()).collect(),
+            packet_items: packet_items.max(1),
+            flush_after,
+            stalls: 0,
+            packets: 0,
+        }
+    }
+
+    /// Adds an item to `peer`'s packet, sending it when full.
+    pub fn push(&mut self, peer: WorkerId, item: RayItem, now: Instant) -> Result<(), LinkClosed> {
+        let p = peer as usize;
+        if self.out[p].is_empty() {
+            self.since[p] = Some(now);
+            self.out[p].reserve(self.packet_items);
+        }
+        self.out[p].push(item);
+        if self.out[p].len() >= self.packet_items {
+            self.send_packet(p)?;
+        }
+        Ok(())
+    }
+
+    fn send_packet(&mut self, p: usize) -> Result<(), LinkClosed> {
+        self.since[p] = None;
+        if self.out[p].is_empty() {
+            return Ok(());
+        }
+        let items = std::mem::take(&mut self.out[p]);
+        self.packets += 1;
+        self.send(p as WorkerId, PeerMsg::Packet(items))
+    }
+
+    /// Sends `msg` behind whatever already waits for `peer`, keeping order.
+    pub fn send(&mut self, peer: WorkerId, msg: PeerMsg) -> Result<(), LinkClosed> {
+        let p = peer as usize;
+        if !self.stalled[p].is_empty() {
+            self.stalled[p].push_back(msg);
+            return Ok(());
+        }
+        let Some(tx) = self.peers.get(p).and_then(Option::as_ref) else {
+            return Err(LinkClosed(peer));
+        };
+        match tx.try_send(msg) {
+            Ok(()) => Ok(()),
+            Err(flume::TrySendError::Full(msg)) => {
+                self.stalls += 1;
+                self.stalled[p].push_back(msg);
+                Ok(())
+            }
+            Err(flume::TrySendError::Disconnected(_)) => Err(LinkClosed(peer)),
+        }
+    }
+
+    /// Moves waiting messages into channels that have room again.
+    pub fn retry_stalled(&mut self) -> Result<(), LinkClosed> {
+        for p in 0..self.stalled.len() {
+            while let Some(msg) = self.stalled[p].pop_front() {
+                let Some(tx) = &self.peers[p] else {
+                    return Err(LinkClosed(p as WorkerId));
+                };
+                match tx.try_send(msg) {
+                    Ok(()) => {}
+                    Err(flume::TrySendError::Full(msg)) => {
+                        self.stalled[p].push_front(msg);
+                        break;
+                    }
+                    Err(flume::TrySendError::Disconnected(_)) => {
+                        return Err(LinkClosed(p as WorkerId));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether any message waits for room.
+    pub fn is_stalled(&self) -> bool {
+        self.stalled.iter().any(|s| !s.is_empty())
+    }
+
+    /// Sends every packet whose oldest item has waited long enough.
+    pub fn flush_due(&mut self, now: Instant) -> Result<(), LinkClosed> {
+        for p in 0..self.out.len() {
+            if self.since[p].is_some_and(|t| now.duration_since(t) >= self.flush_after) {
+                self.send_packet(p)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Sends every packet, full or not.
+    pub fn flush_all(&mut self) -> Result<(), LinkClosed> {
+        for p in 0..self.out.len() {
+            self.send_packet(p)?;
+        }
+        Ok(())
+    }
+
+    /// When the oldest waiting item is due.
+    pub fn next_deadline(&self) -> Option<Instant> {
+        self.since
+            .iter()
+            .flatten()
+            .min()
+            .map(|t| *t + self.flush_after)
+    }
+
+    /// Whether anything is buffered or waiting.
+    pub fn is_empty(&self) -> bool {
+        self.out.iter().all(Vec::is_empty) && !self.is_stalled()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+    use locus_core::path::Answer;
+
+    fn item(k: u32) -> RayItem {
+        RayItem::Answer {
+            to: k,
+            answer: Answer::Radiance(Vec3::splat(k as f32)),
+        }
+    }
+
+    fn items(m: PeerMsg) -> Vec<u32> {
+        match m {
+            PeerMsg::Packet(v) => v
+                .into_iter()
+                .map(|i| match i {
+                    RayItem::Answer { to, .. } => to,
+                    other => panic!("{other:?}"),
+                })
+                .collect(),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn packets_leave_full_due_or_on_flush() {
+        let (tx, rx) = flume::bounded(16);
+        let mut o = Outbox::new(vec![None, Some(tx)], 3, Duration::from_millis(5));
+        let t0 = Instant::now();
+        for k in 0..4 {
+            o.push(1, item(k), t0).unwrap();
+        }
+        assert_eq!(items(rx.try_recv().unwrap()), [0, 1, 2]);
+        assert!(rx.try_recv().is_err(), "a partial packet waits");
+        assert_eq!(o.next_deadline(), Some(t0 + Duration::from_millis(5)));
+        o.flush_due(t0 + Duration::from_millis(4)).unwrap();
+        assert!(rx.try_recv().is_err(), "not due yet");
+        o.flush_due(t0 + Duration::from_millis(5)).unwrap();
+        assert_eq!(items(rx.try_recv().unwrap()), [3]);
+        o.push(1, item(9), t0).unwrap();
+        o.flush_all().unwrap();
+        assert_eq!(items(rx.try_recv().unwrap()), [9]);
+        assert!(o.is_empty());
+        assert_eq!(o.packets, 3);
+    }
+
+    #[test]
+    fn a_full_channel_stalls_in_order_and_drains() {
+        let (tx, rx) = flume::bounded(1);
+        let mut o = Outbox::new(vec![Some(tx), None], 1, Duration::from_millis(1));
+        let now = Instant::now();
+        for k in 0..4 {
+            o.push(0, item(k), now).unwrap();
+        }
+        assert!(o.is_stalled());
+        assert_eq!(o.stalls, 1);
+        let mut got = Vec::new();
+        while got.len() < 4 {
+            got.extend(items(rx.try_recv().unwrap()));
+            o.retry_stalled().unwrap();
+        }
+        assert_eq!(got, [0, 1, 2, 3], "order kept through the stall");
+        assert!(!o.is_stalled());
+        drop(rx);
+        assert_eq!(o.push(0, item(5), now), Err(LinkClosed(0)));
+        // No channel to itself: a bug, reported, not a panic.
+        assert_eq!(o.push(1, item(5), now), Err(LinkClosed(1)));
+    }
+}

@@ -1,0 +1,476 @@
+//! What a worker keeps pending in one job: the camera samples of its tiles,
+//! and the vertices shaded here that wait for answers from other workers.
+//!
+//! A slot is either a camera sample (its radiance goes into the tile) or a
+//! vertex (its shadow answer and its continuation's radiance are awaited;
+//! when both are in, [`ShadedVertex::finish`] gives its radiance, which
+//! answers whoever asked). Answers cascade within the worker without
+//! recursion: a finished vertex answers exactly one asker. A tile is done
+//! when all its samples are in; its pixels are the [`PixelSum`] means, the
+//! same as one machine's.
+
+use glam::Vec3;
+use locus_core::integrator::ShadedVertex;
+use locus_core::path::{Answer, CacheKey, ChainVertex, Child, Dest, PixelSum, Query};
+use locus_core::region::WorkerId;
+use locus_core::stats::TraceStats;
+use locus_protocol::control::{TileAssignment, TileResult};
+use locus_protocol::rays::ReplyTo;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("worker {from} sent an answer for slot {slot}, which is not waiting for one")]
+pub struct UnknownSlot {
+    pub from: WorkerId,
+    pub slot: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Wait<T> {
+    Pending,
+    Done(T),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Slot {
+    Free,
+    Sample {
+        tile: u32,
+        index: u32,
+    },
+    Vertex {
+        reply: ReplyTo,
+        vertex: ShadedVertex,
+        shadow: Wait<bool>,
+        next: Wait<Vec3>,
+        update: Option<CacheKey>,
+    },
+}
+
+struct TileState {
+    a: TileAssignment,
+    values: Vec<Vec3>,
+    remaining: u32,
+    next: u32,
+}
+
+/// What an answer set off besides the slots it filled.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Effect {
+    /// A finished vertex answers an asker on another worker.
+    Reply(ReplyTo, Answer),
+    /// A continuation's radiance, for the directional cache entry that
+    /// asked for it.
+    CacheUpdate(CacheKey, Vec3),
+    TileDone(TileResult),
+}
+
+/// A camera sample to start: where it is and where its radiance goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NewSample {
+    pub x: u32,
+    pub y: u32,
+    pub sample: u32,
+    pub reply: ReplyTo,
+}
+
+pub struct Slots {
+    me: WorkerId,
+    job: u64,
+    spp: u32,
+    slots: Vec<Slot>,
+    free: Vec<u32>,
+    tiles: Vec<Option<TileState>>,
+    samples_open: usize,
+}
+
+impl Slots {
+    pub fn new(me: WorkerId, job: u64, spp: u32) -> Self {
+        Self {
+            me,
+            job,
+            spp: spp.max(1),
+            slots: Vec::new(),
+            free: Vec::new(),
+            tiles: Vec::new(),
+            samples_open: 0,
+        }
+    }
+
+    /// Camera samples started and not yet answered.
+    pub fn samples_open(&self) -> usize {
+        self.samples_open
+    }
+
+    /// Slots waiting for an answer.
+    pub fn pending(&self) -> usize {
+        self.slots.len() - self.free.len()
+    }
+
+    /// Whether a tile is held (started or not).
+    pub fn has_tiles(&self) -> bool {
+        self.tiles.iter().any(Option::is_some)
+    }
+
+    fn alloc(&mut self, s: Slot) -> u32 {
+        match self.free.pop() {
+            Some(i) => {
+                self.slots[i as usize] = s;
+                i
+            }
+            None => {
+                self.slots.push(s);
+                (self.slots.len() - 1) as u32
+            }
+        }
+    }
+
+    fn release(&mut self, slot: u32) {
+        self.slots[slot as usize] = Slot::Free;
+        self.free.push(slot);
+    }
+
+    pub fn add_tile(&mut self, a: TileAssignment) {
+        let n = a.pixels() * self.spp;
+        let st = TileState {
+            a,
+            values: vec![Vec3::ZERO; n as usize],
+            remaining: n,
+            next: 0,
+        };
+        match self.tiles.iter().position(Option::is_none) {
+            Some(i) => self.tiles[i] = Some(st),
+            None => self.tiles.push(Some(st)),
+        }
+    }
+
+    /// The next camera sample of a held tile that has not started, with
+    /// the slot its radiance goes to; pixel by pixel, sample by sample.
+    pub fn start_sample(&mut self) -> Option<NewSample> {
+        let spp = self.spp;
+        let (ti, index, a) = self.tiles.iter_mut().enumerate().find_map(|(i, t)| {
+            let t = t.as_mut()?;
+            if t.next as usize >= t.values.len() {
+                return None;
+            }
+            t.next += 1;
+            Some((i as u32, t.next - 1, t.a))
+        })?;
+        let p = index / spp;
+        let w = a.x1 - a.x0;
+        let slot = self.alloc(Slot::Sample { tile: ti, index });
+        self.samples_open += 1;
+        Some(NewSample {
+            x: a.x0 + p % w,
+            y: a.y0 + p / w,
+            sample: index % spp,
+            reply: ReplyTo {
+                worker: self.me,
+                slot,
+            },
+        })
+    }
+
+    /// Opens a slot per vertex of `chain` (vertex k+1 answers vertex k, the
+    /// first answers `reply`) and lists the children that must be sent on,
+    /// each with the slot its answer goes to.
+    pub fn open_chain(
+        &mut self,
+        reply: ReplyTo,
+        chain: &[ChainVertex],
+        out: &mut Vec<(Dest, Query, f32, ReplyTo)>,
+    ) {
+        let mut parent = reply;
+        for cv in chain {
+            let wait = |c: &Child<bool>| match c {
+                Child::Done(b) => Wait::Done(*b),
+                _ => Wait::Pending,
+            };
+            let slot = self.alloc(Slot::Vertex {
+                reply: parent,
+                vertex: cv.vertex,
+                shadow: wait(&cv.shadow),
+                next: match cv.next {
+                    Child::Done(l) => Wait::Done(l),
+                    _ => Wait::Pending,
+                },
+                update: cv.update,
+            });
+            let mine = ReplyTo {
+                worker: self.me,
+                slot,
+            };
+            if let Child::Forward(d, q, t) = cv.shadow {
+                out.push((d, q, t, mine));
+            }
+            if let Child::Forward(d, q, t) = cv.next {
+                out.push((d, q, t, mine));
+            }
+            parent = mine;
+        }
+    }
+
+    /// Applies answer `a` (from worker `from`) to `slot`, and whatever it
+    /// finishes in turn here; replies to other workers, cache updates and
+    /// finished tiles are pushed to `effects`. Samples are counted into
+    /// `st` as tiles finish.
+    pub fn answer(
+        &mut self,
+        from: WorkerId,
+        slot: u32,
+        a: Answer,
+        effects: &mut Vec<Effect>,
+        st: &mut TraceStats,
+    ) -> Result<(), UnknownSlot> {
+        let mut todo = Some((from, slot, a));
+        while let Some((from, slot, a)) = todo.take() {
+            let bad = UnknownSlot { from, slot };
+            let Some(s) = self.slots.get_mut(slot as usize) else {
+                return Err(bad);
+            };
+            match s {
+                Slot::Free => return Err(bad),
+                Slot::Sample { tile, index } => {
+                    let Answer::Radiance(l) = a else {
+                        return Err(bad);
+                    };
+                    let (tile, index) = (*tile, *index);
+                    self.release(slot);
+                    self.samples_open -= 1;
+                    let Some(t) = self.tiles[tile as usize].as_mut() else {
+                        return Err(bad);
+                    };
+                    t.values[index as usize] = l;
+                    t.remaining -= 1;
+                    if t.remaining == 0 {
+                        let done = self.finish_tile(tile, st);
+                        effects.push(Effect::TileDone(done));
+                    }
+                }
+                Slot::Vertex {
+                    reply,
+                    vertex,
+                    shadow,
+                    next,
+                    update,
+                } => {
+                    match (a, &*shadow, &*next) {
+                        (Answer::Visible(v), Wait::Pending, _) => *shadow = Wait::Done(v),
+                        (Answer::Radiance(l), _, Wait::Pending) => {
+                            *next = Wait::Done(l);
+                            if let Some(k) = *update {
+                                effects.push(Effect::CacheUpdate(k, l));
+                            }
+                        }
+                        _ => return Err(bad),
+                    }
+                    let (Wait::Done(visible), Wait::Done(nl)) = (*shadow, *next) else {
+                        continue;
+                    };
+                    let l = vertex.finish(visible, nl);
+                    let reply = *reply;
+                    self.release(slot);
+                    if reply.worker == self.me {
+                        todo = Some((self.me, reply.slot, Answer::Radiance(l)));
+                    } else {
+                        effects.push(Effect::Reply(reply, Answer::Radiance(l)));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Each pixel's samples summed in index order, as one machine does.
+    fn finish_tile(&mut self, tile: u32, st: &mut TraceStats) -> TileResult {
+        let t = self.tiles[tile as usize]
+            .take()
+            .expect("a tile with samples in flight is held");
+        let spp = self.spp;
+        let pixels = t
+            .values
+            .chunks(spp as usize)
+            .map(|samples| {
+                let mut sum = PixelSum::default();
+                for &l in samples {
+                    sum.add(l, st);
+                }
+                sum.mean(spp)
+            })
+            .collect();
+        TileResult {
+            job: self.job,
+            tile: t.a.tile,
+            pixels,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use locus_core::geometry::Ray;
+    use locus_core::integrator::ShadowRay;
+
+    fn tile(tile: u32, w: u32, h: u32) -> TileAssignment {
+        TileAssignment {
+            job: 9,
+            tile,
+            x0: 10,
+            y0: 20,
+            x1: 10 + w,
+            y1: 20 + h,
+        }
+    }
+
+    fn vertex(e: f32) -> ShadedVertex {
+        ShadedVertex {
+            emitted: Vec3::splat(e),
+            nee: Vec3::splat(1.0),
+            scale: Vec3::splat(0.5),
+        }
+    }
+
+    fn shadow() -> Query {
+        Query::Shadow(ShadowRay {
+            ray: Ray::new(Vec3::ZERO, Vec3::X),
+            t_max: 1.0,
+        })
+    }
+
+    #[test]
+    fn samples_fill_tiles_in_index_order() {
+        let mut s = Slots::new(0, 9, 2);
+        s.add_tile(tile(4, 2, 1));
+        let mut started = Vec::new();
+        while let Some(n) = s.start_sample() {
+            started.push(n);
+        }
+        let xs: Vec<(u32, u32, u32)> = started.iter().map(|n| (n.x, n.y, n.sample)).collect();
+        assert_eq!(xs, [(10, 20, 0), (10, 20, 1), (11, 20, 0), (11, 20, 1)]);
+        assert_eq!(s.samples_open(), 4);
+        let mut fx = Vec::new();
+        let mut st = TraceStats::default();
+        // Answers in any order; the pixel means do not depend on it.
+        for (k, n) in started.iter().enumerate().rev() {
+            let v = if k == 3 { f32::NAN } else { k as f32 };
+            s.answer(
+                0,
+                n.reply.slot,
+                Answer::Radiance(Vec3::splat(v)),
+                &mut fx,
+                &mut st,
+            )
+            .unwrap();
+        }
+        assert_eq!(s.samples_open(), 0);
+        assert_eq!(s.pending(), 0);
+        let Effect::TileDone(t) = &fx[0] else {
+            panic!("{fx:?}")
+        };
+        assert_eq!(t.tile, 4);
+        assert_eq!(t.pixels, vec![[0.5; 3], [1.0; 3]]);
+        assert_eq!((st.samples, st.invalid_samples), (4, 1));
+    }
+
+    #[test]
+    fn chains_cascade_and_reply_once() {
+        let mut s = Slots::new(1, 9, 1);
+        s.add_tile(tile(0, 1, 1));
+        let n = s.start_sample().unwrap();
+        // Vertex 0: shadow forwarded, continuation is vertex 1; vertex 1:
+        // shadow done, continuation forwarded with a cache entry to update.
+        let chain = [
+            ChainVertex {
+                vertex: vertex(1.0),
+                shadow: Child::Forward(Dest::Peer(2), shadow(), 0.5),
+                next: Child::Deeper,
+                update: None,
+            },
+            ChainVertex {
+                vertex: vertex(2.0),
+                shadow: Child::Done(false),
+                next: Child::Forward(Dest::Peer(0), shadow(), 0.25),
+                update: Some((7, Vec3::Y)),
+            },
+        ];
+        let mut out = Vec::new();
+        s.open_chain(n.reply, &chain, &mut out);
+        assert_eq!(out.len(), 2);
+        assert_eq!(s.pending(), 3);
+        let (mut fx, mut st) = (Vec::new(), TraceStats::default());
+        // Vertex 1's continuation: L1 = (2 + 0) + 0.5 * 4 = 4; vertex 0
+        // still waits for its shadow.
+        s.answer(
+            0,
+            out[1].3.slot,
+            Answer::Radiance(Vec3::splat(4.0)),
+            &mut fx,
+            &mut st,
+        )
+        .unwrap();
+        assert_eq!(
+            fx,
+            vec![Effect::CacheUpdate((7, Vec3::Y), Vec3::splat(4.0))]
+        );
+        // The same slot again is refused: it is free now.
+        assert!(
+            s.answer(
+                0,
+                out[1].3.slot,
+                Answer::Radiance(Vec3::ONE),
+                &mut fx,
+                &mut st
+            )
+            .is_err()
+        );
+        fx.clear();
+        // Shadow of vertex 0 visible: L0 = (1 + 1) + 0.5 * 4 = 4, and the
+        // sample (a tile of one pixel) is done.
+        s.answer(2, out[0].3.slot, Answer::Visible(true), &mut fx, &mut st)
+            .unwrap();
+        let Effect::TileDone(t) = &fx[0] else {
+            panic!("{fx:?}")
+        };
+        assert_eq!(t.pixels, vec![[4.0; 3]]);
+        assert_eq!(s.pending(), 0);
+    }
+
+    #[test]
+    fn a_vertex_asked_by_another_worker_replies_there() {
+        let mut s = Slots::new(1, 9, 1);
+        let asker = ReplyTo {
+            worker: 3,
+            slot: 77,
+        };
+        let chain = [ChainVertex {
+            vertex: vertex(0.0),
+            shadow: Child::Done(true),
+            next: Child::Forward(Dest::Peer(0), shadow(), 0.0),
+            update: None,
+        }];
+        let mut out = Vec::new();
+        s.open_chain(asker, &chain, &mut out);
+        let (mut fx, mut st) = (Vec::new(), TraceStats::default());
+        // A wrong kind of answer is refused.
+        assert!(
+            s.answer(0, out[0].3.slot, Answer::Visible(true), &mut fx, &mut st)
+                .is_err()
+        );
+        s.answer(
+            0,
+            out[0].3.slot,
+            Answer::Radiance(Vec3::ONE),
+            &mut fx,
+            &mut st,
+        )
+        .unwrap();
+        assert_eq!(
+            fx,
+            vec![Effect::Reply(asker, Answer::Radiance(Vec3::splat(1.5)))]
+        );
+        assert!(
+            s.answer(0, 12345, Answer::Visible(true), &mut fx, &mut st)
+                .is_err()
+        );
+    }
+}

@@ -1,0 +1,245 @@
+//! Setting up one job on a worker: checking what the scheduler sent,
+//! building the region's BVH part by part as the parts arrive, linking to
+//! every peer, and starting the [`crate::engine`] on its own thread.
+
+use crate::engine::{self, EngineJob, Event, Links};
+use crate::peers::{self, JobLink, Traffic};
+use crate::sys;
+use anyhow::{Context, bail};
+use locus_core::accel::Accel;
+use locus_core::accel_set::Part;
+use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
+use locus_protocol::report::WorkerStats;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+/// Capacity of the engine's event channel: enough to keep the engine fed
+/// while it traces; a full channel stops the socket readers, which is TCP
+/// backpressure on the senders.
+const EVENTS: usize = 256;
+/// Capacity of each outgoing peer channel, in packets.
+const PEER_OUT: usize = 64;
+
+/// A job whose region is arriving.
+pub struct Building {
+    pub setup: Box<JobSetup>,
+    pub parts: Vec<Arc<Part>>,
+    pub received: u64,
+    pub bvh_s: f64,
+    /// Process CPU seconds when the job started (a daemon's own process).
+    pub cpu0: f64,
+}
+
+impl Building {
+    /// Checks a job's setup before any geometry is accepted.
+    pub fn new(setup: Box<JobSetup>, dedicated: bool) -> anyhow::Result<Self> {
+        check_setup(&setup)?;
+        if dedicated {
+            // The job's peak is measured from here.
+            sys::reset_peak();
+        }
+        Ok(Self {
+            setup,
+            parts: Vec::new(),
+            received: 0,
+            bvh_s: 0.0,
+            cpu0: if dedicated { sys::process_cpu_s() } else { 0.0 },
+        })
+    }
+
+    /// Checks one part of the region and builds its BVH off the runtime.
+    pub async fn add_part(&mut self, leaves: Vec<u32>, chunk: TriangleSet) -> anyhow::Result<()> {
+        let s = &self.setup;
+        if !chunk.is_consistent() {
+            bail!("a region part's lists differ in length");
+        }
+        self.received += chunk.len() as u64;
+        if self.received > s.region_triangles {
+            bail!(
+                "the region holds more than the {} triangles announced",
+                s.region_triangles
+            );
+        }
+        if chunk
+            .material
+            .iter()
+            .any(|&m| m as usize >= s.materials.len())
+        {
+            bail!("region geometry names a material the job does not define");
+        }
+        if chunk.verts.iter().flatten().any(|p| !p.is_finite()) {
+            bail!("region geometry has a non-finite vertex");
+        }
+        if !chunk.ids.is_sorted_by(|a, b| a < b) {
+            bail!("a region part's triangle ids are not ascending and distinct");
+        }
+        if !leaves.is_sorted_by(|a, b| a < b)
+            || leaves
+                .iter()
+                .any(|&l| s.map.owner.get(l as usize) != Some(&s.me))
+        {
+            bail!("a region part names leaves that are not ascending or not this worker's");
+        }
+        let (mag, t) = (s.magnitude, Instant::now());
+        let part = tokio::task::spawn_blocking(move || {
+            Arc::new(Part::new(Accel::from_set(chunk, mag), leaves))
+        })
+        .await?;
+        self.bvh_s += t.elapsed().as_secs_f64();
+        self.parts.push(part);
+        Ok(())
+    }
+}
+
+fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
+    let n = s.peers.len();
+    if s.map.owner.iter().any(|&o| o as usize >= n) || s.me as usize >= n {
+        bail!("processor map names a worker outside the job");
+    }
+    if !s.own_leaves.is_sorted_by(|a, b| a.0 < b.0)
+        || s.own_leaves
+            .iter()
+            .any(|(l, _)| s.map.owner.get(*l as usize) != Some(&s.me))
+    {
+        bail!("the list of own leaves is not ascending or names a leaf of another worker");
+    }
+    if s.leaf_tris.len() != s.map.owner.len() {
+        bail!("one triangle count per leaf expected");
+    }
+    if let Some(c) = &s.cache {
+        c.check()
+            .map_err(|e| anyhow::anyhow!("cache parameters: {e}"))?;
+    }
+    Ok(())
+}
+
+/// What starting a job needs from the daemon.
+pub struct Env<'a> {
+    pub token: &'a [u8],
+    pub pool: &'a Arc<rayon::ThreadPool>,
+    pub control: &'a flume::Sender<WorkerToScheduler>,
+    pub links: &'a watch::Sender<Option<Arc<JobLink>>>,
+    pub dedicated: bool,
+}
+
+/// Links to every peer and starts the engine on the built region.
+pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
+    let Building {
+        setup,
+        parts,
+        bvh_s,
+        cpu0,
+        received,
+    } = b;
+    if received != setup.region_triangles {
+        bail!(
+            "the region ended after {received} of the {} triangles announced",
+            setup.region_triangles
+        );
+    }
+    let n = setup.peers.len();
+    let me = setup.me;
+    let job = setup.job;
+    info!(
+        job,
+        me,
+        parts = parts.len(),
+        triangles = received,
+        bvh_s,
+        "region built"
+    );
+    let cancel = CancellationToken::new();
+    let traffic = Arc::new(Traffic::new(n));
+    let (events_tx, events_rx) = flume::bounded::<Event>(EVENTS);
+    let link = Arc::new(JobLink {
+        job,
+        inbox: events_tx.clone(),
+        traffic: traffic.clone(),
+        cancel: cancel.clone(),
+    });
+    // Publish before dialing: peers dial us at the same time.
+    env.links.send_replace(Some(link.clone()));
+
+    let mut outs = Vec::with_capacity(n);
+    let mut writers = Vec::with_capacity(n);
+    for (w, addr) in setup.peers.iter().enumerate() {
+        if w == me as usize {
+            outs.push(None);
+            continue;
+        }
+        let (tx, rx) = flume::bounded(PEER_OUT);
+        let h = peers::dial(
+            addr,
+            env.token,
+            job,
+            me,
+            w as u16,
+            rx,
+            traffic.clone(),
+            cancel.clone(),
+        )
+        .await
+        .with_context(|| format!("linking to peer {w} at {addr}"))?;
+        writers.push(h);
+        outs.push(Some(tx));
+    }
+
+    let ej = Arc::new(EngineJob::new(*setup));
+    let links = Links {
+        peers: outs,
+        control: env.control.clone(),
+    };
+    let (pool, ctl, dedicated) = (env.pool.clone(), env.control.clone(), env.dedicated);
+    tokio::spawn(async move {
+        let res = tokio::task::spawn_blocking(move || {
+            engine::run(ej, parts, &pool, (events_tx, events_rx), links)
+        })
+        .await;
+        // The engine dropped its senders; a writer's byte count is final
+        // once its last write returned.
+        for h in writers {
+            let _ = tokio::time::timeout(Duration::from_secs(10), h).await;
+        }
+        let msg = match res {
+            Ok(Ok(mut stats)) => {
+                stats.bvh_build_s = bvh_s;
+                if dedicated {
+                    stats.cpu_s = sys::process_cpu_s() - cpu0;
+                    stats.peak_rss = sys::peak_resident_bytes().unwrap_or(0);
+                }
+                add_traffic(&mut stats, &traffic);
+                WorkerToScheduler::Report {
+                    job,
+                    stats: Box::new(stats),
+                }
+            }
+            Ok(Err(e)) => {
+                warn!(job, "job failed: {e}");
+                WorkerToScheduler::Failed {
+                    job,
+                    reason: e.to_string(),
+                }
+            }
+            Err(e) => WorkerToScheduler::Failed {
+                job,
+                reason: format!("engine crashed: {e}"),
+            },
+        };
+        let _ = ctl.send_async(msg).await;
+        cancel.cancel();
+    });
+    env.control
+        .send_async(WorkerToScheduler::Ready { job })
+        .await
+        .context("scheduler link closed")?;
+    Ok(link)
+}
+
+fn add_traffic(stats: &mut WorkerStats, t: &Traffic) {
+    for (p, c) in stats.peers.iter_mut().zip(t.snapshot()) {
+        *p = c;
+    }
+}

@@ -1,0 +1,309 @@
+//! What a worker can trace in one job: its reach.
+//!
+//! A [`Reach`] is an immutable snapshot: the BVH parts over the worker's
+//! own region and every fetched leaf merged so far ([`AccelSet`]), the
+//! fetched leaves still waiting to be merged (each traced through its own
+//! small BVH), and the octree collapsed over a [`Label`] per leaf: `Local`
+//! for what the parts hold, `Pending` for waiting leaves, `Remote` for the
+//! rest. Tracing batches hold a snapshot while the engine makes the next
+//! one, so a snapshot never changes under a ray.
+//!
+//! Merging is how fetched geometry comes to cost what the worker's own
+//! does: [`merge`] rebuilds only the parts whose run of leaves (in leaf
+//! order, which is Morton order) the new leaves fall into, splitting a part
+//! that grows past the part size, so no build needs more memory than the
+//! worker's plan allows. With every leaf held, the route is a single local
+//! node and a worker traces exactly as one machine does.
+
+use crate::fetch::FetchedLeaf;
+use locus_core::accel::Accel;
+use locus_core::accel_set::{AccelSet, Part};
+use locus_core::geometry::TriangleSet;
+use locus_core::octree::Octree;
+use locus_core::region::{Route, WorkerId};
+use std::sync::Arc;
+
+/// How a worker sees a leaf.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Label {
+    /// Its triangles are in the BVH parts.
+    Local,
+    /// Fetched, traced through `pending[i]`'s own BVH until merged.
+    Pending(u32),
+    /// Another worker's. `leaf` is `u32::MAX` when the job never fetches,
+    /// so that a whole remote subtree of one owner collapses to one node.
+    Remote { owner: WorkerId, leaf: u32 },
+}
+
+pub struct Reach {
+    pub accel: AccelSet,
+    pub route: Route<Label>,
+    pub pending: Vec<Arc<FetchedLeaf>>,
+}
+
+impl Reach {
+    /// The snapshot for parts `accel` holding the leaves marked in `local`,
+    /// and `pending` fetched leaves. With `per_leaf` remote leaves keep
+    /// their identity (a fetch policy asks for them by leaf).
+    pub fn new(
+        tree: &Octree,
+        owner: &[WorkerId],
+        local: &[bool],
+        accel: AccelSet,
+        pending: Vec<Arc<FetchedLeaf>>,
+        per_leaf: bool,
+    ) -> Self {
+        let mut label: Vec<Label> = owner
+            .iter()
+            .enumerate()
+            .map(|(l, &o)| {
+                if local[l] {
+                    Label::Local
+                } else {
+                    Label::Remote {
+                        owner: o,
+                        leaf: if per_leaf { l as u32 } else { u32::MAX },
+                    }
+                }
+            })
+            .collect();
+        for (i, p) in pending.iter().enumerate() {
+            label[p.leaf as usize] = Label::Pending(i as u32);
+        }
+        Self {
+            accel,
+            route: Route::new(tree, &label),
+            pending,
+        }
+    }
+}
+
+/// Where a leaf's triangles are found while parts are rebuilt.
+pub struct LeafSource<'a> {
+    pub leaf: u32,
+    /// The leaf's triangle ids.
+    pub ids: &'a [u32],
+    /// A BVH holding them.
+    pub accel: &'a Accel,
+}
+
+/// One part over `run`, its triangles gathered from their sources and
+/// each kept once.
+fn build_run(run: &[LeafSource], magnitude: f32) -> Arc<Part> {
+    let n: usize = run.iter().map(|s| s.ids.len()).sum();
+    let mut tris: Vec<(u32, [glam::Vec3; 3], u32)> = Vec::with_capacity(n);
+    for s in run {
+        for &id in s.ids {
+            if let Some(p) = s.accel.find(id) {
+                let (v, m) = s.accel.triangle(p);
+                tris.push((id, v, m));
+            }
+        }
+    }
+    tris.sort_unstable_by_key(|t| t.0);
+    tris.dedup_by_key(|t| t.0);
+    let mut set = TriangleSet::with_capacity(tris.len());
+    for (id, v, m) in tris {
+        set.push(id, v, m);
+    }
+    let leaves = run.iter().map(|s| s.leaf).collect();
+    Arc::new(Part::new(Accel::from_set(set, magnitude), leaves))
+}
+
+/// Merges `new` leaves (ascending, none of them in `parts`) into `parts`
+/// (whose leaf runs ascend and do not overlap): a new leaf joins the part
+/// whose run it falls in, else the part before it, else the first. Parts
+/// that get no new leaf are kept as they are; the others are rebuilt, cut
+/// into runs of at most `max_part` triangles. `ids(leaf)` gives any
+/// involved leaf's triangle ids; a new leaf's triangles come from its own
+/// BVH. Returns the new parts and the triangles built.
+pub fn merge(
+    parts: &[Arc<Part>],
+    new: &[Arc<FetchedLeaf>],
+    ids: &dyn Fn(u32) -> Option<Arc<[u32]>>,
+    max_part: usize,
+    magnitude: f32,
+) -> (Vec<Arc<Part>>, usize) {
+    if parts.is_empty() {
+        // A worker without a region: the new leaves are its first parts.
+        let sources: Vec<(Arc<[u32]>, &FetchedLeaf)> = new
+            .iter()
+            .map(|f| (Arc::from(f.ids.as_slice()), f.as_ref()))
+            .collect();
+        let run: Vec<LeafSource> = sources
+            .iter()
+            .map(|(i, f)| LeafSource {
+                leaf: f.leaf,
+                ids: i,
+                accel: &f.accel,
+            })
+            .collect();
+        return cut_run(&run, max_part, magnitude);
+    }
+    // Which part each new leaf joins.
+    let mut joins: Vec<Vec<&FetchedLeaf>> = vec![Vec::new(); parts.len()];
+    for f in new {
+        let k = parts
+            .iter()
+            .rposition(|p| p.leaves.first().is_some_and(|&first| first <= f.leaf))
+            .unwrap_or(0);
+        joins[k].push(f);
+    }
+    let mut out = Vec::with_capacity(parts.len());
+    let mut built = 0;
+    for (p, add) in parts.iter().zip(joins) {
+        if add.is_empty() {
+            out.push(p.clone());
+            continue;
+        }
+        let old: Vec<(u32, Arc<[u32]>)> = p
+            .leaves
+            .iter()
+            .filter_map(|&l| Some((l, ids(l)?)))
+            .collect();
+        let mut run: Vec<LeafSource> = old
+            .iter()
+            .map(|(l, i)| LeafSource {
+                leaf: *l,
+                ids: i,
+                accel: &p.accel,
+            })
+            .chain(add.iter().map(|f| LeafSource {
+                leaf: f.leaf,
+                ids: &f.ids,
+                accel: &f.accel,
+            }))
+            .collect();
+        run.sort_by_key(|s| s.leaf);
+        let (mut parts, n) = cut_run(&run, max_part, magnitude);
+        built += n;
+        out.append(&mut parts);
+    }
+    (out, built)
+}
+
+/// Builds `run` (ascending leaves) as parts of at most `max_part`
+/// triangles each (counting repeats, the safe side for memory); returns
+/// them and the triangles built.
+pub fn cut_run(run: &[LeafSource], max_part: usize, magnitude: f32) -> (Vec<Arc<Part>>, usize) {
+    let mut out = Vec::new();
+    let mut built = 0;
+    let mut start = 0;
+    let mut count = 0;
+    for (i, s) in run.iter().enumerate() {
+        if i > start && count + s.ids.len() > max_part.max(1) {
+            let p = build_run(&run[start..i], magnitude);
+            built += p.accel.len();
+            out.push(p);
+            start = i;
+            count = 0;
+        }
+        count += s.ids.len();
+    }
+    if start < run.len() {
+        let p = build_run(&run[start..], magnitude);
+        built += p.accel.len();
+        out.push(p);
+    }
+    (out, built)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+    use locus_core::octree::OctreeParams;
+    use locus_core::sampler::SampleKey;
+    use locus_core::stats::TraceStats;
+
+    /// Merging fetched leaves into parts in any grouping gives the hits of
+    /// one BVH over the same leaves, keeps untouched parts and respects the
+    /// part size.
+    #[test]
+    fn merged_parts_answer_as_one_bvh() {
+        let tris: Vec<[Vec3; 3]> = (0..4000u64)
+            .map(|i| {
+                let k = SampleKey::new(i, 0, 3);
+                let p = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 10.0;
+                [
+                    p,
+                    p + Vec3::new(k.get1d(3), 0.0, 0.4),
+                    p + Vec3::new(0.0, k.get1d(4), 0.3),
+                ]
+            })
+            .collect();
+        let oct = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 24,
+                max_depth: 6,
+            },
+        );
+        let n = oct.leaves.len() as u32;
+        let leaf_ids = |l: u32| -> Option<Arc<[u32]>> {
+            Some(Arc::from(oct.leaves.get(l as usize)?.tris.as_slice()))
+        };
+        let fetched = |l: u32| {
+            let ids = &oct.leaves[l as usize].tris;
+            let set = TriangleSet {
+                ids: ids.clone(),
+                verts: ids.iter().map(|&i| tris[i as usize]).collect(),
+                material: vec![0; ids.len()],
+            };
+            Arc::new(FetchedLeaf::build(l, set, 12.0))
+        };
+        // Own: every third leaf, as parts of 150 triangles.
+        let own: Vec<(u32, &[u32])> = (0..n)
+            .filter(|l| l % 3 == 0)
+            .map(|l| (l, oct.leaves[l as usize].tris.as_slice()))
+            .collect();
+        let tri = |id: u32| (tris[id as usize], 0);
+        let mut parts = locus_core::accel_set::build_parts(&own, 150, 12.0, &tri);
+        let first = parts.len();
+        // Fetch the rest in two rounds.
+        for round in [1u32, 2] {
+            let new: Vec<Arc<FetchedLeaf>> =
+                (0..n).filter(|l| l % 3 == round).map(fetched).collect();
+            let before = parts.clone();
+            let (p, built) = merge(&parts, &new, &leaf_ids, 150, 12.0);
+            assert!(built > 0);
+            // Parts no new leaf fell into are the same objects.
+            let kept = p
+                .iter()
+                .filter(|x| before.iter().any(|b| Arc::ptr_eq(b, x)))
+                .count();
+            assert!(p.len() >= first && kept < p.len());
+            parts = p;
+            for x in &parts {
+                let own_ids: usize = x
+                    .leaves
+                    .iter()
+                    .map(|&l| oct.leaves[l as usize].tris.len())
+                    .sum();
+                assert!(
+                    x.leaves.len() == 1 || own_ids <= 150,
+                    "a part of {own_ids} references"
+                );
+                assert!(x.leaves.is_sorted());
+            }
+        }
+        let all: Vec<u32> = (0..tris.len() as u32).collect();
+        let one = Accel::build(&tris, &all, 12.0);
+        let set = AccelSet::from_parts(parts);
+        let mut st = TraceStats::default();
+        let mut hits = 0;
+        for i in 0..3000u64 {
+            let k = SampleKey::new(i, 1, 4);
+            let o = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 10.0;
+            let d = (Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) - 0.5).normalize();
+            let r = locus_core::geometry::Ray::new(o, d);
+            let a = one.intersect(&r, 0.0, f32::INFINITY, &mut st);
+            let b = set
+                .closest(&r, 0.0, f32::INFINITY, &mut st)
+                .map(|h| h.hit.hit);
+            assert_eq!(a, b, "ray {i}");
+            hits += a.is_some() as usize;
+        }
+        assert!(hits > 1000);
+    }
+}
