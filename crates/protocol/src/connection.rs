@@ -13,7 +13,7 @@ use serde::de::DeserializeOwned;
 use std::net::SocketAddr;
 use tokio::net::TcpStream;
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
-use tokio_util::codec::{Framed, FramedRead, FramedWrite, LengthDelimitedCodec};
+use tokio_util::codec::{Framed, FramedParts, FramedWrite, LengthDelimitedCodec};
 
 /// Bytes a frame occupies on the wire besides its payload.
 pub const FRAME_HEADER_LEN: usize = 4;
@@ -25,7 +25,12 @@ pub struct Connection {
 }
 
 pub struct ConnReader {
-    framed: FramedRead<OwnedReadHalf, LengthDelimitedCodec>,
+    /// A `Framed` over the read half only: built from the whole
+    /// connection's parts, it decodes bytes already buffered before it
+    /// reads the socket again (a `FramedRead` with a pre-filled buffer
+    /// waits for new bytes first, which strands a frame that arrived
+    /// together with the one read before the split).
+    framed: Framed<OwnedReadHalf, LengthDelimitedCodec>,
     peer: SocketAddr,
     max_frame: usize,
 }
@@ -140,8 +145,9 @@ impl Connection {
     pub fn into_split(self) -> (ConnReader, ConnWriter) {
         let parts = self.framed.into_parts();
         let (rd, wr) = parts.io.into_split();
-        let mut reader = FramedRead::new(rd, parts.codec);
-        reader.read_buffer_mut().extend_from_slice(&parts.read_buf);
+        let mut read = FramedParts::new::<bytes::Bytes>(rd, parts.codec);
+        read.read_buf = parts.read_buf;
+        let reader = Framed::from_parts(read);
         (
             ConnReader {
                 framed: reader,

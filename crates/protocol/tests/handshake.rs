@@ -172,3 +172,38 @@ proptest! {
         let _ = postcard::from_bytes::<Handshake>(&b);
     }
 }
+
+/// Two frames that arrive in one segment: the first read on the whole
+/// connection, the second after `into_split`, while the peer sends nothing
+/// more and waits (as a worker waits for the answer to its only packet).
+/// A reader that looked at the socket before its buffer would wait forever.
+#[tokio::test]
+async fn a_frame_buffered_before_the_split_is_read_after_it() {
+    let (l, addr) = pair().await;
+    let client = tokio::spawn(async move {
+        let mut s = TcpStream::connect(addr).await.unwrap();
+        let mut bytes = Vec::new();
+        for v in [7u32, 1234567] {
+            let body = postcard::to_stdvec(&v).unwrap();
+            bytes.extend_from_slice(&(body.len() as u32).to_be_bytes());
+            bytes.extend_from_slice(&body);
+        }
+        s.write_all(&bytes).await.unwrap();
+        // Keep the connection open and silent until the server is done.
+        tokio::time::sleep(std::time::Duration::from_secs(5)).await;
+        drop(s);
+    });
+    let (s, _) = l.accept().await.unwrap();
+    let mut c = Connection::new(s, MAX_FRAME_LEN).unwrap();
+    assert_eq!(c.read_msg::<u32>("first").await.unwrap(), Some(7));
+    let (mut r, _w) = c.into_split();
+    let second = tokio::time::timeout(
+        std::time::Duration::from_secs(2),
+        r.read_msg::<u32>("second"),
+    )
+    .await
+    .expect("the buffered frame is read without waiting for more bytes")
+    .unwrap();
+    assert_eq!(second.map(|(v, _)| v), Some(1234567));
+    client.abort();
+}

@@ -191,6 +191,8 @@ pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
     let links = Links {
         peers: outs,
         control: env.control.clone(),
+        traffic: traffic.clone(),
+        cancel: cancel.clone(),
     };
     let (pool, ctl, dedicated) = (env.pool.clone(), env.control.clone(), env.dedicated);
     tokio::spawn(async move {

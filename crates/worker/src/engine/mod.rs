@@ -139,6 +139,11 @@ pub struct Links {
     /// One bounded channel per peer (None for this worker itself).
     pub peers: Vec<Option<flume::Sender<PeerMsg>>>,
     pub control: flume::Sender<WorkerToScheduler>,
+    /// What the sockets counted, for reports of a stalled job.
+    pub traffic: Arc<crate::peers::Traffic>,
+    /// Cancelled when the job is aborted or the worker shuts down: the
+    /// engine stops at its next turn.
+    pub cancel: tokio_util::sync::CancellationToken,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -153,6 +158,8 @@ pub enum EngineError {
     LinkClosed(&'static str),
     #[error("the scheduler ended the job with {0} queries still pending")]
     EndedEarly(usize),
+    #[error("the job was cancelled")]
+    Cancelled,
     #[error("worker {from} asked for leaf {leaf}, which this worker does not own")]
     NotMyLeaf { from: WorkerId, leaf: u32 },
     #[error("worker {from} sent geometry for leaf {leaf}: {why}")]
@@ -179,6 +186,9 @@ const CROSSING_IN_BUILDS: u64 = 1;
 /// Leaves waiting longer than this are merged whatever their crossings, so
 /// that a job's end does not leave fetched leaves on the slow path.
 const MERGE_AFTER: Duration = Duration::from_millis(500);
+/// A worker that has heard nothing for this long while work is pending
+/// says what it waits for.
+const STALL_REPORT: Duration = Duration::from_secs(5);
 
 /// The builder thread: merges pending leaves into BVH parts off the
 /// engine's thread, one merge at a time.
@@ -283,6 +293,9 @@ struct Engine<'a> {
     stats: WorkerStats,
     effects: Vec<Effect>,
     children: Vec<(Dest, Query, f32, ReplyTo)>,
+    traffic: Arc<crate::peers::Traffic>,
+    /// Packets received from each peer.
+    received: Vec<u64>,
     // What this worker can trace.
     reach: Arc<Reach>,
     parts: Vec<Arc<Part>>,
@@ -361,6 +374,8 @@ pub fn run(
         },
         effects: Vec::new(),
         children: Vec::new(),
+        traffic: links.traffic.clone(),
+        received: vec![0; job.workers],
         reach,
         parts,
         local,
@@ -378,6 +393,7 @@ pub fn run(
         now: Instant::now(),
     };
     drop(events_tx);
+    let cancel = links.cancel.clone();
     let max_out = pool.current_num_threads() + 1;
     e.control(WorkerToScheduler::NeedTiles {
         job: s.job,
@@ -391,7 +407,12 @@ pub fn run(
         let inbox = inbox;
         let mut idle = Duration::ZERO;
         let mut out = 0usize;
+        let mut last_event = Instant::now();
+        let mut warned = false;
         loop {
+            if cancel.is_cancelled() {
+                return Err(EngineError::Cancelled);
+            }
             e.outbox.retry_stalled()?;
             if !e.outbox.is_stalled() {
                 e.originate();
@@ -442,6 +463,13 @@ pub fn run(
                     return Err(EngineError::LinkClosed("the worker's inbox"));
                 }
             };
+            if next.is_some() {
+                last_event = e.now;
+                warned = false;
+            } else if !warned && e.now.duration_since(last_event) > STALL_REPORT {
+                warned = true;
+                e.report_stall(out);
+            }
             let mut handled = 0;
             while let Some(ev) = next.take() {
                 handled += 1;
@@ -510,6 +538,9 @@ impl<'a> Engine<'a> {
     {
         match i {
             Input::Packet { from, items } => {
+                if let Some(r) = self.received.get_mut(from as usize) {
+                    *r += 1;
+                }
                 for it in items {
                     match it {
                         RayItem::Trace {
@@ -689,12 +720,26 @@ impl<'a> Engine<'a> {
         self.held_peak = self.held_peak.max(self.held);
         self.stats.fetch_requests += 1;
         self.waiting.insert(leaf, vec![w]);
+        tracing::debug!(
+            job = job.setup.job,
+            me = job.setup.me,
+            leaf,
+            owner,
+            "fetch sent"
+        );
         Ok(self.outbox.send(owner, PeerMsg::Fetch(vec![leaf]))?)
     }
 
     /// Ships the geometry of our leaves that a peer asked for.
     fn serve(&mut self, from: WorkerId, leaves: Vec<u32>) -> Result<(), EngineError> {
         let job = self.job;
+        tracing::debug!(
+            job = job.setup.job,
+            me = job.setup.me,
+            from,
+            ?leaves,
+            "fetch received"
+        );
         for leaf in leaves {
             let Some(ids) = job.own_ids(leaf) else {
                 return Err(EngineError::NotMyLeaf { from, leaf });
@@ -731,6 +776,13 @@ impl<'a> Engine<'a> {
     {
         let job = self.job;
         let leaf = lg.leaf;
+        tracing::debug!(
+            job = job.setup.job,
+            me = job.setup.me,
+            from,
+            leaf,
+            "leaf received"
+        );
         let bad = |why| EngineError::BadLeaf { from, leaf, why };
         if job.setup.map.owner.get(leaf as usize) != Some(&from) {
             return Err(bad("the sender does not own it"));
@@ -859,6 +911,29 @@ impl<'a> Engine<'a> {
             s.fetch != FetchPolicy::Forward,
         ));
         self.reach_dirty = false;
+    }
+
+    fn report_stall(&self, out: usize) {
+        let waiting: Vec<(u32, usize)> = self.waiting.iter().map(|(l, w)| (*l, w.len())).collect();
+        tracing::warn!(
+            job = self.job.setup.job,
+            me = self.job.setup.me,
+            pending_slots = self.slots.pending(),
+            samples_open = self.slots.samples_open(),
+            has_tiles = self.slots.has_tiles(),
+            work = self.work.len(),
+            batches_out = out,
+            ?waiting,
+            building = self.building,
+            pending_leaves = self.pending.len(),
+            merging = self.builder.busy,
+            outbox_empty = self.outbox.is_empty(),
+            packets_sent = ?self.outbox.sent,
+            packets_received = ?self.received,
+            socket = ?self.traffic.snapshot().iter().map(|t| (t.msgs_sent, t.msgs_recv)).collect::<Vec<_>>(),
+            "no event for {} s with work pending",
+            STALL_REPORT.as_secs()
+        );
     }
 
     fn finish(&mut self, total: Duration, idle: Duration) -> WorkerStats {

@@ -34,6 +34,8 @@ pub struct Outbox {
     pub stalls: u64,
     /// Packets sent, for reports.
     pub packets: u64,
+    /// Messages handed to each peer's channel.
+    pub sent: Vec<u64>,
 }
 
 impl Outbox {
@@ -53,6 +55,7 @@ impl Outbox {
             flush_after,
             stalls: 0,
             packets: 0,
+            sent: vec![0; n],
         }
     }
 
@@ -91,7 +94,10 @@ impl Outbox {
             return Err(LinkClosed(peer));
         };
         match tx.try_send(msg) {
-            Ok(()) => Ok(()),
+            Ok(()) => {
+                self.sent[p] += 1;
+                Ok(())
+            }
             Err(flume::TrySendError::Full(msg)) => {
                 self.stalls += 1;
                 self.stalled[p].push_back(msg);
@@ -109,7 +115,7 @@ impl Outbox {
                     return Err(LinkClosed(p as WorkerId));
                 };
                 match tx.try_send(msg) {
-                    Ok(()) => {}
+                    Ok(()) => self.sent[p] += 1,
                     Err(flume::TrySendError::Full(msg)) => {
                         self.stalled[p].push_front(msg);
                         break;
