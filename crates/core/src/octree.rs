@@ -74,16 +74,83 @@ impl Octree {
             .max(1e-30)
             * 1.01;
         let bounds = Bounds::new(c - Vec3::splat(half), c + Vec3::splat(half));
-        let mut tree = Octree {
-            bounds,
-            nodes: vec![Node::Leaf { leaf: 0 }],
-            node_bounds: vec![bounds],
-            leaves: Vec::new(),
-            params,
-        };
         let all: Vec<u32> = (0..tris.len() as u32).collect();
-        tree.subdivide(0, bounds, all, 0, tris);
-        tree
+        let sub = Self::build_sub(bounds, all, 0, tris, params);
+        Octree {
+            bounds,
+            nodes: sub.nodes,
+            node_bounds: sub.node_bounds,
+            leaves: sub.leaves,
+            params,
+        }
+    }
+
+    /// The subtree over `refs` in box `b`: its top levels in parallel,
+    /// each child built on its own and spliced in child order, which lays
+    /// out nodes and leaves exactly as the sequential build does.
+    fn build_sub(
+        b: Bounds,
+        refs: Vec<u32>,
+        depth: u32,
+        tris: &[[Vec3; 3]],
+        params: OctreeParams,
+    ) -> Sub {
+        let split = refs.len() > params.max_leaf_tris && depth < params.max_depth;
+        if !split || depth >= PARALLEL_DEPTH {
+            let mut t = Octree {
+                bounds: b,
+                nodes: vec![Node::Leaf { leaf: 0 }],
+                node_bounds: vec![b],
+                leaves: Vec::new(),
+                params,
+            };
+            t.subdivide(0, b, refs, depth, tris);
+            return Sub {
+                nodes: t.nodes,
+                node_bounds: t.node_bounds,
+                leaves: t.leaves,
+            };
+        }
+        use rayon::prelude::*;
+        let children: Vec<Sub> = (0..8)
+            .into_par_iter()
+            .map(|i| {
+                let cb = child_bounds(&b, i);
+                let inflated = inflate(&cb);
+                let sub: Vec<u32> = refs
+                    .iter()
+                    .copied()
+                    .filter(|&t| tri_box_overlap(&tris[t as usize], &inflated))
+                    .collect();
+                Self::build_sub(cb, sub, depth + 1, tris, params)
+            })
+            .collect();
+        let mut out = Sub {
+            nodes: vec![Node::Interior { first_child: 1 }],
+            node_bounds: vec![b],
+            leaves: Vec::new(),
+        };
+        out.nodes.extend([Node::Leaf { leaf: u32::MAX }; 8]);
+        out.node_bounds.extend((0..8).map(|i| child_bounds(&b, i)));
+        for (k, c) in children.into_iter().enumerate() {
+            // Child k's root goes to slot 1 + k, its descendants after
+            // everything placed so far.
+            let base = out.nodes.len() as u32;
+            let leaf_base = out.leaves.len() as u32;
+            let map = |n: Node| match n {
+                Node::Interior { first_child } => Node::Interior {
+                    first_child: base + first_child - 1,
+                },
+                Node::Leaf { leaf } => Node::Leaf {
+                    leaf: leaf + leaf_base,
+                },
+            };
+            out.nodes[1 + k] = map(c.nodes[0]);
+            out.nodes.extend(c.nodes[1..].iter().map(|&n| map(n)));
+            out.node_bounds.extend_from_slice(&c.node_bounds[1..]);
+            out.leaves.extend(c.leaves);
+        }
+        out
     }
 
     fn subdivide(
@@ -413,6 +480,18 @@ impl Octree {
     }
 }
 
+/// Levels of the octree built in parallel (8^2 tasks): enough to keep a
+/// few cores busy, few enough that splicing costs nothing.
+const PARALLEL_DEPTH: u32 = 2;
+
+/// A subtree built on its own: its root is `nodes[0]`, its indices are its
+/// own.
+struct Sub {
+    nodes: Vec<Node>,
+    node_bounds: Vec<Bounds>,
+    leaves: Vec<Leaf>,
+}
+
 /// A ray prepared for walking: origin, direction and inverse direction in
 /// f64. A plane crossing is `(m - o) * inv`; every worker and every
 /// collapsed tree computes each crossing with this same expression, so
@@ -527,6 +606,36 @@ mod tests {
             }
         }
         v
+    }
+
+    /// The parallel build lays out nodes and leaves exactly as one
+    /// depth-first pass does.
+    #[test]
+    fn parallel_build_equals_the_sequential_one() {
+        let tris = grid_tris(60);
+        for p in [
+            OctreeParams {
+                max_leaf_tris: 4,
+                max_depth: 7,
+            },
+            OctreeParams {
+                max_leaf_tris: 64,
+                max_depth: 3,
+            },
+        ] {
+            let par = Octree::build(&tris, p);
+            let mut seq = Octree {
+                bounds: par.bounds,
+                nodes: vec![Node::Leaf { leaf: 0 }],
+                node_bounds: vec![par.bounds],
+                leaves: Vec::new(),
+                params: p,
+            };
+            seq.subdivide(0, par.bounds, (0..tris.len() as u32).collect(), 0, &tris);
+            assert!(par.leaves.len() > 64);
+            assert_eq!(par, seq);
+            par.check_structure().unwrap();
+        }
     }
 
     #[test]

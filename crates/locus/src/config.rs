@@ -29,8 +29,58 @@ pub struct WorkerSection {
     pub listen: Option<String>,
     pub advertise: Option<String>,
     pub threads: Option<usize>,
-    pub memory_budget: Option<u64>,
+    /// Bytes, or a size such as "160M" or "2G" (see [`ByteSize`]).
+    pub memory_budget: Option<ByteSize>,
     pub name: Option<String>,
+}
+
+/// A size in bytes, written as a number of bytes or with a binary suffix
+/// (`K`, `M`, `G`, `T`: powers of 1024, optionally followed by `iB` or
+/// `B`), fractions allowed: `512M`, `1.5G`, `8000000000`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ByteSize(pub u64);
+
+impl std::str::FromStr for ByteSize {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let t = s.trim();
+        let split = t
+            .find(|c: char| !(c.is_ascii_digit() || c == '.' || c == '_'))
+            .unwrap_or(t.len());
+        let (num, unit) = t.split_at(split);
+        let num: f64 = num
+            .replace('_', "")
+            .parse()
+            .map_err(|_| format!("{s:?} is not a size (try 512M or 2G)"))?;
+        let shift = match unit.trim().trim_end_matches("iB").trim_end_matches('B') {
+            "" => 0,
+            "K" | "k" => 10,
+            "M" | "m" => 20,
+            "G" | "g" => 30,
+            "T" | "t" => 40,
+            u => return Err(format!("{s:?}: unknown unit {u:?} (K, M, G or T)")),
+        };
+        let bytes = num * (1u64 << shift) as f64;
+        if !(bytes.is_finite() && bytes >= 0.0 && bytes < u64::MAX as f64) {
+            return Err(format!("{s:?} is out of range"));
+        }
+        Ok(ByteSize(bytes as u64))
+    }
+}
+
+impl<'de> Deserialize<'de> for ByteSize {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Bytes(u64),
+            Text(String),
+        }
+        match Raw::deserialize(d)? {
+            Raw::Bytes(b) => Ok(ByteSize(b)),
+            Raw::Text(t) => t.parse().map_err(serde::de::Error::custom),
+        }
+    }
 }
 
 impl Config {
@@ -97,6 +147,28 @@ impl Preset {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sizes_parse_with_binary_suffixes() {
+        for (t, b) in [
+            ("123", 123u64),
+            ("64K", 64 << 10),
+            ("160M", 160 << 20),
+            ("160MiB", 160 << 20),
+            ("1.5G", 3 << 29),
+            ("2GB", 2 << 30),
+            ("8_000_000_000", 8_000_000_000),
+        ] {
+            assert_eq!(t.parse::<ByteSize>(), Ok(ByteSize(b)), "{t}");
+        }
+        for bad in ["", "M", "12X", "-3G", "1e400"] {
+            assert!(bad.parse::<ByteSize>().is_err(), "{bad}");
+        }
+        let c: WorkerSection = toml::from_str("memory_budget = \"1G\"").unwrap();
+        assert_eq!(c.memory_budget, Some(ByteSize(1 << 30)));
+        let c: WorkerSection = toml::from_str("memory_budget = 4096").unwrap();
+        assert_eq!(c.memory_budget, Some(ByteSize(4096)));
+    }
 
     #[test]
     fn example_configs_parse() {

@@ -1,13 +1,18 @@
-//! The embedded farm: the scheduler and N workers in one process, linked
-//! over real loopback TCP with the same code the daemons run. Jobs are
-//! handed to the scheduler in-process, so the scene is read once and never
-//! copied or re-parsed on its way in.
+//! The local farm: a scheduler in this process and N workers, linked over
+//! real loopback TCP with the same code the daemons run. The workers run
+//! in this process too (the embedded farm of `render --workers N`), or as
+//! `locus worker` child processes, each with its own memory budget, whose
+//! CPU time and peak memory are then measured from their own processes
+//! (`bench-farm`, the memory tests). Jobs are handed to the scheduler
+//! in-process, so the scene is read once and never copied or re-parsed on
+//! its way in.
 
 use anyhow::Context;
 use locus_protocol::submit::{JobRequest, JobResult};
 use locus_scheduler::{Scheduler, SchedulerConfig, SchedulerHandle, client};
 use locus_worker::{Worker, WorkerConfig};
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
@@ -18,6 +23,28 @@ pub struct LocalFarm {
     workers: usize,
     shutdown: CancellationToken,
     tasks: Vec<JoinHandle<anyhow::Result<()>>>,
+    children: Vec<Child>,
+}
+
+/// What a local farm is made of.
+#[derive(Clone, Debug)]
+pub struct FarmSpec {
+    pub workers: usize,
+    pub threads_per_worker: usize,
+    /// Each worker's memory budget in bytes (0: none).
+    pub memory_budget: u64,
+    /// Run each worker as a child process of this `locus` executable.
+    pub processes: Option<PathBuf>,
+}
+
+/// A worker child process, killed when dropped.
+struct Child(std::process::Child);
+
+impl Drop for Child {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
 }
 
 /// A token nobody else knows: the embedded farm listens on loopback only,
@@ -39,6 +66,18 @@ impl LocalFarm {
     /// Starts a scheduler and `workers` workers, each tracing on
     /// `threads_per_worker` threads, all on 127.0.0.1 with OS-chosen ports.
     pub async fn start(workers: usize, threads_per_worker: usize) -> anyhow::Result<Self> {
+        Self::launch(&FarmSpec {
+            workers,
+            threads_per_worker,
+            memory_budget: 0,
+            processes: None,
+        })
+        .await
+    }
+
+    /// Starts the farm `spec` describes.
+    pub async fn launch(spec: &FarmSpec) -> anyhow::Result<Self> {
+        let (workers, threads_per_worker) = (spec.workers, spec.threads_per_worker);
         let token = fresh_token();
         let shutdown = CancellationToken::new();
         let sched = Scheduler::bind(SchedulerConfig {
@@ -50,6 +89,41 @@ impl LocalFarm {
         let addr = sched.local_addr()?;
         let handle = sched.handle();
         let mut tasks = vec![tokio::spawn(sched.run(shutdown.clone()))];
+        let mut children = Vec::new();
+        if let Some(exe) = &spec.processes {
+            for i in 0..workers {
+                let mut c = std::process::Command::new(exe);
+                c.args([
+                    "worker",
+                    "--scheduler",
+                    &addr.to_string(),
+                    "--listen",
+                    "127.0.0.1:0",
+                ])
+                .args(["--threads", &threads_per_worker.max(1).to_string()])
+                .env("LOCUS_TOKEN", &token)
+                .stdout(std::process::Stdio::null());
+                if spec.memory_budget > 0 {
+                    c.args(["--memory-budget", &spec.memory_budget.to_string()]);
+                }
+                if std::env::var_os("RUST_LOG").is_none() {
+                    c.env("RUST_LOG", "warn");
+                }
+                let child = c
+                    .spawn()
+                    .with_context(|| format!("starting worker {i}: {}", exe.display()))?;
+                children.push(Child(child));
+            }
+            return Ok(Self {
+                scheduler: addr,
+                token,
+                handle,
+                workers,
+                shutdown,
+                tasks,
+                children,
+            });
+        }
         for i in 0..workers {
             let w = Worker::bind(WorkerConfig {
                 scheduler: addr.to_string(),
@@ -57,7 +131,7 @@ impl LocalFarm {
                 advertise: None,
                 token: token.clone(),
                 threads: threads_per_worker.max(1),
-                memory_budget: 0,
+                memory_budget: spec.memory_budget,
                 name: format!("embedded-{i}"),
                 dedicated: false,
             })
@@ -71,6 +145,7 @@ impl LocalFarm {
             workers,
             shutdown,
             tasks,
+            children,
         })
     }
 
@@ -97,9 +172,10 @@ impl LocalFarm {
         }
     }
 
-    /// Cancels every task and waits for them.
+    /// Cancels every task, stops the worker processes and waits for them.
     pub async fn stop(self) -> anyhow::Result<()> {
         self.shutdown.cancel();
+        drop(self.children);
         for t in self.tasks {
             t.await.context("farm task panicked")??;
         }

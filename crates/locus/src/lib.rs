@@ -1,8 +1,10 @@
-//! The library half of the `locus` command: the embedded farm ([`farm`]),
-//! daemon configuration and presets ([`config`]), the data-locality
+//! The library half of the `locus` command: the local farm of in-process or
+//! child-process workers ([`farm`]), daemon configuration and presets
+//! ([`config`]), the farm benchmark ([`bench_farm`]), the data-locality
 //! benchmark ([`locality`]) and signal handling, shared by the binary and
 //! the integration tests.
 
+pub mod bench_farm;
 pub mod config;
 pub mod farm;
 pub mod locality;

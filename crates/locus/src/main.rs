@@ -64,21 +64,39 @@ enum Cmd {
 
 #[derive(clap::Args)]
 struct BenchFarmArgs {
-    /// Scenes to measure; default: the generated room.
+    /// Scenes to measure; default: the generated room, and the conference
+    /// room where ../shared has its mesh.
     scenes: Vec<PathBuf>,
-    #[arg(long, default_value_t = 160)]
+    #[arg(long, default_value_t = 320)]
     width: u32,
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, default_value_t = 240)]
     height: u32,
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 16)]
     spp: u32,
     /// Runs per configuration; the fastest is reported (shared machines
     /// are noisy, and noise only ever adds time).
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 1)]
     repeat: u32,
+    /// Farm sizes to measure.
+    #[arg(long, num_args = 1.., default_values_t = [1usize, 2, 4, 8])]
+    workers: Vec<usize>,
+    #[arg(long, num_args = 1.., default_values = ["forward", "fetch", "adaptive"])]
+    policies: Vec<FetchPolicy>,
+    /// Cores one machine uses and the farms share (0: all of them).
+    #[arg(long, default_value_t = 0)]
+    cores: usize,
+    /// Each of the 4 workers' memory budget for the large scene.
+    #[arg(long, default_value = "160M")]
+    large_budget: locus::config::ByteSize,
+    /// Leave out the large generated scene (4 million triangles).
+    #[arg(long)]
+    no_large: bool,
     /// Write the rows as JSON here too.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Write the Markdown tables here too.
+    #[arg(long)]
+    markdown: Option<PathBuf>,
 }
 
 #[derive(clap::Args, Clone)]
@@ -114,6 +132,11 @@ struct WorkerArgs {
     /// Tracing threads (0: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Memory this worker's process may use, e.g. 4G (default: no limit):
+    /// the scheduler gives it no more of the scene than fits, and it
+    /// builds and fetches within it.
+    #[arg(long)]
+    memory_budget: Option<locus::config::ByteSize>,
     #[command(flatten)]
     auth: TokenArgs,
 }
@@ -869,7 +892,7 @@ fn cmd_worker(a: WorkerArgs) -> Result<()> {
         advertise: a.advertise.or(w.advertise.clone()),
         token,
         threads: a.threads.or(w.threads).unwrap_or(0),
-        memory_budget: w.memory_budget.unwrap_or(0),
+        memory_budget: a.memory_budget.or(w.memory_budget).map_or(0, |b| b.0),
         name: w
             .name
             .clone()
@@ -913,195 +936,64 @@ fn cmd_submit(a: SubmitArgs) -> Result<()> {
     write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
 }
 
-#[derive(serde::Serialize)]
-struct FarmBenchRow {
-    scene: String,
-    config: String,
-    workers: usize,
-    seconds: f64,
-    samples_per_s: f64,
-    load_imbalance: f64,
-    forwarded_per_ray: f64,
-    bytes_per_sample: f64,
-    identical_to_single: bool,
-}
-
-#[derive(serde::Serialize)]
-struct PredictionRow {
-    scene: String,
-    leaves: usize,
-    analytic_r: f64,
-    sampled_r: f64,
-    sampled_rays: u64,
-    measured_rays: u64,
-}
-
-#[derive(serde::Serialize)]
-struct FarmBench {
-    rows: Vec<FarmBenchRow>,
-    prediction: Vec<PredictionRow>,
-}
-
 fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
-    let scenes = if a.scenes.is_empty() {
-        vec![default_room()?]
+    let mut scenes = if a.scenes.is_empty() {
+        let mut v = vec![default_room()?];
+        // The conference room's mesh lives beside a checkout (see its
+        // scene file); it is measured where it is there.
+        let conf = Path::new("scenes/conference/conference.toml");
+        if Path::new("../shared/scenes/conference/conference.obj").is_file() && conf.is_file() {
+            v.push(conf.to_path_buf());
+        }
+        v
     } else {
         a.scenes.clone()
     };
-    let mut rows = Vec::new();
-    let mut prediction = Vec::new();
-    let repeat = a.repeat.max(1);
-    for path in &scenes {
-        if path == Path::new("scenes/generated/room.toml") {
-            default_room()?;
-        }
-        let mut scene = Scene::load(path)?;
-        scene.camera.width = a.width;
-        scene.camera.height = a.height;
-        scene.settings.spp = a.spp;
-        let name = path.display().to_string();
-        // One machine, one thread: the baseline for overhead.
-        let prep = Prepared::new(scene.clone());
-        let mut o = RenderOptions::from_scene(&scene);
-        o.threads = 1;
-        let mut best = f64::INFINITY;
-        let mut bits = Vec::new();
-        let mut samples = 0;
-        for _ in 0..repeat {
-            let single = render(&prep, &o, &|_, _| {});
-            best = best.min(single.render_s);
-            samples = single.stats.samples;
-            bits = single.image.to_bits();
-        }
-        // Per-leaf prediction quality on the 4-worker job's octree.
-        let tree = locus_scheduler::job::octree_for(&scene, 4);
-        let q = locus_scheduler::cost::quality(&scene, &tree, &prep.accel, &prep.lights);
-        prediction.push(PredictionRow {
-            scene: name.clone(),
-            leaves: q.leaves,
-            analytic_r: q.analytic_r,
-            sampled_r: q.sampled_r,
-            sampled_rays: q.sampled_rays,
-            measured_rays: q.measured_rays,
-        });
-        drop(prep);
-        rows.push(FarmBenchRow {
-            scene: name.clone(),
-            config: "single machine, 1 thread".into(),
-            workers: 0,
-            seconds: best,
-            samples_per_s: samples as f64 / best,
-            load_imbalance: 1.0,
-            forwarded_per_ray: 0.0,
-            bytes_per_sample: 0.0,
-            identical_to_single: true,
-        });
-        let runs: Vec<(usize, Partitioner)> = [(1, Partitioner::RegionGrowing)]
-            .into_iter()
-            .chain(
-                [2usize, 4, 8]
-                    .into_iter()
-                    .flat_map(|w| [(w, Partitioner::RegionGrowing), (w, Partitioner::Morton)]),
-            )
-            .collect();
-        for (w, p) in runs {
-            let opts = JobOptions {
-                workers: w as u32,
-                partitioner: p,
-                ..JobOptions::default()
-            };
-            // Every run must match the single machine; the fastest is kept.
-            let mut identical = true;
-            let mut best: Option<FarmReport> = None;
-            for _ in 0..repeat {
-                let req = locus_scheduler::client::request(&scene, opts.clone());
-                let r = locus::farm::render_embedded(req, w, 1, &|_, _| {})?;
-                let img = Image {
-                    width: r.width,
-                    height: r.height,
-                    pixels: r.pixels,
-                };
-                identical &= img.to_bits() == bits;
-                if best
-                    .as_ref()
-                    .is_none_or(|b| r.report.phases.render_s < b.phases.render_s)
-                {
-                    best = Some(r.report);
-                }
-            }
-            let f = best.expect("at least one run");
-            let row = FarmBenchRow {
-                scene: name.clone(),
-                config: format!("farm, {w} x 1 thread, {p:?}"),
-                workers: w,
-                seconds: f.phases.render_s,
-                samples_per_s: f.samples_per_s,
-                load_imbalance: f.load_imbalance,
-                forwarded_per_ray: f.forwarded_fraction,
-                bytes_per_sample: f.bytes_per_sample,
-                identical_to_single: identical,
-            };
-            tracing::info!(config = %row.config, seconds = row.seconds, "measured");
-            rows.push(row);
+    for s in &mut scenes {
+        if s == Path::new("scenes/generated/room.toml") {
+            *s = default_room()?;
         }
     }
-    let short = |s: &str| {
-        Path::new(s)
-            .file_name()
-            .map_or(s.to_string(), |n| n.to_string_lossy().into())
+    let cores = if a.cores > 0 {
+        a.cores
+    } else {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
     };
-    println!(
-        "| scene | configuration | render s | samples/s | vs single | vs 1 worker | imbalance | forwarded/ray | bytes/sample | bit-identical |"
+    let large = if a.no_large {
+        None
+    } else {
+        Some(locus::bench_farm::Large {
+            path: locus::bench_farm::large_scene(Path::new("scenes/generated"))?,
+            workers: 4,
+            budget: a.large_budget.0,
+        })
+    };
+    let plan = locus::bench_farm::Plan {
+        scenes,
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        repeat: a.repeat.max(1),
+        workers: a.workers.clone(),
+        policies: a.policies.clone(),
+        cores,
+        large,
+        exe: std::env::current_exe().context("finding the locus executable")?,
+    };
+    let (rows, predictions) = locus::bench_farm::run(&plan)?;
+    let md = format!(
+        "{}\n{}",
+        locus::bench_farm::markdown(&rows),
+        locus::bench_farm::prediction_markdown(&predictions)
     );
-    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---|");
-    for r in &rows {
-        let base = |workers: usize| {
-            rows.iter()
-                .find(|b| b.scene == r.scene && b.workers == workers)
-                .map_or(f64::NAN, |b| b.seconds)
-        };
-        println!(
-            "| {} | {} | {:.3} | {:.0} | {:.2}x | {} | {:.2} | {:.3} | {:.1} | {} |",
-            short(&r.scene),
-            r.config,
-            r.seconds,
-            r.samples_per_s,
-            base(0) / r.seconds,
-            if r.workers == 0 {
-                "".to_string()
-            } else {
-                format!("{:.2}x", base(1) / r.seconds)
-            },
-            r.load_imbalance,
-            r.forwarded_per_ray,
-            r.bytes_per_sample,
-            if r.identical_to_single { "yes" } else { "NO" }
-        );
-    }
-    println!();
-    println!(
-        "| scene | leaves | r analytic vs measured | r sampled vs measured | sampled rays | measured rays |"
-    );
-    println!("|---|---:|---:|---:|---:|---:|");
-    for q in &prediction {
-        println!(
-            "| {} | {} | {:.3} | {:.3} | {} | {} |",
-            short(&q.scene),
-            q.leaves,
-            q.analytic_r,
-            q.sampled_r,
-            q.sampled_rays,
-            q.measured_rays
-        );
-    }
-    let differs = rows.iter().any(|r| !r.identical_to_single);
-    if let Some(j) = a.json {
-        let out = FarmBench { rows, prediction };
-        std::fs::write(&j, serde_json::to_string_pretty(&out)?)
+    print!("{md}");
+    if let Some(j) = &a.json {
+        let out = serde_json::json!({ "rows": rows, "prediction": predictions });
+        std::fs::write(j, serde_json::to_string_pretty(&out)?)
             .with_context(|| format!("writing {}", j.display()))?;
     }
-    if differs {
-        bail!("a farm image differs from the single-machine image (rows marked NO)");
+    if let Some(m) = &a.markdown {
+        std::fs::write(m, &md).with_context(|| format!("writing {}", m.display()))?;
     }
-    Ok(())
+    locus::bench_farm::check(&rows)
 }

@@ -52,6 +52,9 @@ pub struct WorkerStats {
     /// runs alone (a daemon), otherwise its own threads' (engine, tracing
     /// pool, builder); counted by the kernel, not estimated.
     pub cpu_s: f64,
+    /// Of `cpu_s`, what went before tracing: receiving and building the
+    /// region, linking the peers (0 when the worker shares its process).
+    pub setup_cpu_s: f64,
     /// Peak resident memory of the worker's process during the job, read
     /// from the kernel (VmHWM, reset at the job's start); 0 when the worker
     /// shares its process (the embedded farm), where it cannot be told
@@ -101,6 +104,7 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.fetch_waits += o.fetch_waits;
         self.fetched_leaf_traces += o.fetched_leaf_traces;
         self.cpu_s += o.cpu_s;
+        self.setup_cpu_s += o.setup_cpu_s;
         self.peak_rss = self.peak_rss.max(o.peak_rss);
         self.memory_budget = self.memory_budget.max(o.memory_budget);
         self.region_bytes += o.region_bytes;

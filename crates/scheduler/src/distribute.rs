@@ -3,7 +3,7 @@
 //! a time, each part's triangles cut from the scene as it is sent, so
 //! neither side ever holds a second copy of a whole region.
 
-use crate::job::{self, Prepared};
+use crate::job::Prepared;
 use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
 use locus_protocol::submit::JobRequest;
 use tokio::sync::mpsc;
@@ -21,26 +21,17 @@ pub fn ship(
     let mut own_leaves = std::mem::take(&mut prep.own_leaves);
     for (w, (_, tx)) in txs.into_iter().enumerate() {
         let own = std::mem::take(&mut own_leaves[w]);
-        // Each part's (leaf, triangles) run, by position in `own`.
-        let runs: Vec<(usize, usize)> = {
-            let mut at = 0;
-            prep.parts[w]
-                .iter()
-                .map(|p| {
-                    let r = (at, at + p.len());
-                    at += p.len();
-                    r
-                })
-                .collect()
-        };
-        let runs: Vec<(Vec<u32>, Vec<u32>)> = runs
-            .into_iter()
-            .map(|(a, b)| {
-                let run = &own[a..b];
-                (
-                    run.iter().map(|(l, _)| *l).collect(),
-                    job::part_triangles(run),
-                )
+        // Each part: its leaves, and their triangles once each.
+        let runs: Vec<(Vec<u32>, Vec<u32>)> = prep.parts[w]
+            .iter()
+            .map(|leaves| {
+                let mut ids: Vec<u32> = leaves
+                    .iter()
+                    .flat_map(|&l| prep.leaf_ids[l as usize].iter().copied())
+                    .collect();
+                ids.sort_unstable();
+                ids.dedup();
+                (leaves.clone(), ids)
             })
             .collect();
         let setup = JobSetup {

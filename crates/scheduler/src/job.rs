@@ -10,7 +10,7 @@ use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
 use locus_core::scene::{LoadStats, Scene};
 use locus_protocol::control::MemoryPlan;
-use locus_protocol::submit::{CostModel, JobRequest, Partitioner};
+use locus_protocol::submit::{CostModel, FetchPolicy, JobRequest, Partitioner};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
@@ -21,8 +21,13 @@ pub struct Prepared {
     pub lights: LightSet,
     /// Per worker: its leaves with their triangle lists.
     pub own_leaves: Vec<Vec<(u32, Vec<u32>)>>,
-    /// Per worker: its BVH parts, each a run of its leaves.
+    /// Per worker: its BVH parts, each a run of leaves it holds (its own,
+    /// or every leaf when the job replicates the scene).
     pub parts: Vec<Vec<Vec<u32>>>,
+    /// Every leaf's triangle ids, ascending.
+    pub leaf_ids: Vec<Vec<u32>>,
+    /// Whether every worker holds the whole scene (`fetch` with room).
+    pub replicated: bool,
     /// Per worker: triangles its shipment holds (a triangle in two parts
     /// counts twice).
     pub region_triangles: Vec<u64>,
@@ -148,10 +153,35 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
     let t_oct = Instant::now();
     let tree = octree_for(&scene, workers);
     let octree_s = t_oct.elapsed().as_secs_f64();
+    let caches = req.options.cache.is_some();
+    let usable: Vec<Option<u64>> = members
+        .iter()
+        .map(|m| memory::usable(m.budget, m.resident))
+        .collect();
+    let caps: Vec<Option<u64>> = usable
+        .iter()
+        .map(|&u| memory::region_cap(u, caches))
+        .collect();
+    let cores: f64 = members.iter().map(|m| m.cores.max(1) as f64).sum();
+    let targets: Vec<f64> = members
+        .iter()
+        .map(|m| m.cores.max(1) as f64 / cores)
+        .collect();
+    let refs: Vec<u64> = tree.leaves.iter().map(|l| l.tris.len() as u64).collect();
+    let all_refs: u64 = refs.iter().sum();
+    // `fetch` ships geometry instead of rays; when every worker's plan can
+    // hold the whole scene, the cheapest way to do that is once, now: each
+    // worker builds one BVH over everything and no ray ever waits (and the
+    // regions carry no traffic, so no preview is needed to draw them).
+    let replicated = req.options.fetch == FetchPolicy::Fetch
+        && workers > 1
+        && all_refs * memory::REGION_BYTES_PER_TRIANGLE <= req.options.fetch_budget
+        && caps.iter().all(|c| c.is_none_or(|c| c >= all_refs));
     let t_pre = Instant::now();
     let lights = LightSet::build(&scene);
     let analytic = cost::analytic(&tree);
     let (sampled, preview_rays, crossings) = match req.options.cost_model {
+        _ if replicated => (analytic.clone(), 0, Default::default()),
         CostModel::Analytic => (analytic.clone(), 0, Default::default()),
         CostModel::Sampled => {
             let leaves: Vec<(u32, &[u32])> = tree
@@ -173,21 +203,6 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
     };
     let preview_s = t_pre.elapsed().as_secs_f64();
     let t_part = Instant::now();
-    let caches = req.options.cache.is_some();
-    let usable: Vec<Option<u64>> = members
-        .iter()
-        .map(|m| memory::usable(m.budget, m.resident))
-        .collect();
-    let caps: Vec<Option<u64>> = usable
-        .iter()
-        .map(|&u| memory::region_cap(u, caches))
-        .collect();
-    let cores: f64 = members.iter().map(|m| m.cores.max(1) as f64).sum();
-    let targets: Vec<f64> = members
-        .iter()
-        .map(|m| m.cores.max(1) as f64 / cores)
-        .collect();
-    let refs: Vec<u64> = tree.leaves.iter().map(|l| l.tris.len() as u64).collect();
     let lim = partition::Limits {
         targets: &targets,
         caps: &caps,
@@ -205,18 +220,37 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
         Partitioner::Morton => partition::morton(chosen, &lim)?,
     };
     let partition_s = t_part.elapsed().as_secs_f64();
+    let leaf_ids: Vec<Vec<u32>> = tree
+        .leaves
+        .iter()
+        .map(|l| {
+            let mut ids = l.tris.clone();
+            ids.sort_unstable();
+            ids.dedup();
+            ids
+        })
+        .collect();
     let mut own_leaves = vec![Vec::new(); workers];
-    for (i, (l, &o)) in tree.leaves.iter().zip(&owner).enumerate() {
-        let mut ids = l.tris.clone();
-        ids.sort_unstable();
-        ids.dedup();
-        own_leaves[o as usize].push((i as u32, ids));
+    for (i, &o) in owner.iter().enumerate() {
+        own_leaves[o as usize].push((i as u32, leaf_ids[i].clone()));
     }
+    let everything: Vec<(u32, Vec<u32>)> = if replicated {
+        (0..tree.leaves.len() as u32)
+            .map(|l| (l, leaf_ids[l as usize].clone()))
+            .collect()
+    } else {
+        Vec::new()
+    };
     let mut plans = Vec::with_capacity(workers);
     let mut parts = Vec::with_capacity(workers);
     let mut region_triangles = Vec::with_capacity(workers);
     for (w, m) in members.iter().enumerate() {
-        let held: u64 = own_leaves[w].iter().map(|(_, t)| t.len() as u64).sum();
+        let held_leaves = if replicated {
+            &everything
+        } else {
+            &own_leaves[w]
+        };
+        let held: u64 = held_leaves.iter().map(|(_, t)| t.len() as u64).sum();
         let plan = memory::plan(
             m.budget,
             usable[w],
@@ -224,7 +258,7 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
             req.options.cache.map(|c| c.max_nodes_total as u64),
             req.options.fetch_budget,
         );
-        let (p, n) = cut_parts(&own_leaves[w], plan.part_triangles as u64);
+        let (p, n) = cut_parts(held_leaves, plan.part_triangles as u64);
         plans.push(plan);
         parts.push(p);
         region_triangles.push(n);
@@ -238,6 +272,8 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
         map: ProcessorMap::new(&tree, owner),
         own_leaves,
         parts,
+        leaf_ids,
+        replicated,
         region_triangles,
         plans,
         lights,

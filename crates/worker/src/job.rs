@@ -78,10 +78,10 @@ impl Building {
         }
         if !leaves.is_sorted_by(|a, b| a < b)
             || leaves
-                .iter()
-                .any(|&l| s.map.owner.get(l as usize) != Some(&s.me))
+                .last()
+                .is_some_and(|&l| l as usize >= s.map.owner.len())
         {
-            bail!("a region part names leaves that are not ascending or not this worker's");
+            bail!("a region part names leaves that are not ascending or not in the octree");
         }
         let (mag, t) = (s.magnitude, Instant::now());
         let part = tokio::task::spawn_blocking(move || {
@@ -195,6 +195,11 @@ pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
         cancel: cancel.clone(),
     };
     let (pool, ctl, dedicated) = (env.pool.clone(), env.control.clone(), env.dedicated);
+    let setup_cpu = if dedicated {
+        sys::process_cpu_s() - cpu0
+    } else {
+        0.0
+    };
     tokio::spawn(async move {
         let res = tokio::task::spawn_blocking(move || {
             engine::run(ej, parts, &pool, (events_tx, events_rx), links)
@@ -210,6 +215,7 @@ pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
                 stats.bvh_build_s = bvh_s;
                 if dedicated {
                     stats.cpu_s = sys::process_cpu_s() - cpu0;
+                    stats.setup_cpu_s = setup_cpu;
                     stats.peak_rss = sys::peak_resident_bytes().unwrap_or(0);
                 }
                 add_traffic(&mut stats, &traffic);

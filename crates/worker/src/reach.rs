@@ -39,6 +39,8 @@ pub struct Reach {
     pub accel: AccelSet,
     pub route: Route<Label>,
     pub pending: Vec<Arc<FetchedLeaf>>,
+    /// Every leaf is local: rays are traced as on one machine.
+    pub all_local: bool,
 }
 
 impl Reach {
@@ -70,10 +72,12 @@ impl Reach {
         for (i, p) in pending.iter().enumerate() {
             label[p.leaf as usize] = Label::Pending(i as u32);
         }
+        let all_local = label.iter().all(|&l| l == Label::Local);
         Self {
             accel,
             route: Route::new(tree, &label),
             pending,
+            all_local,
         }
     }
 }

@@ -86,6 +86,21 @@ impl Tracer for ItemTracer<'_> {
         st: &mut TraceStats,
     ) -> Traced {
         let reach = self.reach;
+        if reach.all_local {
+            let t0 = resume.max(0.0);
+            return if any {
+                if reach.accel.occluded(ray, t0, t_max, st) {
+                    Traced::Occluded
+                } else {
+                    Traced::Miss
+                }
+            } else {
+                match reach.accel.closest(ray, t0, t_max, st) {
+                    Some(h) => Traced::Hit(reach.accel.surface(&h)),
+                    None => Traced::Miss,
+                }
+            };
+        }
         let mut known = Known::Unknown;
         let mut resume = resume;
         loop {

@@ -189,6 +189,8 @@ const MERGE_AFTER: Duration = Duration::from_millis(500);
 /// A worker that has heard nothing for this long while work is pending
 /// says what it waits for.
 const STALL_REPORT: Duration = Duration::from_secs(5);
+/// Leaves per request when a worker asks for many at once.
+const PREFETCH_CHUNK: usize = 64;
 
 /// The builder thread: merges pending leaves into BVH parts off the
 /// engine's thread, one merge at a time.
@@ -313,6 +315,9 @@ struct Engine<'a> {
     last_arrival: Instant,
     /// Crossings of pending leaves since the last merge.
     crossings: u64,
+    /// Every remote leaf was asked for at the start; they are merged at
+    /// once when the last has arrived.
+    prefetching: bool,
     builder: Builder,
     cpu_s: f64,
     /// The clock read once per turn of the loop: packets' ages need no
@@ -338,8 +343,15 @@ pub fn run(
     let s = &job.setup;
     let n_leaves = s.map.owner.len();
     let mut local = vec![false; n_leaves];
-    for (l, _) in &s.own_leaves {
-        if let Some(x) = local.get_mut(*l as usize) {
+    // What the parts hold is local: the worker's own leaves, and every
+    // leaf when the scheduler replicated the scene.
+    for l in s
+        .own_leaves
+        .iter()
+        .map(|(l, _)| *l)
+        .chain(parts.iter().flat_map(|p| p.leaves.iter().copied()))
+    {
+        if let Some(x) = local.get_mut(l as usize) {
             *x = true;
         }
     }
@@ -388,6 +400,7 @@ pub fn run(
         fetched_ids: HashMap::new(),
         last_arrival: Instant::now(),
         crossings: 0,
+        prefetching: false,
         builder: Builder::spawn(job.clone(), events_tx.clone()),
         cpu_s: 0.0,
         now: Instant::now(),
@@ -395,6 +408,7 @@ pub fn run(
     drop(events_tx);
     let cancel = links.cancel.clone();
     let max_out = pool.current_num_threads() + 1;
+    e.prefetch()?;
     e.control(WorkerToScheduler::NeedTiles {
         job: s.job,
         count: s.tuning.tiles_ahead.max(1),
@@ -730,6 +744,42 @@ impl<'a> Engine<'a> {
         Ok(self.outbox.send(owner, PeerMsg::Fetch(vec![leaf]))?)
     }
 
+    /// Under `fetch`, when the plan holds every remote leaf that has
+    /// triangles, asks for all of them now, owner by owner: every one of
+    /// them will be needed (light bounces everywhere), and one merge of
+    /// all of them costs less than the merges and the slow traversals of
+    /// leaves arriving one by one.
+    fn prefetch(&mut self) -> Result<(), EngineError> {
+        let job = self.job;
+        let s = &job.setup;
+        if s.fetch != FetchPolicy::Fetch {
+            return Ok(());
+        }
+        let remote: Vec<u32> = (0..s.map.owner.len() as u32)
+            .filter(|&l| !self.local[l as usize] && s.leaf_tris[l as usize] > 0)
+            .collect();
+        let need: u64 = remote.iter().map(|&l| job.locality.held_estimate(l)).sum();
+        if remote.is_empty() || need > s.plan.fetch_bytes {
+            return Ok(());
+        }
+        let mut by_owner: Vec<Vec<u32>> = vec![Vec::new(); job.workers];
+        for &l in &remote {
+            by_owner[s.map.owner[l as usize] as usize].push(l);
+            self.waiting.insert(l, Vec::new());
+        }
+        self.held += need;
+        self.held_peak = self.held_peak.max(self.held);
+        self.stats.fetch_requests += remote.len() as u64;
+        self.prefetching = true;
+        for (owner, leaves) in by_owner.into_iter().enumerate() {
+            for chunk in leaves.chunks(PREFETCH_CHUNK) {
+                self.outbox
+                    .send(owner as WorkerId, PeerMsg::Fetch(chunk.to_vec()))?;
+            }
+        }
+        Ok(())
+    }
+
     /// Ships the geometry of our leaves that a peer asked for.
     fn serve(&mut self, from: WorkerId, leaves: Vec<u32>) -> Result<(), EngineError> {
         let job = self.job;
@@ -867,8 +917,12 @@ impl<'a> Engine<'a> {
             .map(|(p, _)| p.accel.len() as u64)
             .sum::<u64>();
         let paid = self.crossings * CROSSING_IN_BUILDS;
-        if paid < build && self.last_arrival.elapsed() < MERGE_AFTER {
+        let prefetched = self.prefetching && self.waiting.is_empty() && self.building == 0;
+        if !prefetched && paid < build && self.last_arrival.elapsed() < MERGE_AFTER {
             return;
+        }
+        if prefetched {
+            self.prefetching = false;
         }
         for p in &self.pending {
             self.fetched_ids.insert(p.leaf, Arc::from(p.ids.as_slice()));
