@@ -199,6 +199,28 @@ impl Octree {
         self.leaves.iter().map(|l| l.tris.len()).sum()
     }
 
+    /// Whether every leaf whose box shares volume with `b` passes `ok`.
+    pub fn all_overlapping(&self, b: &Bounds, ok: &dyn Fn(u32) -> bool) -> bool {
+        let mut stack = vec![0usize];
+        while let Some(n) = stack.pop() {
+            let nb = &self.node_bounds[n];
+            if (0..3).any(|a| nb.min[a] >= b.max[a] || b.min[a] >= nb.max[a]) {
+                continue;
+            }
+            match self.nodes[n] {
+                Node::Interior { first_child } => {
+                    stack.extend(first_child as usize..first_child as usize + 8)
+                }
+                Node::Leaf { leaf } => {
+                    if !ok(leaf) {
+                        return false;
+                    }
+                }
+            }
+        }
+        true
+    }
+
     /// The leaf containing `p` (upper halves win ties, as in [`Self::walk`]).
     pub fn leaf_at(&self, p: Vec3) -> Option<u32> {
         if !self.bounds.contains(p) {
@@ -246,10 +268,10 @@ impl Octree {
     where
         F: FnMut(u32, f32, f32) -> ControlFlow<()>,
     {
-        let Some((a, b)) = self.bounds.clip(ray, t0, t1) else {
+        let w = WalkRay::new(ray);
+        let Some((a, b)) = w.clip(&self.bounds, t0, t1) else {
             return ControlFlow::Continue(());
         };
-        let w = WalkRay::new(ray);
         self.walk_node(0, &w, a, b, resume, &mut f)
     }
 
@@ -506,6 +528,29 @@ struct WalkRay {
 }
 
 impl WalkRay {
+    /// Entry and exit of the ray into `b` within `[t0, t1)` (products with
+    /// the inverse direction, in f64), or None when it misses.
+    #[inline(always)]
+    fn clip(&self, b: &Bounds, t0: f32, t1: f32) -> Option<(f32, f32)> {
+        let (mut lo, mut hi) = (t0 as f64, t1 as f64);
+        for a in 0..3 {
+            let (bmin, bmax) = (b.min[a] as f64, b.max[a] as f64);
+            if !self.moves[a] {
+                if self.o[a] < bmin || self.o[a] > bmax {
+                    return None;
+                }
+                continue;
+            }
+            let (x, y) = (
+                (bmin - self.o[a]) * self.inv[a],
+                (bmax - self.o[a]) * self.inv[a],
+            );
+            lo = lo.max(x.min(y));
+            hi = hi.min(x.max(y));
+        }
+        (lo < hi).then_some((lo as f32, hi as f32))
+    }
+
     #[inline(always)]
     fn new(ray: &Ray) -> Self {
         let o = [

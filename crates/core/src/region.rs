@@ -20,7 +20,7 @@
 //! over the whole scene.
 
 use crate::accel_set::{AccelSet, SetHit};
-use crate::geometry::Ray;
+use crate::geometry::{Bounds, Ray};
 use crate::octree::Octree;
 use crate::stats::TraceStats;
 use serde::{Deserialize, Serialize};
@@ -34,13 +34,80 @@ pub type WorkerId = u16;
 pub struct Route<L> {
     tree: Octree,
     labels: Vec<L>,
+    /// Per route node, a box around it that leaves of its own locality
+    /// cover entirely (see [`Route::grow_local_boxes`]); its own bounds
+    /// until grown.
+    boxes: Vec<Bounds>,
 }
 
 impl<L: Copy + PartialEq> Route<L> {
     /// `label[leaf]` for every leaf of `tree`.
     pub fn new(tree: &Octree, label: &[L]) -> Self {
         let (tree, labels) = tree.collapse(label);
-        Self { tree, labels }
+        let boxes = tree.leaves.iter().map(|l| l.bounds).collect();
+        Self {
+            tree,
+            labels,
+            boxes,
+        }
+    }
+
+    /// Grows, for every node `local` accepts, a box around it that only
+    /// local nodes cover: greedily, face by face, each step as thick as
+    /// the box (halved down to the finest node while it fails). A ray
+    /// piece inside such a box crosses local leaves only, however many, so
+    /// [`trace_local`] need not walk it.
+    pub fn grow_local_boxes(&mut self, local: impl Fn(L) -> bool) {
+        let root = self.tree.bounds;
+        let finest = self
+            .tree
+            .leaves
+            .iter()
+            .map(|l| l.bounds.extent().min_element())
+            .fold(f32::INFINITY, f32::min);
+        let ok = |l: u32| local(self.labels[l as usize]);
+        let mut boxes = self.boxes.clone();
+        for (i, out) in boxes.iter_mut().enumerate() {
+            if !local(self.labels[i]) {
+                continue;
+            }
+            let mut b = self.tree.leaves[i].bounds;
+            for _round in 0..3 {
+                let mut grew = false;
+                for dir in 0..6 {
+                    let (a, up) = (dir / 2, dir % 2 == 0);
+                    let mut step = b.extent()[a].max(finest);
+                    while step >= finest {
+                        let mut slab = b;
+                        if up {
+                            slab.min[a] = b.max[a];
+                            slab.max[a] = (b.max[a] + step).min(root.max[a]);
+                        } else {
+                            slab.max[a] = b.min[a];
+                            slab.min[a] = (b.min[a] - step).max(root.min[a]);
+                        }
+                        if slab.max[a] <= slab.min[a] {
+                            break;
+                        }
+                        if self.tree.all_overlapping(&slab, &ok) {
+                            if up {
+                                b.max[a] = slab.max[a];
+                            } else {
+                                b.min[a] = slab.min[a];
+                            }
+                            grew = true;
+                            break;
+                        }
+                        step *= 0.5;
+                    }
+                }
+                if !grew {
+                    break;
+                }
+            }
+            *out = b;
+        }
+        self.boxes = boxes;
     }
 
     /// Nodes rays walk (for reports: how much the merge saved).
@@ -48,11 +115,12 @@ impl<L: Copy + PartialEq> Route<L> {
         self.labels.len()
     }
 
-    /// The route node containing `p`, with its label and bounds.
+    /// The route node containing `p`: its label, and the box around it
+    /// that its locality covers (its bounds unless grown).
     #[inline]
-    pub fn containing(&self, p: glam::Vec3) -> Option<(L, &crate::geometry::Bounds)> {
+    pub fn containing(&self, p: glam::Vec3) -> Option<(L, &Bounds)> {
         let l = self.tree.leaf_at(p)? as usize;
-        Some((self.labels[l], &self.tree.leaves[l].bounds))
+        Some((self.labels[l], &self.boxes[l]))
     }
 
     /// The labelled intervals along `ray` within `[t0, t1)` from `resume`,
@@ -110,6 +178,8 @@ impl From<ProcessorMap> for MapParts {
 impl ProcessorMap {
     pub fn new(tree: &Octree, owner: Vec<WorkerId>) -> Self {
         assert_eq!(tree.leaves.len(), owner.len(), "one owner per leaf");
+        // Boxes are grown by whoever traces through the route: which
+        // nodes are local depends on the worker.
         Self {
             route: Route::new(tree, &owner),
             tree: tree.without_triangles(),
@@ -220,10 +290,11 @@ pub fn trace_local<L: Copy + PartialEq>(
     };
     // The usual case needs no walk: the piece of the ray that matters (up
     // to the hit, or the whole segment when nothing local blocks it) lies
-    // in one local node. A box is convex, so its two ends decide; every
-    // triangle crossing that piece crosses the node, whose leaves reference
-    // it, so the local BVHs have seen it. (Points computed in f32 stray far
-    // less than the margin by which leaves reference triangles.)
+    // in a box that local leaves cover (a local node, grown). A box is
+    // convex, so its two ends decide; every triangle crossing that piece
+    // crosses a local leaf, which references it, so the local BVHs have
+    // seen it. (Points computed in f32 stray far less than the margin by
+    // which leaves reference triangles.)
     let piece_end = match hit {
         Some(h) => Some(h.hit.hit.t),
         None if any && t_max.is_finite() => Some(t_max),

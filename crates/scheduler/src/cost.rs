@@ -97,18 +97,24 @@ impl Tally {
     }
 }
 
-/// The sampled prediction the scheduler uses: about 4096 preview pixels
-/// (every pixel of a small image), one bounce.
+/// Bounces the preview follows at most: paths past a dozen vertices carry
+/// too little of the work to change the prediction.
+const PREVIEW_BOUNCES: u32 = 12;
+
+/// The sampled prediction the scheduler uses: about 8192 preview pixels
+/// (every pixel of a small image), paths to the scene's full depth. One
+/// bounce was once used, and it put half the farm's work where two thirds
+/// of it went: deep paths cross different leaves than first bounces.
 pub fn sampled(scene: &Scene, tree: &Octree, accel: &dyn Geometry, lights: &LightSet) -> Preview {
     let pixels = scene.camera.width as f64 * scene.camera.height as f64;
-    let div = (pixels / 4096.0).sqrt().floor().max(1.0) as u32;
+    let div = (pixels / 8192.0).sqrt().floor().max(1.0) as u32;
     preview(
         scene,
         tree,
         accel,
         lights,
         div,
-        1,
+        scene.settings.max_depth.min(PREVIEW_BOUNCES),
         scene.settings.seed ^ 0x5eed,
     )
 }

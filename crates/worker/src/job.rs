@@ -119,7 +119,7 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
 /// What starting a job needs from the daemon.
 pub struct Env<'a> {
     pub token: &'a [u8],
-    pub pool: &'a Arc<rayon::ThreadPool>,
+    pub pool: &'a Option<Arc<rayon::ThreadPool>>,
     pub control: &'a flume::Sender<WorkerToScheduler>,
     pub links: &'a watch::Sender<Option<Arc<JobLink>>>,
     pub dedicated: bool,
@@ -202,7 +202,7 @@ pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
     };
     tokio::spawn(async move {
         let res = tokio::task::spawn_blocking(move || {
-            engine::run(ej, parts, &pool, (events_tx, events_rx), links)
+            engine::run(ej, parts, pool.as_deref(), (events_tx, events_rx), links)
         })
         .await;
         // The engine dropped its senders; a writer's byte count is final

@@ -57,7 +57,11 @@ pub struct WorkerConfig {
 pub struct Worker {
     cfg: WorkerConfig,
     listener: TcpListener,
-    pool: Arc<rayon::ThreadPool>,
+    /// The tracing threads besides the engine's own (None for a worker of
+    /// one thread).
+    pool: Option<Arc<rayon::ThreadPool>>,
+    /// Tracing threads in all, the engine's included.
+    threads: usize,
 }
 
 impl Worker {
@@ -65,15 +69,26 @@ impl Worker {
         let listener = TcpListener::bind(&cfg.listen)
             .await
             .with_context(|| format!("worker: cannot listen on {}", cfg.listen))?;
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(cfg.threads)
-            .thread_name(|i| format!("locus-trace-{i}"))
-            .build()
-            .context("worker: cannot start the tracing pool")?;
+        let threads = match cfg.threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            t => t,
+        };
+        // The engine's thread traces too: the pool has the others.
+        let pool = if threads > 1 {
+            let p = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads - 1)
+                .thread_name(|i| format!("locus-trace-{i}"))
+                .build()
+                .context("worker: cannot start the tracing pool")?;
+            Some(Arc::new(p))
+        } else {
+            None
+        };
         Ok(Self {
             cfg,
             listener,
-            pool: Arc::new(pool),
+            pool,
+            threads,
         })
     }
 
@@ -100,7 +115,7 @@ impl Worker {
         let mut conn = connect_with_retry(&self.cfg.scheduler, &token, &shutdown).await?;
         conn.write_msg(&Opening::Register(Registration {
             listen: listen.clone(),
-            cores: self.pool.current_num_threads() as u32,
+            cores: self.threads as u32,
             memory_budget: self.cfg.memory_budget,
             resident: if self.cfg.dedicated {
                 sys::resident_bytes().unwrap_or(0)

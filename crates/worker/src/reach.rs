@@ -35,6 +35,9 @@ pub enum Label {
     Remote { owner: WorkerId, leaf: u32 },
 }
 
+/// Route nodes up to which local boxes are grown.
+const GROW_LIMIT: usize = 4096;
+
 pub struct Reach {
     pub accel: AccelSet,
     pub route: Route<Label>,
@@ -73,9 +76,16 @@ impl Reach {
             label[p.leaf as usize] = Label::Pending(i as u32);
         }
         let all_local = label.iter().all(|&l| l == Label::Local);
+        let mut route = Route::new(tree, &label);
+        // Grown boxes spare most walks; they are worth their cost on a
+        // route that will be traced many times (not one that changes with
+        // every fetched leaf) and not too large to grow quickly.
+        if pending.is_empty() && !all_local && route.leaves() <= GROW_LIMIT {
+            route.grow_local_boxes(|l| l == Label::Local);
+        }
         Self {
             accel,
-            route: Route::new(tree, &label),
+            route,
             pending,
             all_local,
         }

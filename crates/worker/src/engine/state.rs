@@ -1,0 +1,426 @@
+//! The engine's state and its serial bookkeeping: starting camera samples,
+//! applying traced batches and answers, and routing queries to peers or
+//! into the wait for a fetched leaf.
+
+use super::fetching::{Builder, MERGE_AFTER};
+use super::kernel::{Batch, Work};
+use super::outbox::Outbox;
+use super::slots::{Effect, Slots};
+use super::{EngineError, EngineJob, Event, Input, Links};
+use crate::fetch::FetchedLeaf;
+use crate::reach::Reach;
+use locus_core::accel_set::{AccelSet, Part};
+use locus_core::path::{Answer, Dest, Outcome, Query, Task};
+use locus_protocol::control::WorkerToScheduler;
+use locus_protocol::rays::{PeerMsg, RayItem, ReplyTo};
+use locus_protocol::report::WorkerStats;
+use locus_protocol::submit::FetchPolicy;
+use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// A worker that has heard nothing for this long while work is pending
+/// says what it waits for.
+pub(super) const STALL_REPORT: Duration = Duration::from_secs(5);
+
+pub(super) struct Engine<'a> {
+    pub(super) job: &'a Arc<EngineJob>,
+    pub(super) control: flume::Sender<WorkerToScheduler>,
+    pub(super) events: flume::Sender<Event>,
+    pub(super) outbox: Outbox,
+    pub(super) slots: Slots,
+    pub(super) work: VecDeque<Work>,
+    pub(super) no_more_tiles: bool,
+    pub(super) stats: WorkerStats,
+    pub(super) effects: Vec<Effect>,
+    pub(super) children: Vec<(Dest, Query, f32, ReplyTo)>,
+    pub(super) traffic: Arc<crate::peers::Traffic>,
+    /// Packets received from each peer.
+    pub(super) received: Vec<u64>,
+    // What this worker can trace.
+    pub(super) reach: Arc<Reach>,
+    pub(super) parts: Vec<Arc<Part>>,
+    pub(super) local: Vec<bool>,
+    pub(super) pending: Vec<Arc<FetchedLeaf>>,
+    pub(super) reach_dirty: bool,
+    /// Work waiting for a leaf's geometry, by leaf: requested, or arrived
+    /// and being built on the pool.
+    pub(super) waiting: HashMap<u32, Vec<Work>>,
+    pub(super) building: usize,
+    /// Bytes of fetched geometry held or asked for.
+    pub(super) held: u64,
+    pub(super) held_peak: u64,
+    pub(super) fetched_ids: HashMap<u32, Arc<[u32]>>,
+    pub(super) last_arrival: Instant,
+    /// Crossings of pending leaves since the last merge.
+    pub(super) crossings: u64,
+    /// Every remote leaf was asked for at the start; they are merged at
+    /// once when the last has arrived.
+    pub(super) prefetching: bool,
+    pub(super) builder: Builder,
+    pub(super) cpu_s: f64,
+    /// The clock read once per turn of the loop: packets' ages need no
+    /// finer grain than that.
+    pub(super) now: Instant,
+}
+
+impl<'a> Engine<'a> {
+    /// The engine of `job` over its region's `parts`.
+    pub(super) fn new(
+        job: &'a Arc<EngineJob>,
+        parts: Vec<Arc<Part>>,
+        events_tx: &flume::Sender<Event>,
+        links: Links,
+    ) -> Self {
+        let s = &job.setup;
+        let n_leaves = s.map.owner.len();
+        let mut local = vec![false; n_leaves];
+        // What the parts hold is local: the worker's own leaves, and every
+        // leaf when the scheduler replicated the scene.
+        for l in s
+            .own_leaves
+            .iter()
+            .map(|(l, _)| *l)
+            .chain(parts.iter().flat_map(|p| p.leaves.iter().copied()))
+        {
+            if let Some(x) = local.get_mut(l as usize) {
+                *x = true;
+            }
+        }
+        let per_leaf = s.fetch != FetchPolicy::Forward;
+        let own = AccelSet::from_parts(parts.clone());
+        let region_bytes = own.bytes() as u64;
+        let reach = Arc::new(Reach::new(
+            &s.map.tree,
+            &s.map.owner,
+            &local,
+            own,
+            Vec::new(),
+            per_leaf,
+        ));
+        let flush = Duration::from_micros(s.tuning.flush_us.max(1) as u64);
+        Engine {
+            job,
+            control: links.control,
+            events: events_tx.clone(),
+            outbox: Outbox::new(links.peers, s.tuning.packet_size.max(1) as usize, flush),
+            slots: Slots::new(s.me, s.job, s.spp),
+            work: VecDeque::new(),
+            no_more_tiles: false,
+            stats: WorkerStats {
+                peers: vec![Default::default(); job.workers],
+                triangles: s.region_triangles,
+                leaves: s.own_leaves.len() as u32,
+                fetch_cache_bound: s.plan.fetch_bytes,
+                memory_budget: s.plan.budget,
+                region_bytes,
+                ..Default::default()
+            },
+            effects: Vec::new(),
+            children: Vec::new(),
+            traffic: links.traffic.clone(),
+            received: vec![0; job.workers],
+            reach,
+            parts,
+            local,
+            pending: Vec::new(),
+            reach_dirty: false,
+            waiting: HashMap::new(),
+            building: 0,
+            held: 0,
+            held_peak: 0,
+            fetched_ids: HashMap::new(),
+            last_arrival: Instant::now(),
+            crossings: 0,
+            prefetching: false,
+            builder: Builder::spawn(job.clone(), events_tx.clone()),
+            cpu_s: 0.0,
+            now: Instant::now(),
+        }
+    }
+
+    pub(super) fn control(&self, m: WorkerToScheduler) -> Result<(), EngineError> {
+        self.control
+            .send(m)
+            .map_err(|_| EngineError::LinkClosed("the scheduler"))
+    }
+
+    /// Starts camera samples until `max_inflight` are open.
+    pub(super) fn originate(&mut self) {
+        let cap = self.job.setup.tuning.max_inflight.max(1) as usize;
+        let me = self.job.setup.me;
+        while self.slots.samples_open() < cap {
+            let Some(n) = self.slots.start_sample() else {
+                break;
+            };
+            self.work.push_back(Work {
+                task: Task::Camera {
+                    x: n.x,
+                    y: n.y,
+                    sample: n.sample,
+                },
+                resume: f32::NEG_INFINITY,
+                reply: n.reply,
+                from: me,
+                pinned: None,
+            });
+        }
+    }
+
+    pub(super) fn input<'s>(
+        &mut self,
+        i: Input,
+        scope: Option<&rayon::Scope<'s>>,
+    ) -> Result<(), EngineError>
+    where
+        'a: 's,
+    {
+        match i {
+            Input::Packet { from, items } => {
+                if let Some(r) = self.received.get_mut(from as usize) {
+                    *r += 1;
+                }
+                for it in items {
+                    match it {
+                        RayItem::Trace {
+                            query,
+                            resume,
+                            reply,
+                        } => {
+                            self.stats.queries_in += 1;
+                            self.work.push_back(Work {
+                                task: Task::Query(query),
+                                resume,
+                                reply,
+                                from,
+                                pinned: None,
+                            });
+                        }
+                        RayItem::Answer { to, answer } => {
+                            self.slots.answer(
+                                from,
+                                to,
+                                answer,
+                                &mut self.effects,
+                                &mut self.stats.trace,
+                            )?;
+                            self.effects()?;
+                        }
+                    }
+                }
+            }
+            Input::Fetch { from, leaves } => self.serve(from, leaves)?,
+            Input::Leaf { from, bytes, leaf } => self.receive_leaf(from, bytes, *leaf, scope)?,
+            Input::Tile(a) => self.slots.add_tile(a),
+            Input::NoMoreTiles => self.no_more_tiles = true,
+            Input::End => unreachable!("handled by the loop"),
+        }
+        Ok(())
+    }
+
+    /// Applies a traced batch.
+    pub(super) fn apply(&mut self, b: Batch) -> Result<(), EngineError> {
+        if let Some(from) = b.misrouted {
+            return Err(EngineError::Misrouted { from });
+        }
+        self.stats.trace += b.stats;
+        self.stats.fetched_leaf_traces += b.fetched_leaf_traces;
+        self.crossings += b.fetched_leaf_traces;
+        self.cpu_s += b.cpu_s;
+        let me = self.job.setup.me;
+        for (reply, o) in b.items {
+            match o {
+                Outcome::Answer(a) => {
+                    if reply.worker == me {
+                        self.slots.answer(
+                            me,
+                            reply.slot,
+                            a,
+                            &mut self.effects,
+                            &mut self.stats.trace,
+                        )?;
+                        self.effects()?;
+                    } else {
+                        self.reply(reply, a)?;
+                    }
+                }
+                Outcome::Forward {
+                    dest,
+                    query,
+                    resume,
+                } => self.route(dest, query, resume, reply)?,
+                Outcome::Chain { start, end } => {
+                    let mut children = std::mem::take(&mut self.children);
+                    self.slots.open_chain(
+                        reply,
+                        &b.chain[start as usize..end as usize],
+                        &mut children,
+                    );
+                    for (dest, query, resume, r) in children.drain(..) {
+                        self.route(dest, query, resume, r)?;
+                    }
+                    self.children = children;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub(super) fn reply(&mut self, to: ReplyTo, answer: Answer) -> Result<(), EngineError> {
+        self.stats.answers_out += 1;
+        let item = RayItem::Answer {
+            to: to.slot,
+            answer,
+        };
+        Ok(self.outbox.push(to.worker, item, self.now)?)
+    }
+
+    /// Carries out what answers set off.
+    pub(super) fn effects(&mut self) -> Result<(), EngineError> {
+        let mut fx = std::mem::take(&mut self.effects);
+        for f in fx.drain(..) {
+            match f {
+                Effect::Reply(to, a) => self.reply(to, a)?,
+                Effect::CacheUpdate((leaf, dir), v) => {
+                    if let Some(c) = &self.job.caches {
+                        c.update(leaf, dir, v);
+                    }
+                }
+                Effect::TileDone(r) => {
+                    self.stats.tiles += 1;
+                    self.control(WorkerToScheduler::TileDone(r))?;
+                    if !self.no_more_tiles {
+                        self.control(WorkerToScheduler::NeedTiles {
+                            job: self.job.setup.job,
+                            count: 1,
+                        })?;
+                    }
+                }
+            }
+        }
+        self.effects = fx;
+        Ok(())
+    }
+
+    /// Sends a query on: to a peer, or into the wait for a leaf.
+    pub(super) fn route(
+        &mut self,
+        dest: Dest,
+        query: Query,
+        resume: f32,
+        reply: ReplyTo,
+    ) -> Result<(), EngineError> {
+        let job = self.job;
+        let leaf = match dest {
+            Dest::Peer(to) => {
+                self.stats.forwarded_out += 1;
+                let item = RayItem::Trace {
+                    query,
+                    resume,
+                    reply,
+                };
+                return Ok(self.outbox.push(to, item, self.now)?);
+            }
+            Dest::Leaf(leaf) => leaf,
+        };
+        let w = Work {
+            task: Task::Query(query),
+            resume,
+            reply,
+            from: job.setup.me,
+            pinned: None,
+        };
+        let l = leaf as usize;
+        if self.local.get(l) == Some(&true) || self.pending.iter().any(|p| p.leaf == leaf) {
+            // It arrived while this query was being traced.
+            self.work.push_back(w);
+            return Ok(());
+        }
+        self.stats.fetch_waits += 1;
+        if let Some(list) = self.waiting.get_mut(&leaf) {
+            list.push(w);
+            return Ok(());
+        }
+        let need = job.locality.held_estimate(leaf);
+        let Some(&owner) = job.setup.map.owner.get(l) else {
+            return Err(EngineError::BadLeaf {
+                from: job.setup.me,
+                leaf,
+                why: "a ray asked for a leaf outside the octree",
+            });
+        };
+        if self.held + need > job.setup.plan.fetch_bytes {
+            // No room: this leaf is forwarded from now on.
+            job.locality.refuse(leaf);
+            self.stats.fetch_waits -= 1;
+            return self.route(Dest::Peer(owner), query, resume, reply);
+        }
+        self.held += need;
+        self.held_peak = self.held_peak.max(self.held);
+        self.stats.fetch_requests += 1;
+        self.waiting.insert(leaf, vec![w]);
+        tracing::debug!(
+            job = job.setup.job,
+            me = job.setup.me,
+            leaf,
+            owner,
+            "fetch sent"
+        );
+        Ok(self.outbox.send(owner, PeerMsg::Fetch(vec![leaf]))?)
+    }
+
+    /// How long the loop may sleep when it has nothing to trace: until
+    /// the oldest packet is due, a stalled peer may have room, or pending
+    /// leaves are due for a merge.
+    pub(super) fn wait_bound(&self, now: Instant) -> Duration {
+        if self.outbox.is_stalled() {
+            return Duration::from_millis(1);
+        }
+        let mut w = Duration::from_millis(100);
+        if let Some(d) = self.outbox.next_deadline() {
+            w = w.min(d.saturating_duration_since(now));
+        }
+        if !self.pending.is_empty() && !self.builder.busy {
+            w = w.min((self.last_arrival + MERGE_AFTER).saturating_duration_since(now));
+        }
+        w
+    }
+
+    pub(super) fn report_stall(&self, out: usize) {
+        let waiting: Vec<(u32, usize)> = self.waiting.iter().map(|(l, w)| (*l, w.len())).collect();
+        tracing::warn!(
+            job = self.job.setup.job,
+            me = self.job.setup.me,
+            pending_slots = self.slots.pending(),
+            samples_open = self.slots.samples_open(),
+            has_tiles = self.slots.has_tiles(),
+            work = self.work.len(),
+            batches_out = out,
+            ?waiting,
+            building = self.building,
+            pending_leaves = self.pending.len(),
+            merging = self.builder.busy,
+            outbox_empty = self.outbox.is_empty(),
+            packets_sent = ?self.outbox.sent,
+            packets_received = ?self.received,
+            socket = ?self.traffic.snapshot().iter().map(|t| (t.msgs_sent, t.msgs_recv)).collect::<Vec<_>>(),
+            "no event for {} s with work pending",
+            STALL_REPORT.as_secs()
+        );
+    }
+
+    pub(super) fn finish(&mut self, total: Duration, idle: Duration) -> WorkerStats {
+        let mut st = std::mem::take(&mut self.stats);
+        st.idle_s = idle.as_secs_f64();
+        st.busy_s = (total - idle.min(total)).as_secs_f64();
+        if let Some(c) = &self.job.caches {
+            st.cache_memory = c.memory();
+        }
+        st.backpressure_stalls = self.outbox.stalls;
+        st.fetch_cache_peak = self.held_peak;
+        st.fetched_held_peak = self.held_peak;
+        st.parts = self.parts.len() as u32;
+        st.cpu_s = self.cpu_s;
+        st
+    }
+}
