@@ -89,8 +89,11 @@ struct BenchFarmArgs {
     #[arg(long, default_value = "160M")]
     large_budget: locus::config::ByteSize,
     /// Leave out the large generated scene (4 million triangles).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "large_only")]
     no_large: bool,
+    /// Measure only the large generated scene.
+    #[arg(long)]
+    large_only: bool,
     /// Write the rows as JSON here too.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -899,6 +902,9 @@ fn cmd_worker(a: WorkerArgs) -> Result<()> {
             .unwrap_or_else(|| format!("worker-{}", std::process::id())),
         dedicated: true,
     };
+    if wc.memory_budget > 0 {
+        locus_worker::sys::tune_allocator();
+    }
     runtime()?.block_on(async {
         let worker = Worker::bind(wc).await?;
         serve("worker", worker.local_addr()?, |t| worker.run(t)).await
@@ -937,7 +943,9 @@ fn cmd_submit(a: SubmitArgs) -> Result<()> {
 }
 
 fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
-    let mut scenes = if a.scenes.is_empty() {
+    let mut scenes = if a.large_only {
+        Vec::new()
+    } else if a.scenes.is_empty() {
         let mut v = vec![default_room()?];
         // The conference room's mesh lives beside a checkout (see its
         // scene file); it is measured where it is there.

@@ -85,10 +85,21 @@ impl Building {
         }
         let (mag, t) = (s.magnitude, Instant::now());
         let part = tokio::task::spawn_blocking(move || {
-            Arc::new(Part::new(Accel::from_set(chunk, mag), leaves))
+            let p = Arc::new(Part::new(Accel::from_set(chunk, mag), leaves));
+            sys::trim_heap();
+            p
         })
         .await?;
         self.bvh_s += t.elapsed().as_secs_f64();
+        tracing::debug!(
+            job = s.job,
+            part = self.parts.len(),
+            triangles = part.accel.len(),
+            bytes = part.accel.bytes(),
+            resident = sys::resident_bytes().unwrap_or(0),
+            peak = sys::peak_resident_bytes().unwrap_or(0),
+            "region part built"
+        );
         self.parts.push(part);
         Ok(())
     }
