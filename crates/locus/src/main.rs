@@ -152,14 +152,16 @@ struct FarmArgs {
     /// Leaf cost prediction the partitioner balances.
     #[arg(long, value_enum, default_value = "sampled")]
     cost: CostArg,
-    /// Ray items per packet.
-    #[arg(long, default_value_t = 50)]
+    /// Most ray items per packet (a packet also leaves when its worker
+    /// runs out of work).
+    #[arg(long, default_value_t = 1024)]
     packet_size: u32,
-    /// Flush deadline of a partly filled packet, in microseconds.
-    #[arg(long, default_value_t = 200)]
+    /// Flush deadline of a partly filled packet while its worker is busy,
+    /// in microseconds.
+    #[arg(long, default_value_t = 1000)]
     flush_us: u32,
     /// Camera samples each worker keeps in flight.
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = 16384)]
     max_inflight: u32,
     #[arg(long, default_value_t = 16)]
     tile_size: u32,

@@ -91,11 +91,17 @@ pub enum SchedulerToWorker {
 /// Per-job knobs of the ray traffic.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Tuning {
-    /// Ray items per packet (paper 003 used 50 samples per packet).
+    /// Most ray items per packet. Paper 003 used 50 samples per packet;
+    /// here a packet leaves early whenever its sender runs out of work, so
+    /// a large cap costs no latency and spreads a frame's fixed costs
+    /// (a system call and a wake-up on each side) over many items.
     pub packet_size: u32,
-    /// A partly filled packet is sent after this long.
+    /// A partly filled packet is sent after this long even while its
+    /// sender is busy.
     pub flush_us: u32,
-    /// Camera samples a worker keeps in flight; bounds every queue.
+    /// Camera samples a worker keeps in flight; bounds every queue. Enough
+    /// that each worker always has work while its samples' forwarded
+    /// queries travel (a sample in flight holds a few hundred bytes).
     pub max_inflight: u32,
     /// Tiles a worker holds at once.
     pub tiles_ahead: u32,
@@ -104,9 +110,9 @@ pub struct Tuning {
 impl Default for Tuning {
     fn default() -> Self {
         Self {
-            packet_size: 50,
-            flush_us: 200,
-            max_inflight: 4096,
+            packet_size: 1024,
+            flush_us: 1000,
+            max_inflight: 16384,
             tiles_ahead: 2,
         }
     }

@@ -6,7 +6,8 @@
 //! version plus mutual proof of the shared cluster token by HMAC-SHA256 over
 //! fresh nonces, so the token never crosses the wire. Then one message
 //! family per kind of link: [`control`] (scheduler and workers), [`submit`]
-//! (client and scheduler), [`rays`] (worker to worker); [`report`] holds the
+//! (client and scheduler), [`rays`] (worker to worker, its ray items in
+//! the compact encoding of [`packet`]); [`report`] holds the
 //! counters a job reports. postcard is not self-describing: enum variants
 //! are only ever appended, never reordered or removed.
 
@@ -14,6 +15,7 @@ pub mod connection;
 pub mod control;
 pub mod error;
 pub mod handshake;
+pub mod packet;
 pub mod rays;
 pub mod report;
 pub mod submit;
@@ -22,7 +24,7 @@ pub use connection::{ConnReader, ConnWriter, Connection};
 pub use error::ProtocolError;
 
 /// Bumped on any incompatible change of any message family.
-pub const PROTOCOL_VERSION: u32 = 5;
+pub const PROTOCOL_VERSION: u32 = 6;
 
 /// Default maximum frame length: large enough for a geometry shipment of a
 /// big octree leaf, small enough that a bad length prefix cannot make a peer

@@ -7,6 +7,7 @@
 //! its own) or forwards the item unchanged but for `resume` to the next
 //! owner. Rays travel with their exact bits.
 
+pub use crate::packet::Packet;
 pub use locus_core::path::{Answer, Query};
 use locus_core::region::WorkerId;
 use serde::{Deserialize, Serialize};
@@ -18,7 +19,8 @@ pub enum PeerMsg {
         job: u64,
         from: WorkerId,
     },
-    Packet(Vec<RayItem>),
+    /// Ray items in the compact encoding of [`crate::packet`].
+    Packet(Packet),
     /// Demand-driven: send me the geometry of these leaves of yours.
     Fetch(Vec<u32>),
     /// The answer to `Fetch`: one leaf's triangles.

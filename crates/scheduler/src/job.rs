@@ -62,6 +62,15 @@ pub struct Member {
 /// within about 200 MB whatever the scene's size.
 const PREVIEW_PART: usize = 512 << 10;
 
+/// The largest packet a job may ask for: far below the frame limit even
+/// for path queries.
+pub const MAX_PACKET_ITEMS: u32 = 1 << 16;
+
+/// The most camera samples a job may keep in flight per worker: what a
+/// sample in flight holds (its pending vertices and queries, a few hundred
+/// bytes) times this stays far below any worker's memory.
+pub const MAX_INFLIGHT: u32 = 1 << 18;
+
 /// Rejects a request that would make tracing panic or lie.
 pub fn validate(req: &JobRequest) -> Result<(), String> {
     if req.tris.len() != req.tri_material.len() {
@@ -116,6 +125,18 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     }
     if o.tile_size == 0 || o.tuning.packet_size == 0 || o.tuning.max_inflight == 0 {
         return Err("tile size, packet size and max in-flight must be positive".into());
+    }
+    if o.tuning.max_inflight > MAX_INFLIGHT {
+        return Err(format!(
+            "max in-flight {} is above the largest, {MAX_INFLIGHT} samples",
+            o.tuning.max_inflight
+        ));
+    }
+    if o.tuning.packet_size > MAX_PACKET_ITEMS {
+        return Err(format!(
+            "packet size {} is above the largest, {MAX_PACKET_ITEMS} items",
+            o.tuning.packet_size
+        ));
     }
     Ok(())
 }

@@ -163,7 +163,7 @@ async fn serve_peer(
         c.msgs_recv.fetch_add(1, Relaxed);
         c.bytes_recv.fetch_add(n as u64, Relaxed);
         let input = match m {
-            PeerMsg::Packet(items) => Input::Packet { from, items },
+            PeerMsg::Packet(packet) => Input::Packet { from, packet },
             PeerMsg::Fetch(leaves) => Input::Fetch { from, leaves },
             PeerMsg::Leaf(leaf) => Input::Leaf {
                 from,

@@ -278,7 +278,7 @@ impl<'a> Engine<'a> {
         self.held_peak = self.held_peak.max(self.held);
         for mut w in self.waiting.remove(&f.leaf).unwrap_or_default() {
             w.pinned = Some(f.clone());
-            self.work.push_back(w);
+            self.work.push_front(w);
         }
         self.pending.push(f);
         self.reach_dirty = true;

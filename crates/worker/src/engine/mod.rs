@@ -42,7 +42,8 @@ use locus_core::dircache::LeafCaches;
 use locus_core::path::{CacheUse, Kernel};
 use locus_core::region::WorkerId;
 use locus_protocol::control::{JobSetup, TileAssignment, WorkerToScheduler};
-use locus_protocol::rays::{LeafGeometry, PeerMsg, RayItem};
+use locus_protocol::packet::PacketError;
+use locus_protocol::rays::{LeafGeometry, Packet, PeerMsg};
 use locus_protocol::report::WorkerStats;
 use outbox::LinkClosed;
 use slots::UnknownSlot;
@@ -103,7 +104,7 @@ impl EngineJob {
 pub enum Input {
     Packet {
         from: WorkerId,
-        items: Vec<RayItem>,
+        packet: Packet,
     },
     /// A peer asks for the geometry of leaves of ours.
     Fetch {
@@ -157,6 +158,8 @@ pub enum EngineError {
     EndedEarly(usize),
     #[error("the job was cancelled")]
     Cancelled,
+    #[error("worker {from} sent a malformed packet: {why}")]
+    BadPacket { from: WorkerId, why: PacketError },
     #[error("worker {from} asked for leaf {leaf}, which this worker does not own")]
     NotMyLeaf { from: WorkerId, leaf: u32 },
     #[error("worker {from} sent geometry for leaf {leaf}: {why}")]
@@ -197,10 +200,7 @@ pub fn run(
     let mut e = Engine::new(&job, parts, &events_tx, links);
     drop(events_tx);
     e.prefetch()?;
-    e.control(WorkerToScheduler::NeedTiles {
-        job: job.setup.job,
-        count: job.setup.tuning.tiles_ahead.max(1),
-    })?;
+    e.top_up_tiles()?;
     let result = match pool {
         // The receiver is moved into the scope and dropped when its body
         // ends (also by an error), before the scope waits for its tasks:
@@ -240,6 +240,7 @@ fn turns<'a: 's, 's>(
         if !e.outbox.is_stalled() {
             e.originate();
         }
+        e.top_up_tiles()?;
         e.maybe_merge();
         if e.reach_dirty {
             e.republish();

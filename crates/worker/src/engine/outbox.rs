@@ -15,7 +15,7 @@
 //! path vertex), so these queues are bounded too.
 
 use locus_core::region::WorkerId;
-use locus_protocol::rays::{PeerMsg, RayItem};
+use locus_protocol::rays::{Packet, PeerMsg, RayItem};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
@@ -25,7 +25,9 @@ pub struct LinkClosed(pub WorkerId);
 
 pub struct Outbox {
     peers: Vec<Option<flume::Sender<PeerMsg>>>,
-    out: Vec<Vec<RayItem>>,
+    /// Per peer: the packet being filled (encoded as items arrive) and
+    /// its item count.
+    out: Vec<(Packet, usize)>,
     since: Vec<Option<Instant>>,
     stalled: Vec<VecDeque<PeerMsg>>,
     packet_items: usize,
@@ -48,7 +50,7 @@ impl Outbox {
         let n = peers.len();
         Self {
             peers,
-            out: (0..n).map(|_| Vec::new()).collect(),
+            out: (0..n).map(|_| (Packet::default(), 0)).collect(),
             since: vec![None; n],
             stalled: (0..n).map(|_| VecDeque::new()).collect(),
             packet_items: packet_items.max(1),
@@ -62,12 +64,13 @@ impl Outbox {
     /// Adds an item to `peer`'s packet, sending it when full.
     pub fn push(&mut self, peer: WorkerId, item: RayItem, now: Instant) -> Result<(), LinkClosed> {
         let p = peer as usize;
-        if self.out[p].is_empty() {
+        let (packet, n) = &mut self.out[p];
+        if *n == 0 {
             self.since[p] = Some(now);
-            self.out[p].reserve(self.packet_items);
         }
-        self.out[p].push(item);
-        if self.out[p].len() >= self.packet_items {
+        packet.push(&item);
+        *n += 1;
+        if *n >= self.packet_items {
             self.send_packet(p)?;
         }
         Ok(())
@@ -75,10 +78,14 @@ impl Outbox {
 
     fn send_packet(&mut self, p: usize) -> Result<(), LinkClosed> {
         self.since[p] = None;
-        if self.out[p].is_empty() {
+        let (packet, n) = &mut self.out[p];
+        if *n == 0 {
             return Ok(());
         }
-        let items = std::mem::take(&mut self.out[p]);
+        // The next packet is likely as large as this one.
+        let next = Packet::with_capacity(packet.len());
+        let items = std::mem::replace(packet, next);
+        *n = 0;
         self.packets += 1;
         self.send(p as WorkerId, PeerMsg::Packet(items))
     }
@@ -163,7 +170,7 @@ impl Outbox {
 
     /// Whether anything is buffered or waiting.
     pub fn is_empty(&self) -> bool {
-        self.out.iter().all(Vec::is_empty) && !self.is_stalled()
+        self.out.iter().all(|(_, n)| *n == 0) && !self.is_stalled()
     }
 }
 
@@ -183,9 +190,9 @@ mod tests {
     fn items(m: PeerMsg) -> Vec<u32> {
         match m {
             PeerMsg::Packet(v) => v
-                .into_iter()
+                .items(0)
                 .map(|i| match i {
-                    RayItem::Answer { to, .. } => to,
+                    Ok(RayItem::Answer { to, .. }) => to,
                     other => panic!("{other:?}"),
                 })
                 .collect(),

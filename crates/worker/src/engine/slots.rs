@@ -111,6 +111,18 @@ impl Slots {
         self.tiles.iter().any(Option::is_some)
     }
 
+    /// Tiles held: all of them, those with samples not started yet, and
+    /// the samples of the largest.
+    pub fn tiles_held(&self) -> (usize, usize, usize) {
+        let held = self.tiles.iter().flatten();
+        let fresh = held
+            .clone()
+            .filter(|t| (t.next as usize) < t.values.len())
+            .count();
+        let largest = held.clone().map(|t| t.values.len()).max().unwrap_or(0);
+        (held.count(), fresh, largest)
+    }
+
     fn alloc(&mut self, s: Slot) -> u32 {
         match self.free.pop() {
             Some(i) => {

@@ -31,6 +31,8 @@ pub(super) struct Engine<'a> {
     pub(super) slots: Slots,
     pub(super) work: VecDeque<Work>,
     pub(super) no_more_tiles: bool,
+    /// Tiles asked for and not yet received.
+    pub(super) tiles_asked: usize,
     pub(super) stats: WorkerStats,
     pub(super) effects: Vec<Effect>,
     pub(super) children: Vec<(Dest, Query, f32, ReplyTo)>,
@@ -107,6 +109,7 @@ impl<'a> Engine<'a> {
             slots: Slots::new(s.me, s.job, s.spp),
             work: VecDeque::new(),
             no_more_tiles: false,
+            tiles_asked: 0,
             stats: WorkerStats {
                 peers: vec![Default::default(); job.workers],
                 triangles: s.region_triangles,
@@ -145,6 +148,34 @@ impl<'a> Engine<'a> {
             .map_err(|_| EngineError::LinkClosed("the scheduler"))
     }
 
+    /// Asks the scheduler for tiles so that `tiles_ahead` tiles with
+    /// samples not yet started are held or on their way. A tile is asked
+    /// for when the last sample of another has started, not when another
+    /// finishes: a tile's last samples wait for answers from other workers,
+    /// and a worker holding only such tiles would sit idle. The tiles held
+    /// are bounded by what the samples in flight can keep open, at most
+    /// twice `max_inflight` samples' worth beyond the tiles ahead.
+    pub(super) fn top_up_tiles(&mut self) -> Result<(), EngineError> {
+        if self.no_more_tiles {
+            return Ok(());
+        }
+        let t = &self.job.setup.tuning;
+        let ahead = t.tiles_ahead.max(1) as usize;
+        let (held, fresh, tile) = self.slots.tiles_held();
+        let cap = ahead + 2 * (t.max_inflight.max(1) as usize).div_ceil(tile.max(1)) + 1;
+        let want = ahead
+            .saturating_sub(fresh + self.tiles_asked)
+            .min(cap.saturating_sub(held + self.tiles_asked));
+        if want > 0 {
+            self.tiles_asked += want;
+            self.control(WorkerToScheduler::NeedTiles {
+                job: self.job.setup.job,
+                count: want as u32,
+            })?;
+        }
+        Ok(())
+    }
+
     /// Starts camera samples until `max_inflight` are open.
     pub(super) fn originate(&mut self) {
         let cap = self.job.setup.tuning.max_inflight.max(1) as usize;
@@ -176,19 +207,23 @@ impl<'a> Engine<'a> {
         'a: 's,
     {
         match i {
-            Input::Packet { from, items } => {
+            Input::Packet { from, packet } => {
                 if let Some(r) = self.received.get_mut(from as usize) {
                     *r += 1;
                 }
-                for it in items {
-                    match it {
+                for it in packet.items(self.job.setup.seed) {
+                    match it.map_err(|why| EngineError::BadPacket { from, why })? {
                         RayItem::Trace {
                             query,
                             resume,
                             reply,
                         } => {
                             self.stats.queries_in += 1;
-                            self.work.push_back(Work {
+                            // Peers' queries go first, new camera samples
+                            // last: a peer whose samples all wait here
+                            // would otherwise run dry while they queue
+                            // behind samples this worker started.
+                            self.work.push_front(Work {
                                 task: Task::Query(query),
                                 resume,
                                 reply,
@@ -211,7 +246,10 @@ impl<'a> Engine<'a> {
             }
             Input::Fetch { from, leaves } => self.serve(from, leaves)?,
             Input::Leaf { from, bytes, leaf } => self.receive_leaf(from, bytes, *leaf, scope)?,
-            Input::Tile(a) => self.slots.add_tile(a),
+            Input::Tile(a) => {
+                self.tiles_asked = self.tiles_asked.saturating_sub(1);
+                self.slots.add_tile(a)
+            }
             Input::NoMoreTiles => self.no_more_tiles = true,
             Input::End => unreachable!("handled by the loop"),
         }
@@ -289,12 +327,6 @@ impl<'a> Engine<'a> {
                 Effect::TileDone(r) => {
                     self.stats.tiles += 1;
                     self.control(WorkerToScheduler::TileDone(r))?;
-                    if !self.no_more_tiles {
-                        self.control(WorkerToScheduler::NeedTiles {
-                            job: self.job.setup.job,
-                            count: 1,
-                        })?;
-                    }
                 }
             }
         }
@@ -333,7 +365,7 @@ impl<'a> Engine<'a> {
         let l = leaf as usize;
         if self.local.get(l) == Some(&true) || self.pending.iter().any(|p| p.leaf == leaf) {
             // It arrived while this query was being traced.
-            self.work.push_back(w);
+            self.work.push_front(w);
             return Ok(());
         }
         self.stats.fetch_waits += 1;
