@@ -16,6 +16,7 @@ use locus_core::region::WorkerId;
 use locus_core::stats::TraceStats;
 use locus_protocol::control::{TileAssignment, TileResult};
 use locus_protocol::rays::ReplyTo;
+use std::collections::HashMap;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("worker {from} sent an answer for slot {slot}, which is not waiting for one")]
@@ -30,19 +31,23 @@ enum Wait<T> {
     Done(T),
 }
 
+/// One slot, aligned to a cache line so that an answer costs one line.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(align(64))]
 enum Slot {
     Free,
     Sample {
         tile: u32,
         index: u32,
     },
+    /// A vertex waiting for answers. Its directional cache entry, if its
+    /// continuation updates one, is kept aside in `Slots::updates`: a slot
+    /// fits a cache line, and answers touch slots at random.
     Vertex {
         reply: ReplyTo,
         vertex: ShadedVertex,
         shadow: Wait<bool>,
         next: Wait<Vec3>,
-        update: Option<CacheKey>,
     },
 }
 
@@ -79,6 +84,8 @@ pub struct Slots {
     spp: u32,
     slots: Vec<Slot>,
     free: Vec<u32>,
+    /// Cache entries that pending continuations update, by slot.
+    updates: HashMap<u32, CacheKey>,
     tiles: Vec<Option<TileState>>,
     samples_open: usize,
 }
@@ -91,6 +98,7 @@ impl Slots {
             spp: spp.max(1),
             slots: Vec::new(),
             free: Vec::new(),
+            updates: HashMap::new(),
             tiles: Vec::new(),
             samples_open: 0,
         }
@@ -99,6 +107,24 @@ impl Slots {
     /// Camera samples started and not yet answered.
     pub fn samples_open(&self) -> usize {
         self.samples_open
+    }
+
+    /// Asks the processor to bring `slot` into cache ahead of its answer:
+    /// answers arrive for slots at random, and a packet's worth of them
+    /// otherwise waits on memory one after another.
+    #[inline(always)]
+    pub fn prefetch(&self, slot: u32) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(s) = self.slots.get(slot as usize) {
+            // SAFETY: a prefetch never faults and has no other effect; the
+            // address is in bounds besides.
+            unsafe {
+                use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+                _mm_prefetch::<_MM_HINT_T0>((s as *const Slot).cast());
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = slot;
     }
 
     /// Slots waiting for an answer.
@@ -205,8 +231,10 @@ impl Slots {
                     Child::Done(l) => Wait::Done(l),
                     _ => Wait::Pending,
                 },
-                update: cv.update,
             });
+            if let Some(k) = cv.update {
+                self.updates.insert(slot, k);
+            }
             let mine = ReplyTo {
                 worker: self.me,
                 slot,
@@ -263,13 +291,14 @@ impl Slots {
                     vertex,
                     shadow,
                     next,
-                    update,
                 } => {
                     match (a, &*shadow, &*next) {
                         (Answer::Visible(v), Wait::Pending, _) => *shadow = Wait::Done(v),
                         (Answer::Radiance(l), _, Wait::Pending) => {
                             *next = Wait::Done(l);
-                            if let Some(k) = *update {
+                            if !self.updates.is_empty()
+                                && let Some(k) = self.updates.remove(&slot)
+                            {
                                 effects.push(Effect::CacheUpdate(k, l));
                             }
                         }
@@ -347,6 +376,11 @@ mod tests {
             ray: Ray::new(Vec3::ZERO, Vec3::X),
             t_max: 1.0,
         })
+    }
+
+    #[test]
+    fn a_slot_fits_a_cache_line() {
+        assert_eq!(std::mem::size_of::<Slot>(), 64);
     }
 
     #[test]

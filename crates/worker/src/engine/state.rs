@@ -35,6 +35,8 @@ pub(super) struct Engine<'a> {
     pub(super) tiles_asked: usize,
     pub(super) stats: WorkerStats,
     pub(super) effects: Vec<Effect>,
+    /// A packet's items, decoded (kept to reuse its allocation).
+    pub(super) decoded: Vec<RayItem>,
     pub(super) children: Vec<(Dest, Query, f32, ReplyTo)>,
     pub(super) traffic: Arc<crate::peers::Traffic>,
     /// Packets received from each peer.
@@ -120,6 +122,7 @@ impl<'a> Engine<'a> {
                 ..Default::default()
             },
             effects: Vec::new(),
+            decoded: Vec::new(),
             children: Vec::new(),
             traffic: links.traffic.clone(),
             received: vec![0; job.workers],
@@ -211,8 +214,17 @@ impl<'a> Engine<'a> {
                 if let Some(r) = self.received.get_mut(from as usize) {
                     *r += 1;
                 }
+                let mut items = std::mem::take(&mut self.decoded);
                 for it in packet.items(self.job.setup.seed) {
-                    match it.map_err(|why| EngineError::BadPacket { from, why })? {
+                    items.push(it.map_err(|why| EngineError::BadPacket { from, why })?);
+                }
+                // Answers' slots are fetched from memory a few items ahead.
+                const AHEAD: usize = 8;
+                for i in 0..items.len() {
+                    if let Some(RayItem::Answer { to, .. }) = items.get(i + AHEAD) {
+                        self.slots.prefetch(*to);
+                    }
+                    match items[i] {
                         RayItem::Trace {
                             query,
                             resume,
@@ -243,6 +255,8 @@ impl<'a> Engine<'a> {
                         }
                     }
                 }
+                items.clear();
+                self.decoded = items;
             }
             Input::Fetch { from, leaves } => self.serve(from, leaves)?,
             Input::Leaf { from, bytes, leaf } => self.receive_leaf(from, bytes, *leaf, scope)?,
