@@ -166,8 +166,10 @@ struct FarmArgs {
     #[arg(long, default_value_t = 16)]
     tile_size: u32,
     /// What a worker does with a ray reaching another worker's leaf:
-    /// forward it, fetch the leaf's geometry, hybrid or adaptive.
-    #[arg(long, default_value = "forward")]
+    /// forward it, fetch the leaf's geometry, hybrid or adaptive (rent or
+    /// buy: the whole scene at the start when that pays and fits, else
+    /// leaf by leaf).
+    #[arg(long, default_value = "adaptive")]
     fetch: FetchPolicy,
     /// MiB of fetched geometry each worker keeps (LRU-like eviction).
     #[arg(long, default_value_t = 256)]
@@ -797,6 +799,12 @@ fn write_farm_result(
         f.prediction.analytic_r,
         f.prediction.sampled_r
     );
+    if f.replicated {
+        println!(
+            "  {}: every worker held the whole scene (it fit, and its rays would have cost more than its geometry)",
+            f.policy
+        );
+    }
     let t = &f.totals;
     let c = t.trace.cache;
     if c.local + c.global + c.lookups > 0 {

@@ -3,7 +3,7 @@
 
 mod common;
 use common::{bits, runtime, single_machine};
-use locus_protocol::submit::{JobOptions, Partitioner};
+use locus_protocol::submit::{FetchPolicy, JobOptions, Partitioner};
 
 fn small_cornell() -> locus_core::scene::Scene {
     common::small_cornell(40, 32, 7)
@@ -22,6 +22,7 @@ fn farm_matches_single_machine_bit_for_bit() {
                     workers: workers as u32,
                     partitioner,
                     tile_size: 8,
+                    fetch: FetchPolicy::Forward,
                     ..Default::default()
                 };
                 let req = locus_scheduler::client::request(&scene, opts);
@@ -62,6 +63,7 @@ fn bad_clients_are_dropped_while_the_job_completes() {
             JobOptions {
                 workers: 3,
                 tile_size: 4,
+                fetch: FetchPolicy::Forward,
                 ..Default::default()
             },
         );

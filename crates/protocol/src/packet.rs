@@ -39,11 +39,11 @@ const BLOCKED: u8 = 6;
 /// The longest item: a path query with every varint at its longest.
 const MAX_ITEM: usize = 1 + 4 + 3 + 5 + 24 + 10 + 5 + 5 + 4 + 12 + 4;
 
-/// Bytes of a path query (with a bounded emission) and of its radiance
-/// answer as a typical job encodes them (a pixel index below 2^21, a
-/// sample and depth below 128, a slot below 2^21): what one forwarded
-/// query costs on the wire, for the adaptive policy's rent-or-buy rule.
-pub const TYPICAL_FORWARD_BYTES: u64 = 1 + 4 + 1 + 3 + 24 + 3 + 1 + 1 + 4 + 12 + 4 + 1 + 3 + 12;
+/// Bytes of a path query (without caches) and of its radiance answer as a
+/// typical job encodes them (a pixel index below 2^21, a sample and depth
+/// below 128, a slot below 2^21): what one forwarded query costs on the
+/// wire, for the adaptive policy's rent-or-buy rule.
+pub const TYPICAL_FORWARD_BYTES: u64 = 1 + 4 + 1 + 3 + 24 + 3 + 1 + 1 + 4 + 12 + 1 + 3 + 12;
 
 /// Ray items in the compact encoding.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -462,7 +462,7 @@ mod tests {
             query: Query::Path(PathRay {
                 key: SampleKey::new(320 * 240 - 1, 15, 1),
                 depth: 3,
-                ..path(0, 4.0)
+                ..path(0, f32::INFINITY)
             }),
             resume: 1.0,
             reply: ReplyTo {

@@ -170,6 +170,11 @@ pub struct FarmReport {
     pub seed: u64,
     pub partitioner: String,
     pub cost_model: String,
+    /// The fetch policy asked for.
+    pub policy: String,
+    /// Whether every worker held the whole scene (`fetch`, or `adaptive`
+    /// when its rent-or-buy rule bought everything at the start).
+    pub replicated: bool,
     pub leaves: u32,
     pub triangles: u64,
     /// Nodes of the processor map's route (the octree collapsed by owner):

@@ -30,7 +30,6 @@ pub enum CostModel {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 pub enum FetchPolicy {
     /// Forward the ray to the leaf's owner (pure data-parallel).
-    #[default]
     Forward,
     /// Fetch the leaf's geometry from its owner and trace it here (pure
     /// demand-driven); the ray waits for the geometry.
@@ -39,8 +38,14 @@ pub enum FetchPolicy {
     /// worker's region, fetch; other rays (incoherent indirect and shadow
     /// rays far from home) forward.
     Hybrid,
-    /// Rent or buy, per leaf: forward until the traffic the leaf has cost
-    /// in forwarded queries reaches the bytes of its geometry, then fetch.
+    /// Rent or buy. At the start, for the whole scene: when it fits every
+    /// worker and the cost preview predicts that forwarding its rays would
+    /// cost more bytes than shipping it, every worker gets all of it.
+    /// Otherwise per leaf, as the job runs: forward until the traffic the
+    /// leaf has cost in forwarded queries reaches the bytes of its
+    /// geometry, then fetch. The default: the fastest choice wherever the
+    /// scene fits, and the least traffic where it does not.
+    #[default]
     Adaptive,
 }
 

@@ -66,6 +66,9 @@ pub fn analytic(tree: &Octree) -> Vec<f64> {
 pub struct Preview {
     pub cost: Vec<f64>,
     pub rays: u64,
+    /// Paths traced (one per preview pixel), against which crossings scale
+    /// to a job's samples.
+    pub paths: u64,
     /// Crossings per pair of leaves `(a, b)` with `a < b`, either way.
     pub crossings: HashMap<(u32, u32), u32>,
 }
@@ -211,6 +214,7 @@ pub fn preview(
     Preview {
         cost: t.cost.into_iter().map(|c| c as f64).collect(),
         rays: t.rays,
+        paths: w as u64 * h as u64,
         crossings: t.crossings,
     }
 }

@@ -9,7 +9,11 @@ use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
 use locus_core::scene::{LoadStats, Scene};
+use locus_core::region::WorkerId;
 use locus_protocol::control::MemoryPlan;
+use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
+use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
+use std::collections::HashMap;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobRequest, Partitioner};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -190,20 +194,22 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
         .collect();
     let refs: Vec<u64> = tree.leaves.iter().map(|l| l.tris.len() as u64).collect();
     let all_refs: u64 = refs.iter().sum();
-    // `fetch` ships geometry instead of rays; when every worker's plan can
-    // hold the whole scene, the cheapest way to do that is once, now: each
-    // worker builds one BVH over everything and no ray ever waits (and the
-    // regions carry no traffic, so no preview is needed to draw them).
-    let replicated = req.options.fetch == FetchPolicy::Fetch
-        && workers > 1
+    // Shipping geometry instead of rays, when every worker's plan can
+    // hold the whole scene, is cheapest done once, now: each worker builds
+    // one BVH over everything and no ray ever waits. `fetch` always does
+    // so (and its regions carry no traffic, so no preview is needed to
+    // draw them); `adaptive` does when the preview predicts that the rays
+    // would cost more bytes than the geometry (see [`buying_pays`]).
+    let fits_everywhere = workers > 1
         && all_refs * memory::REGION_BYTES_PER_TRIANGLE <= req.options.fetch_budget
         && caps.iter().all(|c| c.is_none_or(|c| c >= all_refs));
+    let replicate_now = req.options.fetch == FetchPolicy::Fetch && fits_everywhere;
     let t_pre = Instant::now();
     let lights = LightSet::build(&scene);
     let analytic = cost::analytic(&tree);
-    let (sampled, preview_rays, crossings) = match req.options.cost_model {
-        _ if replicated => (analytic.clone(), 0, Default::default()),
-        CostModel::Analytic => (analytic.clone(), 0, Default::default()),
+    let (sampled, preview_rays, preview_paths, crossings) = match req.options.cost_model {
+        _ if replicate_now => (analytic.clone(), 0, 0, Default::default()),
+        CostModel::Analytic => (analytic.clone(), 0, 0, Default::default()),
         CostModel::Sampled => {
             let leaves: Vec<(u32, &[u32])> = tree
                 .leaves
@@ -219,7 +225,7 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
                 &tri,
             ));
             let pv = cost::sampled(&scene, &tree, &accel, &lights);
-            (pv.cost, pv.rays, pv.crossings)
+            (pv.cost, pv.rays, pv.paths, pv.crossings)
         }
     };
     let preview_s = t_pre.elapsed().as_secs_f64();
@@ -241,6 +247,11 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
         Partitioner::Morton => partition::morton(chosen, &lim)?,
     };
     let partition_s = t_part.elapsed().as_secs_f64();
+    let samples = scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
+    let replicated = replicate_now
+        || (req.options.fetch == FetchPolicy::Adaptive
+            && fits_everywhere
+            && buying_pays(&crossings, &owner, workers, all_refs, samples, preview_paths));
     let leaf_ids: Vec<Vec<u32>> = tree
         .leaves
         .iter()
@@ -308,6 +319,34 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
     })
 }
 
+/// The adaptive policy's rent-or-buy rule for the whole job, decided from
+/// the preview: whether the queries the partition `owner` would forward
+/// (each preview crossing between two workers' leaves, scaled from the
+/// preview's `paths` to the job's `samples`) cost more bytes than shipping
+/// every worker the triangle references it lacks. Without a preview it
+/// cannot tell, and rents (the workers decide leaf by leaf as they go).
+pub fn buying_pays(
+    crossings: &HashMap<(u32, u32), u32>,
+    owner: &[WorkerId],
+    workers: usize,
+    all_refs: u64,
+    samples: u64,
+    paths: u64,
+) -> bool {
+    if paths == 0 {
+        return false;
+    }
+    let cut: u64 = crossings
+        .iter()
+        .filter(|((a, b), _)| owner.get(*a as usize) != owner.get(*b as usize))
+        .map(|(_, &c)| c as u64)
+        .sum();
+    let rent = cut as f64 * (samples as f64 / paths as f64) * TYPICAL_FORWARD_BYTES as f64;
+    // Each worker lacks everything but its own references.
+    let buy = (workers.saturating_sub(1) as u64 * all_refs) as f64 * TRIANGLE_WIRE_BYTES as f64;
+    rent >= buy
+}
+
 /// Cuts a worker's leaves (in leaf order) into runs of at most `max`
 /// triangle references; returns the runs and the distinct triangles they
 /// hold, run by run.
@@ -340,4 +379,32 @@ pub fn part_triangles(run: &[(u32, Vec<u32>)]) -> Vec<u32> {
     ids.sort_unstable();
     ids.dedup();
     ids
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rent or buy for the whole scene: buying pays once the predicted
+    /// forwards cost as many bytes as the references every worker lacks.
+    #[test]
+    fn buying_pays_when_the_rays_would_cost_more_than_the_geometry() {
+        // Leaves 0, 1 on worker 0 and leaf 2 on worker 1; only the border
+        // between 1 and 2 separates workers.
+        let owner = [0u16, 0, 1];
+        let crossings: HashMap<(u32, u32), u32> = [((0, 1), 1000), ((1, 2), 10)].into();
+        let refs = 3000u64;
+        let buy = refs * TRIANGLE_WIRE_BYTES;
+        // 10 preview crossings per 100 paths: the job forwards samples / 10.
+        let samples_even = buy * 10 / TYPICAL_FORWARD_BYTES + 10;
+        assert!(buying_pays(&crossings, &owner, 2, refs, samples_even, 100));
+        assert!(!buying_pays(&crossings, &owner, 2, refs, samples_even / 2, 100));
+        // More workers lack more.
+        assert!(!buying_pays(&crossings, &owner, 3, refs, samples_even, 100));
+        // No preview: no prediction, rent.
+        assert!(!buying_pays(&crossings, &owner, 2, refs, u64::MAX, 0));
+        // Crossings inside one worker's region cost nothing.
+        let inside: HashMap<(u32, u32), u32> = [((0, 1), 1_000_000)].into();
+        assert!(!buying_pays(&inside, &owner, 2, refs, samples_even, 100));
+    }
 }

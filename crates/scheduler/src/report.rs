@@ -53,6 +53,8 @@ pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmRe
         seed: j.req.settings.seed,
         partitioner: format!("{:?}", j.req.options.partitioner),
         cost_model: format!("{:?}", j.req.options.cost_model),
+        policy: j.req.options.fetch.name().to_string(),
+        replicated: prep.replicated,
         leaves: prep.leaves,
         triangles: prep.scene.tris.len() as u64,
         route_leaves: prep.map.route.leaves() as u32,

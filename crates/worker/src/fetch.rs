@@ -21,6 +21,8 @@ use locus_core::geometry::TriangleSet;
 use locus_core::path::RayKind;
 use locus_core::region::WorkerId;
 use locus_protocol::control::JobSetup;
+use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
+use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
 use locus_protocol::submit::FetchPolicy;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering::Relaxed};
 
@@ -57,11 +59,8 @@ impl FetchedLeaf {
 }
 
 /// Bytes a forwarded query costs on the wire, query plus answer, for the
-/// adaptive policy's rent-or-buy rule (a postcard `Trace` item of a path
-/// query is about 70 bytes, an answer about 16).
-const FORWARD_COST: u64 = 86;
-/// Wire bytes per triangle of a shipped leaf (id, vertices, material).
-pub const TRIANGLE_WIRE_BYTES: u64 = 44;
+/// adaptive policy's rent-or-buy rule.
+const FORWARD_COST: u64 = TYPICAL_FORWARD_BYTES;
 /// At most the bytes a fetched triangle holds in memory: vertices, id,
 /// material and index entry (48), a BVH node at worst (80), and its place
 /// in the leaf's id list (4).
