@@ -491,7 +491,13 @@ mod tests {
         let mut bad = p.clone();
         bad.bytes[first] = 200;
         let r: Vec<_> = bad.items(1).collect();
-        assert_eq!(r[1], Err(PacketError::BadTag { tag: 200, at: first }));
+        assert_eq!(
+            r[1],
+            Err(PacketError::BadTag {
+                tag: 200,
+                at: first
+            })
+        );
         // A slot of more than 32 bits.
         let wide = Packet {
             bytes: vec![RADIANCE, 0xff, 0xff, 0xff, 0xff, 0x7f],

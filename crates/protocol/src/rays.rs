@@ -15,10 +15,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum PeerMsg {
     /// First message on a peer link, after the handshake.
-    Hello {
-        job: u64,
-        from: WorkerId,
-    },
+    Hello { job: u64, from: WorkerId },
     /// Ray items in the compact encoding of [`crate::packet`].
     Packet(Packet),
     /// Demand-driven: send me the geometry of these leaves of yours.

@@ -8,13 +8,13 @@ use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
-use locus_core::scene::{LoadStats, Scene};
 use locus_core::region::WorkerId;
+use locus_core::scene::{LoadStats, Scene};
 use locus_protocol::control::MemoryPlan;
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
-use std::collections::HashMap;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobRequest, Partitioner};
+use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
@@ -247,11 +247,19 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
         Partitioner::Morton => partition::morton(chosen, &lim)?,
     };
     let partition_s = t_part.elapsed().as_secs_f64();
-    let samples = scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
+    let samples =
+        scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
     let replicated = replicate_now
         || (req.options.fetch == FetchPolicy::Adaptive
             && fits_everywhere
-            && buying_pays(&crossings, &owner, workers, all_refs, samples, preview_paths));
+            && buying_pays(
+                &crossings,
+                &owner,
+                workers,
+                all_refs,
+                samples,
+                preview_paths,
+            ));
     let leaf_ids: Vec<Vec<u32>> = tree
         .leaves
         .iter()
@@ -398,7 +406,14 @@ mod tests {
         // 10 preview crossings per 100 paths: the job forwards samples / 10.
         let samples_even = buy * 10 / TYPICAL_FORWARD_BYTES + 10;
         assert!(buying_pays(&crossings, &owner, 2, refs, samples_even, 100));
-        assert!(!buying_pays(&crossings, &owner, 2, refs, samples_even / 2, 100));
+        assert!(!buying_pays(
+            &crossings,
+            &owner,
+            2,
+            refs,
+            samples_even / 2,
+            100
+        ));
         // More workers lack more.
         assert!(!buying_pays(&crossings, &owner, 3, refs, samples_even, 100));
         // No preview: no prediction, rent.
