@@ -491,6 +491,52 @@ impl Octree {
         (out, labels)
     }
 
+    /// Groups the leaves into whole subtrees, each as large as it can be
+    /// while its leaves' `weight` sums to at most `max` (a leaf heavier
+    /// than that is a group of its own). Returns each leaf's group and each
+    /// group's bounds; groups are numbered in depth-first (Morton) order.
+    /// A partition made of whole groups collapses to a route no deeper
+    /// than the groups are.
+    pub fn subtree_groups(&self, weight: &[f64], max: f64) -> (Vec<u32>, Vec<Bounds>) {
+        let mut sum = vec![0.0f64; self.nodes.len()];
+        // Children are stored after their parent: a reverse sweep sums
+        // every subtree before its parent.
+        for n in (0..self.nodes.len()).rev() {
+            sum[n] = match self.nodes[n] {
+                Node::Leaf { leaf } => weight.get(leaf as usize).copied().unwrap_or(0.0),
+                Node::Interior { first_child } => {
+                    let f = first_child as usize;
+                    sum[f..f + 8].iter().sum()
+                }
+            };
+        }
+        let mut group = vec![0u32; self.leaves.len()];
+        let mut bounds = Vec::new();
+        let mut stack = vec![0usize];
+        while let Some(n) = stack.pop() {
+            match self.nodes[n] {
+                Node::Interior { first_child } if sum[n] > max => {
+                    // Children in reverse so that they pop in order.
+                    stack.extend((first_child as usize..first_child as usize + 8).rev());
+                }
+                _ => {
+                    let g = bounds.len() as u32;
+                    bounds.push(self.node_bounds[n]);
+                    let mut sub = vec![n];
+                    while let Some(m) = sub.pop() {
+                        match self.nodes[m] {
+                            Node::Leaf { leaf } => group[leaf as usize] = g,
+                            Node::Interior { first_child } => {
+                                sub.extend(first_child as usize..first_child as usize + 8)
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        (group, bounds)
+    }
+
     /// Leaves along the ray as `(leaf, ta, tb)`.
     pub fn leaves_along(&self, ray: &Ray, t0: f32, t1: f32) -> Vec<(u32, f32, f32)> {
         let mut v = Vec::new();
@@ -651,6 +697,50 @@ mod tests {
             }
         }
         v
+    }
+
+    /// Subtree groups are whole subtrees (a partition by groups collapses
+    /// to at most one route node per group), within their weight bound
+    /// unless a single leaf, and numbered in leaf (Morton) order.
+    #[test]
+    fn subtree_groups_are_whole_subtrees_within_their_bound() {
+        let tree = Octree::build(
+            &grid_tris(40),
+            OctreeParams {
+                max_leaf_tris: 8,
+                max_depth: 7,
+            },
+        );
+        let n = tree.leaves.len();
+        let weight: Vec<f64> = (0..n).map(|l| 1.0 + (l % 7) as f64).collect();
+        let total: f64 = weight.iter().sum();
+        for max in [0.0, total / 64.0, total / 8.0, total] {
+            let (group, bounds) = tree.subtree_groups(&weight, max);
+            let g = bounds.len();
+            assert!(group.windows(2).all(|p| p[0] <= p[1]), "Morton order");
+            assert_eq!(tree.collapse(&group).1.len(), g, "whole subtrees");
+            let mut sum = vec![0.0; g];
+            let mut count = vec![0; g];
+            for (l, &k) in group.iter().enumerate() {
+                sum[k as usize] += weight[l];
+                count[k as usize] += 1;
+                let (b, lb) = (bounds[k as usize], tree.leaves[l].bounds);
+                assert!(b.contains(lb.min) && b.contains(lb.max));
+            }
+            for k in 0..g {
+                assert!(
+                    sum[k] <= max || count[k] == 1,
+                    "group {k}: {} > {max}",
+                    sum[k]
+                );
+            }
+            if max >= total {
+                assert_eq!(g, 1);
+            }
+            if max == 0.0 {
+                assert_eq!(g, n);
+            }
+        }
     }
 
     /// The parallel build lays out nodes and leaves exactly as one
