@@ -19,6 +19,10 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+/// Samples' worth of tiles a worker may hold, in units of `max_inflight`,
+/// besides the tiles ahead (see [`Engine::top_up_tiles`]).
+const TILES_PER_INFLIGHT: usize = 8;
+
 /// A worker that has heard nothing for this long while work is pending
 /// says what it waits for.
 pub(super) const STALL_REPORT: Duration = Duration::from_secs(5);
@@ -155,9 +159,11 @@ impl<'a> Engine<'a> {
     /// samples not yet started are held or on their way. A tile is asked
     /// for when the last sample of another has started, not when another
     /// finishes: a tile's last samples wait for answers from other workers,
-    /// and a worker holding only such tiles would sit idle. The tiles held
-    /// are bounded by what the samples in flight can keep open, at most
-    /// twice `max_inflight` samples' worth beyond the tiles ahead.
+    /// and a worker holding only such tiles would sit idle. A tile is done
+    /// only when its slowest sample is, so tiles whose samples have all
+    /// started pile up; they are bounded at `TILES_PER_INFLIGHT` times
+    /// `max_inflight` samples' worth beyond the tiles ahead (12 bytes a
+    /// sample).
     pub(super) fn top_up_tiles(&mut self) -> Result<(), EngineError> {
         if self.no_more_tiles {
             return Ok(());
@@ -165,7 +171,8 @@ impl<'a> Engine<'a> {
         let t = &self.job.setup.tuning;
         let ahead = t.tiles_ahead.max(1) as usize;
         let (held, fresh, tile) = self.slots.tiles_held();
-        let cap = ahead + 2 * (t.max_inflight.max(1) as usize).div_ceil(tile.max(1)) + 1;
+        let cap =
+            ahead + TILES_PER_INFLIGHT * (t.max_inflight.max(1) as usize).div_ceil(tile.max(1));
         let want = ahead
             .saturating_sub(fresh + self.tiles_asked)
             .min(cap.saturating_sub(held + self.tiles_asked));
