@@ -216,11 +216,16 @@ impl Actor {
             workers: want as u32,
         });
         let cam = q.req.camera.clone();
+        // Tiles in a shuffled order: at any moment the tiles in flight are
+        // spread over the image, so every region sees its share of the work
+        // all along, not only when the tiles that look at it come up (in
+        // scanline order a worker whose region the top of the image sees
+        // little of waited half the job for the others).
         let tiles = locus_core::render::tiles(
             cam.width,
             cam.height,
             q.req.options.tile_size,
-            locus_core::render::TileOrder::Scanline,
+            locus_core::render::TileOrder::Shuffled(q.req.settings.seed ^ 0x711e),
         )
         .into_iter()
         .enumerate()

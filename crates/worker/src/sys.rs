@@ -25,6 +25,22 @@ fn clock_s(clock: libc::clockid_t) -> f64 {
     ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
+/// Names the calling thread (Linux: the first 15 bytes show in `top -H`,
+/// `perf` and `/proc`), for threads borrowed from a pool, such as the
+/// engine's from tokio's blocking pool.
+pub fn name_thread(name: &str) {
+    #[cfg(target_os = "linux")]
+    if let Ok(c) = std::ffi::CString::new(name.as_bytes()[..name.len().min(15)].to_vec()) {
+        // SAFETY: PR_SET_NAME reads a NUL-terminated string of at most 16
+        // bytes, which `c` is.
+        unsafe {
+            libc::prctl(libc::PR_SET_NAME, c.as_ptr());
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = name;
+}
+
 /// A `/proc/self/status` field in bytes (the kernel writes kB).
 fn status_bytes(field: &str) -> Option<u64> {
     let s = std::fs::read_to_string("/proc/self/status").ok()?;

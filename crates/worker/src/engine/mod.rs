@@ -195,6 +195,7 @@ pub fn run(
     links: Links,
 ) -> Result<WorkerStats, EngineError> {
     let cpu0 = sys::thread_cpu_s();
+    sys::name_thread(&format!("locus-engine-{}", job.setup.me));
     let (events_tx, inbox) = events;
     let cancel = links.cancel.clone();
     let mut e = Engine::new(&job, parts, &events_tx, links);
