@@ -12,6 +12,7 @@
 use crate::distribute;
 use crate::job::{self, Member};
 use crate::report::build_report;
+use crate::tiles::TileQueue;
 use locus_protocol::control::{Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler};
 use locus_protocol::report::WorkerStats;
 use locus_protocol::submit::{JobRequest, JobResult, SchedulerToClient};
@@ -77,7 +78,8 @@ pub struct Running {
     phase: Phase,
     pub prep: Option<Box<job::Prepared>>,
     tiles: Vec<TileAssignment>,
-    next_tile: usize,
+    /// Tiles not yet handed out, by worker (made when the job is prepared).
+    queue: TileQueue,
     done: u32,
     told_no_more: Vec<bool>,
     film: Vec<[f32; 3]>,
@@ -256,7 +258,7 @@ impl Actor {
             phase: Phase::Preparing,
             prep: None,
             tiles,
-            next_tile: 0,
+            queue: TileQueue::new([], &[], 0),
             done: 0,
             ready: 0,
             started: Instant::now(),
@@ -266,8 +268,14 @@ impl Actor {
             t_rendered: None,
         });
         let events = self.events.clone();
+        let rects = self
+            .job
+            .as_ref()
+            .map(|j| j.tiles.clone())
+            .unwrap_or_default();
         tokio::spawn(async move {
-            let prep = tokio::task::spawn_blocking(move || job::prepare(*full, &info)).await;
+            let prep =
+                tokio::task::spawn_blocking(move || job::prepare(*full, &info, &rects)).await;
             let prep = match prep {
                 Ok(Ok(p)) => Ok(Box::new(p)),
                 Ok(Err(e)) => Err(e),
@@ -290,6 +298,11 @@ impl Actor {
         };
         j.t_prepared = Some(Instant::now());
         j.advance(Phase::Distributing);
+        j.queue = TileQueue::new(
+            0..j.tiles.len() as u32,
+            &prep.tile_affinity,
+            j.members.len(),
+        );
         info!(
             job = id,
             leaves = prep.leaves,
@@ -344,14 +357,13 @@ impl Actor {
             WorkerToScheduler::NeedTiles { count, .. } => {
                 let tx = &self.workers[&id].tx;
                 for _ in 0..count {
-                    if j.next_tile < j.tiles.len() {
-                        let t = j.tiles[j.next_tile];
+                    if let Some(k) = j.queue.next_for(w) {
+                        let t = j.tiles[k as usize];
                         if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
                             // The worker asked for it, so its queue has
                             // room unless it is gone, which ends the job.
                             break;
                         }
-                        j.next_tile += 1;
                         j.t_first_tile.get_or_insert_with(Instant::now);
                     } else if !j.told_no_more[w] {
                         j.told_no_more[w] = true;

@@ -10,7 +10,7 @@ use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
 use locus_core::region::WorkerId;
 use locus_core::scene::{LoadStats, Scene};
-use locus_protocol::control::MemoryPlan;
+use locus_protocol::control::{MemoryPlan, TileAssignment};
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobRequest, Partitioner};
@@ -36,6 +36,9 @@ pub struct Prepared {
     /// counts twice).
     pub region_triangles: Vec<u64>,
     pub plans: Vec<MemoryPlan>,
+    /// Per tile, the worker its camera rays meet first ([`crate::tiles`]);
+    /// none when the scene is replicated.
+    pub tile_affinity: Vec<Option<WorkerId>>,
     /// Triangle references per leaf.
     pub leaf_tris: Vec<u32>,
     pub analytic_share: Vec<f64>,
@@ -69,6 +72,10 @@ const PREVIEW_PART: usize = 512 << 10;
 /// The largest packet a job may ask for: far below the frame limit even
 /// for path queries.
 pub const MAX_PACKET_ITEMS: u32 = 1 << 16;
+
+/// The most tiles a job may have (the scheduler keeps a few dozen bytes
+/// per tile).
+pub const MAX_TILES: u64 = 1 << 22;
 
 /// The most camera samples a job may keep in flight per worker: what a
 /// sample in flight holds (its pending vertices and queries, a few hundred
@@ -130,6 +137,13 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     if o.tile_size == 0 || o.tuning.packet_size == 0 || o.tuning.max_inflight == 0 {
         return Err("tile size, packet size and max in-flight must be positive".into());
     }
+    let ts = o.tile_size.max(1);
+    let tiles = c.width.div_ceil(ts) as u64 * c.height.div_ceil(ts) as u64;
+    if tiles > MAX_TILES {
+        return Err(format!(
+            "{tiles} tiles of {ts} pixels is more than {MAX_TILES}: choose a larger tile size"
+        ));
+    }
     if o.tuning.max_inflight > MAX_INFLIGHT {
         return Err(format!(
             "max in-flight {} is above the largest, {MAX_INFLIGHT} samples",
@@ -163,7 +177,11 @@ pub fn octree_for(scene: &Scene, workers: usize) -> Octree {
 /// among `members` by their cores within their memory budgets, and plans
 /// each worker's parts and memory. Fails when the budgets cannot hold the
 /// scene.
-pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, String> {
+pub fn prepare(
+    mut req: JobRequest,
+    members: &[Member],
+    tiles: &[TileAssignment],
+) -> Result<Prepared, String> {
     let t = Instant::now();
     let workers = members.len().max(1);
     let scene = Arc::new(Scene {
@@ -281,6 +299,16 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
     } else {
         Vec::new()
     };
+    let map = ProcessorMap::new(&tree, owner);
+    let tile_affinity = if replicated || workers < 2 {
+        vec![None; tiles.len()]
+    } else {
+        use rayon::prelude::*;
+        tiles
+            .par_iter()
+            .map(|t| crate::tiles::affinity(&scene.camera, &map, t))
+            .collect()
+    };
     let mut plans = Vec::with_capacity(workers);
     let mut parts = Vec::with_capacity(workers);
     let mut region_triangles = Vec::with_capacity(workers);
@@ -305,11 +333,12 @@ pub fn prepare(mut req: JobRequest, members: &[Member]) -> Result<Prepared, Stri
     }
     Ok(Prepared {
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
-        analytic_share: cost::shares(&analytic, &owner, workers),
-        sampled_share: cost::shares(&sampled, &owner, workers),
+        analytic_share: cost::shares(&analytic, &map.owner, workers),
+        sampled_share: cost::shares(&sampled, &map.owner, workers),
         preview_rays,
         leaves: tree.leaves.len() as u32,
-        map: ProcessorMap::new(&tree, owner),
+        map,
+        tile_affinity,
         own_leaves,
         parts,
         leaf_ids,

@@ -22,6 +22,7 @@ pub mod job;
 pub mod memory;
 pub mod partition;
 pub mod report;
+pub mod tiles;
 
 use actor::{Actor, Event};
 use anyhow::Context;

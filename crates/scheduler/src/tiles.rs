@@ -1,0 +1,172 @@
+//! Which worker renders which tile.
+//!
+//! Any worker can render any sample (sampling is a pure function of pixel,
+//! sample and seed), but a camera ray is traced first by the owner of the
+//! leaves it starts in: a tile rendered by another worker costs a forward
+//! per camera ray before any work is done. So each tile has an affinity,
+//! the owner of the first leaf along its camera rays (the majority of its
+//! centre and corner rays), and a worker asking for tiles gets the tiles
+//! of its affinity, then tiles without one (rays that miss the scene).
+//! Workers with no such tiles left get none: they still work, on the
+//! queries the others forward them, and the partition balanced that work
+//! (camera rays included) before any tile was handed out.
+//!
+//! Within each queue tiles keep the job's shuffled order, so that the
+//! tiles in flight at any moment are spread over the image.
+
+use locus_core::region::{ProcessorMap, WorkerId};
+use locus_core::scene::Camera;
+use locus_protocol::control::TileAssignment;
+use std::collections::VecDeque;
+
+/// The owner of the first leaf along most of a tile's camera rays (its
+/// centre and its four corners; the centre's wins a tie), or None when
+/// most of them miss the scene.
+pub fn affinity(camera: &Camera, map: &ProcessorMap, t: &TileAssignment) -> Option<WorkerId> {
+    let (x1, y1) = (t.x1.saturating_sub(1), t.y1.saturating_sub(1));
+    let points = [
+        ((t.x0 + x1) / 2, (t.y0 + y1) / 2),
+        (t.x0, t.y0),
+        (x1, t.y0),
+        (t.x0, y1),
+        (x1, y1),
+    ];
+    let owners: Vec<Option<WorkerId>> = points
+        .iter()
+        .map(|&(x, y)| {
+            let ray = camera.ray(x, y, [0.5, 0.5]);
+            map.first_owner(&ray, f32::INFINITY).map(|(o, _)| o)
+        })
+        .collect();
+    let count = |o: Option<WorkerId>| owners.iter().filter(|&&x| x == o).count();
+    let centre = owners[0];
+    owners
+        .iter()
+        .copied()
+        .max_by_key(|&o| (count(o), o == centre))
+        .flatten()
+}
+
+/// Tiles waiting to be handed out: one queue per worker and one for tiles
+/// of no worker in particular.
+pub struct TileQueue {
+    own: Vec<VecDeque<u32>>,
+    shared: VecDeque<u32>,
+}
+
+impl TileQueue {
+    /// `order` lists tile indices in handout order; `affinity[t]` is tile
+    /// `t`'s worker, if any.
+    pub fn new(
+        order: impl IntoIterator<Item = u32>,
+        affinity: &[Option<WorkerId>],
+        workers: usize,
+    ) -> Self {
+        let mut own = vec![VecDeque::new(); workers.max(1)];
+        let mut shared = VecDeque::new();
+        for t in order {
+            match affinity.get(t as usize).copied().flatten() {
+                Some(w) if (w as usize) < own.len() => own[w as usize].push_back(t),
+                _ => shared.push_back(t),
+            }
+        }
+        Self { own, shared }
+    }
+
+    /// The next tile for worker `w`: its own, then a shared one.
+    pub fn next_for(&mut self, w: usize) -> Option<u32> {
+        self.own
+            .get_mut(w)
+            .and_then(VecDeque::pop_front)
+            .or_else(|| self.shared.pop_front())
+    }
+
+    /// Tiles not yet handed out.
+    pub fn len(&self) -> usize {
+        self.own.iter().map(VecDeque::len).sum::<usize>() + self.shared.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn workers_get_their_own_tiles_then_shared_ones_then_none() {
+        let aff = [Some(1), None, Some(0), Some(1), None, Some(7)];
+        let mut q = TileQueue::new([5, 4, 3, 2, 1, 0], &aff, 2);
+        assert_eq!(q.len(), 6);
+        // Worker 0: its tile 2, then shared tiles in order (tile 5's
+        // worker does not exist, so it is shared).
+        assert_eq!(q.next_for(0), Some(2));
+        assert_eq!(q.next_for(0), Some(5));
+        // Worker 1: its own, in order.
+        assert_eq!(q.next_for(1), Some(3));
+        assert_eq!(q.next_for(1), Some(0));
+        assert_eq!(q.next_for(1), Some(4));
+        assert_eq!(q.next_for(0), Some(1));
+        assert_eq!(q.next_for(0), None);
+        assert_eq!(q.next_for(9), None);
+        assert!(q.is_empty());
+    }
+
+    #[test]
+    fn a_tile_belongs_to_the_owner_its_camera_rays_meet_first() {
+        use glam::Vec3;
+        use locus_core::octree::{Octree, OctreeParams};
+        // A floor of triangles from x = -10 to 10; the left half (x < 0)
+        // is worker 0's, the right half worker 1's.
+        let mut tris = Vec::new();
+        for i in -10..10 {
+            let x = i as f32;
+            tris.push([
+                Vec3::new(x, 0.0, -5.0),
+                Vec3::new(x + 1.0, 0.0, -5.0),
+                Vec3::new(x, 0.0, 5.0),
+            ]);
+        }
+        let tree = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 2,
+                max_depth: 6,
+            },
+        );
+        let owner: Vec<WorkerId> = tree
+            .leaves
+            .iter()
+            .map(|l| (l.bounds.center().x >= 0.0) as WorkerId)
+            .collect();
+        let map = ProcessorMap::new(&tree, owner);
+        // A camera far above the floor's left half, looking down: every
+        // ray starts outside the octree and first enters a left leaf.
+        let camera = Camera {
+            position: Vec3::new(-5.0, 20.0, 0.0),
+            look_at: Vec3::new(-5.0, 0.0, 0.0),
+            up: Vec3::Z,
+            fov_y: 10.0,
+            width: 32,
+            height: 32,
+        };
+        let tile = |x0, y0| TileAssignment {
+            job: 1,
+            tile: 0,
+            x0,
+            y0,
+            x1: x0 + 8,
+            y1: y0 + 8,
+        };
+        assert_eq!(affinity(&camera, &map, &tile(0, 0)), Some(0));
+        assert_eq!(affinity(&camera, &map, &tile(24, 24)), Some(0));
+        // Looking away from the scene: no affinity.
+        let away = Camera {
+            look_at: Vec3::new(-5.0, 40.0, 0.0),
+            ..camera
+        };
+        assert_eq!(affinity(&away, &map, &tile(8, 8)), None);
+    }
+}
