@@ -37,7 +37,7 @@ const VISIBLE: u8 = 5;
 const BLOCKED: u8 = 6;
 
 /// The longest item: a path query with every varint at its longest.
-const MAX_ITEM: usize = 1 + 4 + 3 + 5 + 24 + 10 + 5 + 5 + 4 + 12 + 4;
+pub const MAX_ITEM: usize = 1 + 4 + 3 + 5 + 24 + 10 + 5 + 5 + 4 + 12 + 4;
 
 /// Bytes of a path query (without caches) and of its radiance answer as a
 /// typical job encodes them (a pixel index below 2^21, a sample and depth

@@ -148,13 +148,18 @@ impl Tracer for ItemTracer<'_> {
 }
 
 /// Traces a batch of work through `reach`.
-pub fn trace_batch(job: &EngineJob, reach: &Reach, work: Vec<Work>) -> Batch {
+pub fn trace_batch(
+    job: &EngineJob,
+    reach: &Reach,
+    work: impl ExactSizeIterator<Item = Work>,
+) -> Batch {
     let cpu0 = sys::thread_cpu_s();
     let kernel = job.kernel();
     let me = job.setup.me;
     let mut b = Batch {
         items: Vec::with_capacity(work.len()),
-        chain: Vec::new(),
+        // About one pending vertex per item; growing by doubling copies.
+        chain: Vec::with_capacity(work.len()),
         stats: TraceStats::default(),
         fetched_leaf_traces: 0,
         cpu_s: 0.0,

@@ -254,7 +254,7 @@ fn turns<'a: 's, 's>(
                 let batch: Vec<Work> = e.work.drain(..take).collect();
                 let (job, reach, tx) = (e.job.clone(), e.reach.clone(), e.events.clone());
                 scope.spawn(move |_| {
-                    let b = trace_batch(&job, &reach, batch);
+                    let b = trace_batch(&job, &reach, batch.into_iter());
                     // A closed inbox means the job is over.
                     let _ = tx.send(Event::Traced(b));
                 });
@@ -264,8 +264,7 @@ fn turns<'a: 's, 's>(
         let traced_here = !e.work.is_empty();
         if traced_here {
             let take = e.work.len().min(INLINE_BATCH);
-            let batch: Vec<Work> = e.work.drain(..take).collect();
-            let mut b = trace_batch(e.job, &e.reach, batch);
+            let mut b = trace_batch(e.job, &e.reach, e.work.drain(..take));
             // This thread's time is counted whole at the end.
             b.cpu_s = 0.0;
             e.now = Instant::now();

@@ -15,7 +15,11 @@
 //! path vertex), so these queues are bounded too.
 
 use locus_core::region::WorkerId;
+use locus_protocol::packet::MAX_ITEM;
 use locus_protocol::rays::{Packet, PeerMsg, RayItem};
+
+/// Items a packet's buffer is allocated for at most (larger packets grow).
+const MAX_PACKET_ALLOC: usize = 4096;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
@@ -82,8 +86,8 @@ impl Outbox {
         if *n == 0 {
             return Ok(());
         }
-        // The next packet is likely as large as this one.
-        let next = Packet::with_capacity(packet.len());
+        // Room for a full packet, so that filling it never copies it.
+        let next = Packet::with_capacity(self.packet_items.min(MAX_PACKET_ALLOC) * MAX_ITEM);
         let items = std::mem::replace(packet, next);
         *n = 0;
         self.packets += 1;
