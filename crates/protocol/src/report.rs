@@ -184,7 +184,8 @@ pub struct FarmReport {
     pub prediction: Prediction,
     pub workers: Vec<WorkerSummary>,
     pub totals: WorkerStats,
-    /// Max over mean of busy time.
+    /// Max over mean of the workers' render-phase CPU time (of their busy
+    /// time where CPU time was not counted).
     pub load_imbalance: f64,
     /// Trace items forwarded over all local traces.
     pub forwarded_fraction: f64,

@@ -35,7 +35,16 @@ pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmRe
         totals += s;
         bytes += s.peers.iter().map(|p| p.bytes_sent).sum::<u64>();
     }
-    let busy: Vec<f64> = stats.iter().map(|s| s.busy_s).collect();
+    // Load is what each worker computed in the render phase: its CPU time
+    // where it was counted (busy wall time would charge a worker for the
+    // time another process held its core, as on any machine with fewer
+    // cores than worker threads), else its busy time.
+    let cpu: Vec<f64> = stats.iter().map(|s| s.cpu_s - s.setup_cpu_s).collect();
+    let busy: Vec<f64> = if cpu.iter().all(|&c| c > 0.0) {
+        cpu
+    } else {
+        stats.iter().map(|s| s.busy_s).collect()
+    };
     let mean_busy = busy.iter().sum::<f64>() / busy.len().max(1) as f64;
     let max_busy = busy.iter().cloned().fold(0.0, f64::max);
     let end = j.t_rendered.unwrap_or_else(Instant::now);
