@@ -46,7 +46,10 @@ pub fn ship(
             lights: prep.lights.clone(),
             map: prep.map.clone(),
             magnitude: prep.scene.magnitude(),
-            tuning: req.options.tuning,
+            tuning: locus_protocol::control::Tuning {
+                max_inflight: prep.max_inflight[w],
+                ..req.options.tuning
+            },
             cache: req.options.cache,
             fetch: req.options.fetch,
             plan: prep.plans[w],

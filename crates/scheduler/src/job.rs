@@ -39,6 +39,8 @@ pub struct Prepared {
     /// Per tile, the worker its camera rays meet first ([`crate::tiles`]);
     /// none when the scene is replicated.
     pub tile_affinity: Vec<Option<WorkerId>>,
+    /// Per worker, the camera samples it keeps in flight.
+    pub max_inflight: Vec<u32>,
     /// Triangle references per leaf.
     pub leaf_tris: Vec<u32>,
     pub analytic_share: Vec<f64>,
@@ -337,6 +339,20 @@ pub fn prepare(
         sampled_share: cost::shares(&sampled, &map.owner, workers),
         preview_rays,
         leaves: tree.leaves.len() as u32,
+        max_inflight: crate::tiles::inflight(
+            &tile_affinity,
+            workers,
+            req.options.tuning.max_inflight,
+        )
+        .into_iter()
+        .zip(members)
+        .map(|(n, m)| match m.budget {
+            // A worker with a budget keeps its queues within the plan's
+            // room for them.
+            0 => n,
+            _ => n.min(req.options.tuning.max_inflight.max(memory::INFLIGHT_IN_QUEUE_ROOM)),
+        })
+        .collect(),
         map,
         tile_affinity,
         own_leaves,

@@ -22,6 +22,10 @@ pub const SHIPPED_BYTES_PER_TRIANGLE: u64 = 44;
 /// Room for the ray traffic's bounded queues, the tile buffers and the
 /// allocator's slack.
 pub const QUEUE_BYTES: u64 = 24 << 20;
+/// Camera samples in flight that [`QUEUE_BYTES`] holds with room to spare:
+/// a sample in flight holds its pending vertices' slots and queries, a few
+/// hundred bytes.
+pub const INFLIGHT_IN_QUEUE_ROOM: u32 = 24 << 10;
 /// Bytes a directional cache node may take (the node, and the growth of
 /// its leaf's node list).
 pub const CACHE_NODE_BYTES: u64 = 112;

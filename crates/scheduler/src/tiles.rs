@@ -47,6 +47,32 @@ pub fn affinity(camera: &Camera, map: &ProcessorMap, t: &TileAssignment) -> Opti
         .flatten()
 }
 
+/// Camera samples each worker may keep in flight: the job's
+/// `max_inflight` for every worker in all, shared out by the tiles each
+/// will originate (its own, and an even part of those without affinity),
+/// at least a quarter of `max_inflight` each. A worker that originates
+/// every tile must keep the whole farm's samples in flight, or the others,
+/// which work only on what it forwards them, run dry.
+pub fn inflight(affinity: &[Option<WorkerId>], workers: usize, max_inflight: u32) -> Vec<u32> {
+    let workers = workers.max(1);
+    let mut tiles = vec![0.0f64; workers];
+    for a in affinity {
+        match a {
+            Some(w) if (*w as usize) < workers => tiles[*w as usize] += 1.0,
+            _ => tiles.iter_mut().for_each(|t| *t += 1.0 / workers as f64),
+        }
+    }
+    let total = (affinity.len() as f64).max(1.0);
+    let all = max_inflight as f64 * workers as f64;
+    tiles
+        .iter()
+        .map(|t| {
+            let n = if affinity.is_empty() { max_inflight as f64 } else { all * t / total };
+            (n.round() as u32).clamp((max_inflight / 4).max(1), crate::job::MAX_INFLIGHT.max(max_inflight))
+        })
+        .collect()
+}
+
 /// Tiles waiting to be handed out: one queue per worker and one for tiles
 /// of no worker in particular.
 pub struct TileQueue {
@@ -112,6 +138,17 @@ mod tests {
         assert_eq!(q.next_for(0), None);
         assert_eq!(q.next_for(9), None);
         assert!(q.is_empty());
+    }
+
+    #[test]
+    fn samples_in_flight_follow_the_tiles_a_worker_originates() {
+        // Worker 0 originates every tile: it keeps the farm's samples.
+        assert_eq!(inflight(&[Some(0); 8], 4, 1000), [4000, 250, 250, 250]);
+        // No affinity: the job's figure each.
+        assert_eq!(inflight(&[None; 8], 4, 1000), [1000; 4]);
+        // Half and half; no tiles at all.
+        assert_eq!(inflight(&[Some(0), Some(1)], 2, 1000), [1000, 1000]);
+        assert_eq!(inflight(&[], 3, 1000), [1000; 3]);
     }
 
     #[test]
