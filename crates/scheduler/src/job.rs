@@ -350,7 +350,12 @@ pub fn prepare(
             // A worker with a budget keeps its queues within the plan's
             // room for them.
             0 => n,
-            _ => n.min(req.options.tuning.max_inflight.max(memory::INFLIGHT_IN_QUEUE_ROOM)),
+            _ => n.min(
+                req.options
+                    .tuning
+                    .max_inflight
+                    .max(memory::INFLIGHT_IN_QUEUE_ROOM),
+            ),
         })
         .collect(),
         map,

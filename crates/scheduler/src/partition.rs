@@ -166,11 +166,14 @@ const UNIT_SIZES: [f64; 7] = [
     0.0,
 ];
 
-/// What a route node costs against the cut weight, in the score that
-/// picks among partitions: every ray walks the route, and on the
-/// conference room 100 more route nodes cost about as much CPU as a tenth
-/// more forwarded queries.
-const ROUTE_NODE_WEIGHT: f64 = 1e-3;
+/// What a ray's step from one route node to the next costs against a
+/// forwarded query, in the score that picks among partitions. Every ray
+/// walks the route of its worker, and a partition whose regions are made
+/// of many small subtrees makes every walk longer. Fitted to the engine's
+/// CPU time over four partitions of the room on two workers (region
+/// growing at three unit sizes and Morton's): a step costs about a
+/// thirteenth of a forward.
+const ROUTE_STEP_WEIGHT: f64 = 0.08;
 
 /// Paper 000's region growing, made to keep regions compact: one seed
 /// unit per worker, spread apart; then repeatedly the worker furthest
@@ -180,8 +183,8 @@ const ROUTE_NODE_WEIGHT: f64 = 1e-3;
 /// furthest behind. Then border units move to a neighbouring region
 /// wherever that lowers the cut weight and keeps every region within
 /// [`BALANCE_SLACK`] of its share. Done for each unit size of
-/// [`UNIT_SIZES`]; the partition with the least cut weight, counting route
-/// nodes ([`ROUTE_NODE_WEIGHT`]), wins.
+/// [`UNIT_SIZES`]; the partition whose borders and route cost the rays
+/// least wins ([`walk_cost`]).
 pub fn region_growing(
     tree: &Octree,
     graph: &LeafGraph,
@@ -205,8 +208,7 @@ pub fn region_growing(
             }
         };
         let owner: Vec<u16> = units.group.iter().map(|&g| owner[g as usize]).collect();
-        let route = tree.collapse(&owner).1.len() as f64;
-        let score = graph.cut(&owner) * (1.0 + ROUTE_NODE_WEIGHT * route);
+        let score = walk_cost(tree, graph, &owner);
         if best.as_ref().is_none_or(|(b, _)| score < *b) {
             best = Some((score, owner));
         }
@@ -215,6 +217,31 @@ pub fn region_growing(
         Some((_, o)) => Ok(o),
         None => Err(last_err.unwrap_or_else(|| "no partition".into())),
     }
+}
+
+/// What a partition costs the rays that cross its leaves, in the units of
+/// the graph's border weights (preview crossings): each crossing between
+/// two workers' leaves is a forwarded query, and each crossing between
+/// two route nodes a step of the walk ([`ROUTE_STEP_WEIGHT`]), where the
+/// route is the octree collapsed by owner.
+pub fn walk_cost(tree: &Octree, graph: &LeafGraph, owner: &[u16]) -> f64 {
+    let (route, _) = tree.collapse(owner);
+    // A leaf's centre lies inside it, so it finds the route node that
+    // holds the leaf.
+    let node: Vec<Option<u32>> = tree
+        .leaves
+        .iter()
+        .map(|l| route.leaf_at(l.bounds.center()))
+        .collect();
+    let mut steps = 0.0;
+    for (a, e) in graph.edges.iter().enumerate() {
+        for &(b, w) in e {
+            if (b as usize) > a && node[a] != node[b as usize] {
+                steps += w;
+            }
+        }
+    }
+    graph.cut(owner) + ROUTE_STEP_WEIGHT * steps
 }
 
 /// The leaves grouped into partition units, with the units' cost,
@@ -741,6 +768,27 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// One owner costs nothing; a split along the octree's first plane
+    /// costs its border; leaves dealt out alternately cost far more, in
+    /// borders and in route steps alike.
+    #[test]
+    fn walk_cost_counts_borders_and_route_steps() {
+        let t = tree();
+        let graph = LeafGraph::new(&t, &HashMap::new());
+        let n = t.leaves.len();
+        assert_eq!(walk_cost(&t, &graph, &vec![0; n]), 0.0);
+        let half: Vec<u16> = t
+            .leaves
+            .iter()
+            .map(|l| (l.bounds.center().x >= t.bounds.center().x) as u16)
+            .collect();
+        let dealt: Vec<u16> = (0..n).map(|l| (l % 2) as u16).collect();
+        let (h, d) = (walk_cost(&t, &graph, &half), walk_cost(&t, &graph, &dealt));
+        assert!(h > 0.0 && h >= graph.cut(&half));
+        assert!(d > 2.0 * h, "{d} vs {h}");
+        assert!(d - graph.cut(&dealt) > h - graph.cut(&half), "route steps");
     }
 
     /// Shares follow the cores, and no region passes its memory cap; a cap

@@ -67,8 +67,15 @@ pub fn inflight(affinity: &[Option<WorkerId>], workers: usize, max_inflight: u32
     tiles
         .iter()
         .map(|t| {
-            let n = if affinity.is_empty() { max_inflight as f64 } else { all * t / total };
-            (n.round() as u32).clamp((max_inflight / 4).max(1), crate::job::MAX_INFLIGHT.max(max_inflight))
+            let n = if affinity.is_empty() {
+                max_inflight as f64
+            } else {
+                all * t / total
+            };
+            (n.round() as u32).clamp(
+                (max_inflight / 4).max(1),
+                crate::job::MAX_INFLIGHT.max(max_inflight),
+            )
         })
         .collect()
 }
