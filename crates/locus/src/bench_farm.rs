@@ -240,16 +240,20 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
         let t = Instant::now();
         let mut scene = Scene::load(&path)?;
         let load_s = t.elapsed().as_secs_f64();
-        if large.is_none() {
-            scene.camera.width = plan.width;
-            scene.camera.height = plan.height;
-            scene.settings.spp = plan.spp;
-        }
+        scene.camera.width = plan.width;
+        scene.camera.height = plan.height;
+        scene.settings.spp = plan.spp;
         let name = path
             .file_stem()
             .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
         tracing::info!(scene = %name, triangles = scene.tris.len(), load_s, "measuring");
         let one = single(&scene, plan.cores, plan.repeat);
+        // What one machine needs for the large scene, measured on a process
+        // of its own: the figure the workers' budgets stay below.
+        let one_peak = match large {
+            Some(_) => single_peak(&plan.exe, &path, plan.cores)?,
+            None => Vec::new(),
+        };
         if large.is_none() {
             let prep = Prepared::new(scene.clone());
             let tree = locus_scheduler::job::octree_for(&scene, 4);
@@ -280,7 +284,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             bytes_per_sample: 0.0,
             imbalance: 1.0,
             route_nodes: 0,
-            peak_rss: Vec::new(),
+            peak_rss: one_peak,
             budget: 0,
             identical: true,
         });
@@ -324,6 +328,30 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
     Ok((rows, predictions))
 }
 
+/// Peak resident memory of `locus render` of `scene` on one machine, as a
+/// process of its own.
+fn single_peak(exe: &Path, scene: &Path, cores: usize) -> Result<Vec<u64>> {
+    let out = std::env::temp_dir().join(format!("locus-bench-{}.exr", std::process::id()));
+    let mut cmd = std::process::Command::new(exe);
+    cmd.arg("render")
+        .arg(scene)
+        .arg("--threads")
+        .arg(cores.to_string())
+        .arg("-o")
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null());
+    let (ok, peak) = locus_worker::sys::run_measuring_peak(&mut cmd)
+        .with_context(|| format!("running {}", exe.display()))?;
+    for ext in ["exr", "png", "json"] {
+        let _ = std::fs::remove_file(out.with_extension(ext));
+    }
+    if !ok {
+        bail!("{} render {} failed", exe.display(), scene.display());
+    }
+    Ok(vec![peak])
+}
+
 fn spec(plan: &Plan, workers: usize, budget: u64) -> FarmSpec {
     FarmSpec {
         workers,
@@ -343,7 +371,7 @@ pub fn markdown(rows: &[Row]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | imbalance | peak MiB per worker (budget) | bit-identical |"
+        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | imbalance | peak MiB per process (budget) | bit-identical |"
     );
     let _ = writeln!(
         s,

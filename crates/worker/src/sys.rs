@@ -66,6 +66,28 @@ pub fn reset_peak() -> bool {
     std::fs::write("/proc/self/clear_refs", "5").is_ok()
 }
 
+/// Runs `cmd` to its end and returns whether it succeeded and its peak
+/// resident memory in bytes (Linux: the child's own `ru_maxrss`, taken by
+/// `wait4`; elsewhere unknown, 0).
+pub fn run_measuring_peak(cmd: &mut std::process::Command) -> std::io::Result<(bool, u64)> {
+    let mut child = cmd.spawn()?;
+    #[cfg(target_os = "linux")]
+    {
+        let pid = child.id() as libc::pid_t;
+        let mut status = 0;
+        // SAFETY: an all-zero rusage is a valid value for wait4 to fill.
+        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+        // SAFETY: `pid` is our child, not yet waited for; wait4 reaps it
+        // and writes `status` and `ru`, which are valid for writes.
+        let r = unsafe { libc::wait4(pid, &mut status, 0, &mut ru) };
+        if r == pid {
+            let ok = libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0;
+            return Ok((ok, ru.ru_maxrss as u64 * 1024));
+        }
+    }
+    Ok((child.wait()?.success(), 0))
+}
+
 /// Makes the allocator give freed memory back, for a worker process that
 /// keeps to a memory budget. glibc's defaults do not: a freed large block
 /// raises the threshold above which blocks are mapped on their own, so the
