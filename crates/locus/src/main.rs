@@ -161,7 +161,7 @@ struct FarmArgs {
     #[arg(long, default_value_t = 1000)]
     flush_us: u32,
     /// Camera samples each worker keeps in flight.
-    #[arg(long, default_value_t = 16384)]
+    #[arg(long, default_value_t = 65536)]
     max_inflight: u32,
     #[arg(long, default_value_t = 16)]
     tile_size: u32,
@@ -350,10 +350,28 @@ fn main() {
         Cmd::BenchFarm(a) => cmd_bench_farm(a),
     };
     if let Err(e) = r {
-        tracing::error!("{e:#}");
-        eprintln!("error: {e:#}");
+        let msg = error_chain(&e);
+        tracing::error!("{msg}");
+        eprintln!("error: {msg}");
         std::process::exit(1);
     }
+}
+
+/// An error and its causes, each cause once: our error types already name
+/// their source in their own message, and a cause repeated after it reads
+/// like a second failure.
+fn error_chain(e: &anyhow::Error) -> String {
+    let mut msg = String::new();
+    for cause in e.chain() {
+        let s = cause.to_string();
+        if !msg.contains(&s) {
+            if !msg.is_empty() {
+                msg.push_str(": ");
+            }
+            msg.push_str(&s);
+        }
+    }
+    msg
 }
 
 fn progress_bar(total: u64, what: &str) -> Option<indicatif::ProgressBar> {

@@ -112,7 +112,7 @@ impl Default for Tuning {
         Self {
             packet_size: 1024,
             flush_us: 1000,
-            max_inflight: 16384,
+            max_inflight: 65536,
             tiles_ahead: 2,
         }
     }

@@ -293,27 +293,39 @@ impl<'a> Engine<'a> {
         }
         let Some(tx) = &self.builder.tx else { return };
         // What the merge would build: the pending leaves and every part one
-        // of them joins (see `reach::merge`).
+        // of them joins (see `reach::merge`). Under a memory budget a merge
+        // builds at most about one part, the build the plan reserves room
+        // for (the old parts stay alive until the new ones replace them):
+        // the leaves that would build more wait for the next merge.
+        let budgeted = self.job.setup.plan.budget > 0;
+        let most = self.job.setup.plan.part_triangles.max(1) as u64;
         let mut joined = vec![false; self.parts.len()];
         let mut build: u64 = 0;
-        for f in &self.pending {
-            build += f.ids.len() as u64;
+        let mut chosen = vec![false; self.pending.len()];
+        let mut take = 0;
+        for (i, f) in self.pending.iter().enumerate() {
             let k = self
                 .parts
                 .iter()
                 .rposition(|p| p.leaves.first().is_some_and(|&l| l <= f.leaf))
                 .unwrap_or(0);
-            if let Some(j) = joined.get_mut(k) {
-                *j = true;
+            let joins = joined.get(k).is_some_and(|j| !j);
+            let more = f.ids.len() as u64
+                + if joins {
+                    self.parts[k].accel.len() as u64
+                } else {
+                    0
+                };
+            if budgeted && take > 0 && build + more > most {
+                continue;
             }
+            build += more;
+            if joins {
+                joined[k] = true;
+            }
+            chosen[i] = true;
+            take += 1;
         }
-        build += self
-            .parts
-            .iter()
-            .zip(&joined)
-            .filter(|(_, j)| **j)
-            .map(|(p, _)| p.accel.len() as u64)
-            .sum::<u64>();
         let paid = self.crossings * CROSSING_IN_BUILDS;
         let prefetched = self.prefetching && self.waiting.is_empty() && self.building == 0;
         if !prefetched && paid < build && self.last_arrival.elapsed() < MERGE_AFTER {
@@ -322,12 +334,19 @@ impl<'a> Engine<'a> {
         if prefetched {
             self.prefetching = false;
         }
-        for p in &self.pending {
+        let new: Vec<Arc<FetchedLeaf>> = self
+            .pending
+            .iter()
+            .zip(&chosen)
+            .filter(|(_, c)| **c)
+            .map(|(f, _)| f.clone())
+            .collect();
+        for p in &new {
             self.fetched_ids.insert(p.leaf, Arc::from(p.ids.as_slice()));
         }
         let r = MergeRequest {
             parts: self.parts.clone(),
-            new: self.pending.clone(),
+            new,
             fetched_ids: self.fetched_ids.clone(),
         };
         if tx.try_send(r).is_ok() {

@@ -285,6 +285,16 @@ fn turns<'a: 's, 's>(
             let r = inbox.recv_timeout(e.wait_bound(t));
             if out == 0 {
                 idle += t.elapsed();
+                // Why a worker waits, for `RUST_LOG=locus_worker=trace`.
+                tracing::trace!(
+                    me = e.job.setup.me,
+                    ms = t.elapsed().as_secs_f64() * 1e3,
+                    open = e.slots.samples_open(),
+                    pending = e.slots.pending(),
+                    no_more_tiles = e.no_more_tiles,
+                    stalled = e.outbox.is_stalled(),
+                    "idle"
+                );
             }
             r
         };

@@ -23,6 +23,10 @@ use std::time::{Duration, Instant};
 /// besides the tiles ahead (see [`Engine::top_up_tiles`]).
 const TILES_PER_INFLIGHT: usize = 8;
 
+/// How many items ahead an answer's slot is prefetched: far enough for
+/// a load from memory to land while the items between are applied.
+const AHEAD: usize = 16;
+
 /// A worker that has heard nothing for this long while work is pending
 /// says what it waits for.
 pub(super) const STALL_REPORT: Duration = Duration::from_secs(5);
@@ -225,11 +229,14 @@ impl<'a> Engine<'a> {
                 for it in packet.items(self.job.setup.seed) {
                     items.push(it.map_err(|why| EngineError::BadPacket { from, why })?);
                 }
-                // Answers' slots are fetched from memory a few items ahead.
-                const AHEAD: usize = 8;
+                // Answers' slots are fetched from memory a few items ahead,
+                // and what they will write next half as far ahead.
                 for i in 0..items.len() {
                     if let Some(RayItem::Answer { to, .. }) = items.get(i + AHEAD) {
                         self.slots.prefetch(*to);
+                    }
+                    if let Some(RayItem::Answer { to, .. }) = items.get(i + AHEAD / 2) {
+                        self.slots.prefetch_next(*to);
                     }
                     match items[i] {
                         RayItem::Trace {
@@ -287,7 +294,19 @@ impl<'a> Engine<'a> {
         self.crossings += b.fetched_leaf_traces;
         self.cpu_s += b.cpu_s;
         let me = self.job.setup.me;
-        for (reply, o) in b.items {
+        // As for a packet's answers: slots a few items ahead.
+        let mine = |i: usize| match b.items.get(i) {
+            Some((r, Outcome::Answer(_))) if r.worker == me => Some(r.slot),
+            _ => None,
+        };
+        for i in 0..b.items.len() {
+            if let Some(slot) = mine(i + AHEAD) {
+                self.slots.prefetch(slot);
+            }
+            if let Some(slot) = mine(i + AHEAD / 2) {
+                self.slots.prefetch_next(slot);
+            }
+            let (reply, o) = b.items[i];
             match o {
                 Outcome::Answer(a) => {
                     if reply.worker == me {
