@@ -199,6 +199,7 @@ pub fn run(
     let (events_tx, inbox) = events;
     let cancel = links.cancel.clone();
     let mut e = Engine::new(&job, parts, &events_tx, links);
+    e.threads = 1 + pool.map_or(0, |p| p.current_num_threads());
     drop(events_tx);
     e.prefetch()?;
     e.top_up_tiles()?;

@@ -23,6 +23,10 @@ use std::time::{Duration, Instant};
 /// besides the tiles ahead (see [`Engine::top_up_tiles`]).
 const TILES_PER_INFLIGHT: usize = 8;
 
+/// Camera samples in flight per tracing thread of a worker that traces
+/// everything itself: two of the largest pool batches.
+const LOCAL_INFLIGHT_PER_THREAD: usize = 2 * super::BATCH;
+
 /// How many items ahead an answer's slot is prefetched: far enough for
 /// a load from memory to land while the items between are applied.
 const AHEAD: usize = 16;
@@ -74,6 +78,8 @@ pub(super) struct Engine<'a> {
     /// The clock read once per turn of the loop: packets' ages need no
     /// finer grain than that.
     pub(super) now: Instant,
+    /// Threads tracing for this engine: its own and the pool's.
+    pub(super) threads: usize,
 }
 
 impl<'a> Engine<'a> {
@@ -150,6 +156,7 @@ impl<'a> Engine<'a> {
             builder: Builder::spawn(job.clone(), events_tx.clone()),
             cpu_s: 0.0,
             now: Instant::now(),
+            threads: 1,
         }
     }
 
@@ -190,9 +197,16 @@ impl<'a> Engine<'a> {
         Ok(())
     }
 
-    /// Starts camera samples until `max_inflight` are open.
+    /// Starts camera samples until `max_inflight` are open; a worker that
+    /// traces everything itself (one worker, or the scene replicated)
+    /// needs only enough to keep its threads busy, since its samples
+    /// finish where they start: more would hold tiles that an idle peer
+    /// could render at the end of the job.
     pub(super) fn originate(&mut self) {
-        let cap = self.job.setup.tuning.max_inflight.max(1) as usize;
+        let mut cap = self.job.setup.tuning.max_inflight.max(1) as usize;
+        if self.reach.all_local {
+            cap = cap.min(LOCAL_INFLIGHT_PER_THREAD * self.threads.max(1));
+        }
         let me = self.job.setup.me;
         while self.slots.samples_open() < cap {
             let Some(n) = self.slots.start_sample() else {
