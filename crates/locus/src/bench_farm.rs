@@ -251,7 +251,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
         // What one machine needs for the large scene, measured on a process
         // of its own: the figure the workers' budgets stay below.
         let one_peak = match large {
-            Some(_) => single_peak(&plan.exe, &path, plan.cores)?,
+            Some(_) => vec![single_peak(&plan.exe, &path, plan.cores)?],
             None => Vec::new(),
         };
         if large.is_none() {
@@ -328,9 +328,10 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
     Ok((rows, predictions))
 }
 
-/// Peak resident memory of `locus render` of `scene` on one machine, as a
-/// process of its own.
-fn single_peak(exe: &Path, scene: &Path, cores: usize) -> Result<Vec<u64>> {
+/// Peak resident memory in bytes of `locus render` of `scene` on one
+/// machine with `cores` threads, as a process of its own (0 where the
+/// platform cannot tell).
+pub fn single_peak(exe: &Path, scene: &Path, cores: usize) -> Result<u64> {
     let out = std::env::temp_dir().join(format!("locus-bench-{}.exr", std::process::id()));
     let mut cmd = std::process::Command::new(exe);
     cmd.arg("render")
@@ -349,7 +350,7 @@ fn single_peak(exe: &Path, scene: &Path, cores: usize) -> Result<Vec<u64>> {
     if !ok {
         bail!("{} render {} failed", exe.display(), scene.display());
     }
-    Ok(vec![peak])
+    Ok(peak)
 }
 
 fn spec(plan: &Plan, workers: usize, budget: u64) -> FarmSpec {

@@ -818,10 +818,12 @@ fn write_farm_result(
         f.prediction.sampled_r
     );
     if f.replicated {
-        println!(
-            "  {}: every worker held the whole scene (it fit, and its rays would have cost more than its geometry)",
-            f.policy
-        );
+        let why = if f.policy == FetchPolicy::Adaptive.name() {
+            "it fit, and its rays would have cost more than its geometry"
+        } else {
+            "it fit every worker's memory plan"
+        };
+        println!("  {}: every worker held the whole scene ({why})", f.policy);
     }
     let t = &f.totals;
     let c = t.trace.cache;

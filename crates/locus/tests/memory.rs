@@ -30,15 +30,7 @@ fn four_budgeted_workers_render_what_one_machine_needs_more_for() {
     assert!(tris > 300_000, "{tris} triangles");
 
     // One machine's peak, on a process of its own.
-    let out = dir.join("one.exr");
-    let mut cmd = std::process::Command::new(&exe);
-    cmd.args(["render", "--threads", "2", "-o"])
-        .arg(&out)
-        .arg(&path)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null());
-    let (ok, one_peak) = locus_worker::sys::run_measuring_peak(&mut cmd).unwrap();
-    assert!(ok, "one machine's render failed");
+    let one_peak = locus::bench_farm::single_peak(&exe, &path, 2).unwrap();
     if cfg!(target_os = "linux") {
         assert!(
             one_peak > BUDGET,

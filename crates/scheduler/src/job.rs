@@ -350,12 +350,7 @@ pub fn prepare(
             // A worker with a budget keeps its queues within the plan's
             // room for them.
             0 => n,
-            _ => n.min(
-                req.options
-                    .tuning
-                    .max_inflight
-                    .max(memory::INFLIGHT_IN_QUEUE_ROOM),
-            ),
+            _ => n.min(memory::INFLIGHT_IN_QUEUE_ROOM),
         })
         .collect(),
         map,

@@ -89,6 +89,12 @@ impl LeafGraph {
                 *edges[b as usize].entry(a).or_default() += c as f64;
             }
         }
+        Self::from_maps(edges)
+    }
+
+    /// The graph of per-node neighbour weights, each list sorted by
+    /// neighbour so that every walk over it is deterministic.
+    fn from_maps(edges: Vec<HashMap<u32, f64>>) -> Self {
         let edges = edges
             .into_iter()
             .map(|m| {
@@ -295,20 +301,12 @@ impl Units {
                 }
             }
         }
-        let edges = edges
-            .into_iter()
-            .map(|m| {
-                let mut v: Vec<(u32, f64)> = m.into_iter().collect();
-                v.sort_by_key(|e| e.0);
-                v
-            })
-            .collect();
         Self {
             group,
             cost: ucost,
             refs,
             centers: bounds.iter().map(|b| b.center()).collect(),
-            graph: LeafGraph { edges },
+            graph: LeafGraph::from_maps(edges),
         }
     }
 }

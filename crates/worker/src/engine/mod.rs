@@ -198,8 +198,8 @@ pub fn run(
     sys::name_thread(&format!("locus-engine-{}", job.setup.me));
     let (events_tx, inbox) = events;
     let cancel = links.cancel.clone();
-    let mut e = Engine::new(&job, parts, &events_tx, links);
-    e.threads = 1 + pool.map_or(0, |p| p.current_num_threads());
+    let threads = 1 + pool.map_or(0, |p| p.current_num_threads());
+    let mut e = Engine::new(&job, parts, &events_tx, links, threads);
     drop(events_tx);
     e.prefetch()?;
     e.top_up_tiles()?;

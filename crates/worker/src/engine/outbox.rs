@@ -17,11 +17,11 @@
 use locus_core::region::WorkerId;
 use locus_protocol::packet::MAX_ITEM;
 use locus_protocol::rays::{Packet, PeerMsg, RayItem};
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
 
 /// Items a packet's buffer is allocated for at most (larger packets grow).
 const MAX_PACKET_ALLOC: usize = 4096;
-use std::collections::VecDeque;
-use std::time::{Duration, Instant};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("the link to worker {0} closed while the job was running")]

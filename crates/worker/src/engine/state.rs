@@ -89,6 +89,7 @@ impl<'a> Engine<'a> {
         parts: Vec<Arc<Part>>,
         events_tx: &flume::Sender<Event>,
         links: Links,
+        threads: usize,
     ) -> Self {
         let s = &job.setup;
         let n_leaves = s.map.owner.len();
@@ -156,7 +157,7 @@ impl<'a> Engine<'a> {
             builder: Builder::spawn(job.clone(), events_tx.clone()),
             cpu_s: 0.0,
             now: Instant::now(),
-            threads: 1,
+            threads: threads.max(1),
         }
     }
 
@@ -205,7 +206,7 @@ impl<'a> Engine<'a> {
     pub(super) fn originate(&mut self) {
         let mut cap = self.job.setup.tuning.max_inflight.max(1) as usize;
         if self.reach.all_local {
-            cap = cap.min(LOCAL_INFLIGHT_PER_THREAD * self.threads.max(1));
+            cap = cap.min(LOCAL_INFLIGHT_PER_THREAD * self.threads);
         }
         let me = self.job.setup.me;
         while self.slots.samples_open() < cap {
