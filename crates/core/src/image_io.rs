@@ -61,18 +61,43 @@ impl Image {
     /// An 8-bit sRGB preview: linear values times `exposure`, clipped to
     /// [0, 1], then the sRGB transfer curve.
     pub fn write_png(&self, path: &Path, exposure: f32) -> Result<(), ImageError> {
-        let mut buf = Vec::with_capacity(self.pixels.len() * 3);
-        for p in &self.pixels {
-            for c in p {
-                buf.push((srgb_oetf((c * exposure).clamp(0.0, 1.0)) * 255.0 + 0.5) as u8);
-            }
-        }
+        let buf = self.to_srgb8(exposure);
         image::save_buffer(path, &buf, self.width, self.height, image::ColorType::Rgb8).map_err(
             |e| ImageError::Png {
                 file: path.display().to_string(),
                 message: e.to_string(),
             },
         )
+    }
+
+    /// The same preview as [`Image::write_png`], as PNG bytes in memory
+    /// (the scheduler's live preview).
+    pub fn encode_png(&self, exposure: f32) -> Result<Vec<u8>, ImageError> {
+        let buf = self.to_srgb8(exposure);
+        let mut out = std::io::Cursor::new(Vec::new());
+        image::write_buffer_with_format(
+            &mut out,
+            &buf,
+            self.width,
+            self.height,
+            image::ColorType::Rgb8,
+            image::ImageFormat::Png,
+        )
+        .map_err(|e| ImageError::Png {
+            file: "(preview)".into(),
+            message: e.to_string(),
+        })?;
+        Ok(out.into_inner())
+    }
+
+    fn to_srgb8(&self, exposure: f32) -> Vec<u8> {
+        let mut buf = Vec::with_capacity(self.pixels.len() * 3);
+        for p in &self.pixels {
+            for c in p {
+                buf.push((srgb_oetf((c * exposure).clamp(0.0, 1.0)) * 255.0 + 0.5) as u8);
+            }
+        }
+        buf
     }
 
     /// Mean of each channel.

@@ -112,18 +112,10 @@ impl Octree {
             };
         }
         use rayon::prelude::*;
-        let children: Vec<Sub> = (0..8)
+        let children: Vec<Sub> = split_refs(&b, &refs, tris)
             .into_par_iter()
-            .map(|i| {
-                let cb = child_bounds(&b, i);
-                let inflated = inflate(&cb);
-                let sub: Vec<u32> = refs
-                    .iter()
-                    .copied()
-                    .filter(|&t| tri_box_overlap(&tris[t as usize], &inflated))
-                    .collect();
-                Self::build_sub(cb, sub, depth + 1, tris, params)
-            })
+            .enumerate()
+            .map(|(i, sub)| Self::build_sub(child_bounds(&b, i), sub, depth + 1, tris, params))
             .collect();
         let mut out = Sub {
             nodes: vec![Node::Interior { first_child: 1 }],
@@ -178,13 +170,9 @@ impl Octree {
             self.nodes.push(Node::Leaf { leaf: u32::MAX });
             self.node_bounds.push(*cb);
         }
-        for (i, cb) in children.into_iter().enumerate() {
-            let inflated = inflate(&cb);
-            let sub: Vec<u32> = refs
-                .iter()
-                .copied()
-                .filter(|&t| tri_box_overlap(&tris[t as usize], &inflated))
-                .collect();
+        let subs = split_refs(&b, &refs, tris);
+        drop(refs);
+        for (i, (cb, sub)) in children.into_iter().zip(subs).enumerate() {
             self.subdivide(first as usize + i, cb, sub, depth + 1, tris);
         }
     }
@@ -630,6 +618,42 @@ fn child_bounds(b: &Bounds, i: usize) -> Bounds {
     Bounds::new(lo, hi)
 }
 
+/// `refs` sorted into the eight children of box `b`, in order: a triangle
+/// goes to every child whose inflated box it overlaps. One pass over the
+/// references; a child that the triangle's bounding box misses (most of
+/// them: triangles are small beside a node) is rejected, and one that
+/// contains the bounding box accepted, without the exact test. Both
+/// prefilters err towards the exact test by far more than rounding, so
+/// the result is exactly that of testing every child.
+fn split_refs(b: &Bounds, refs: &[u32], tris: &[[Vec3; 3]]) -> [Vec<u32>; 8] {
+    let boxes: [(DVec3, DVec3); 8] = std::array::from_fn(|i| inflate(&child_bounds(b, i)));
+    let slack = (b.extent().max_element() as f64 + b.max_abs() as f64) * 1e-9;
+    let loose: [(DVec3, DVec3); 8] =
+        std::array::from_fn(|i| (boxes[i].0 - slack, boxes[i].1 + slack));
+    let tight: [(DVec3, DVec3); 8] =
+        std::array::from_fn(|i| (boxes[i].0 + slack, boxes[i].1 - slack));
+    let mut out: [Vec<u32>; 8] = Default::default();
+    for &t in refs {
+        let tri = &tris[t as usize];
+        let lo = tri[0].min(tri[1]).min(tri[2]).as_dvec3();
+        let hi = tri[0].max(tri[1]).max(tri[2]).as_dvec3();
+        for i in 0..8 {
+            let (l, h) = loose[i];
+            if !(lo.cmple(h).all() && hi.cmpge(l).all()) {
+                continue;
+            }
+            // A triangle inside the box overlaps it: only one that
+            // crosses a face needs the exact test.
+            let (tl, th) = tight[i];
+            let inside = lo.cmpge(tl).all() && hi.cmple(th).all();
+            if inside || tri_box_overlap(tri, &boxes[i]) {
+                out[i].push(t);
+            }
+        }
+    }
+    out
+}
+
 /// The box a triangle must overlap to be referenced by a leaf: grown by a
 /// margin far above f32 rounding of a point computed on the ray, so a hit
 /// that rounds across a face is still found in either leaf.
@@ -741,6 +765,60 @@ mod tests {
                 assert_eq!(g, n);
             }
         }
+    }
+
+    /// The one-pass split with its bounding-box prefilter sends each
+    /// triangle to exactly the children the exact test alone accepts,
+    /// including triangles lying on, or a rounding step away from, the
+    /// children's shared faces and the margin's edge.
+    #[test]
+    fn split_matches_the_exact_test_on_every_child() {
+        let b = Bounds::new(Vec3::new(-1.0, -2.0, -3.0), Vec3::new(3.0, 2.0, 1.0));
+        let m = b.center();
+        let margin = inflate(&child_bounds(&b, 0)).0.x as f32 - b.min.x;
+        let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let mut tris = Vec::new();
+        for k in 0..20_000 {
+            // A point on a face, on the margin's edge, one ulp either
+            // side, or anywhere; then a small or a large triangle there.
+            let mut p = b.min + (b.max - b.min) * Vec3::new(next(), next(), next());
+            let a = k % 3;
+            match k % 5 {
+                0 => p[a] = m[a],
+                1 => p[a] = b.min[a] + margin,
+                2 => p[a] = f32::from_bits(m[a].to_bits() + 1),
+                3 => p[a] = b.max[a] - margin.abs(),
+                _ => {}
+            }
+            let size = if k % 7 == 0 { 2.0 } else { 0.01 };
+            let d = |r: f32| (r - 0.5) * size;
+            tris.push([
+                p,
+                p + Vec3::new(d(next()), d(next()), 0.0),
+                p + Vec3::new(0.0, d(next()), d(next())),
+            ]);
+        }
+        let refs: Vec<u32> = (0..tris.len() as u32).collect();
+        let split = split_refs(&b, &refs, &tris);
+        let mut kept = 0;
+        for (i, got) in split.iter().enumerate() {
+            let inflated = inflate(&child_bounds(&b, i));
+            let want: Vec<u32> = refs
+                .iter()
+                .copied()
+                .filter(|&t| tri_box_overlap(&tris[t as usize], &inflated))
+                .collect();
+            assert_eq!(*got, want, "child {i}");
+            kept += got.len();
+        }
+        // Many triangles straddle faces: the test exercises both sides.
+        assert!(kept > tris.len() + tris.len() / 10, "{kept}");
     }
 
     /// The parallel build lays out nodes and leaves exactly as one

@@ -359,6 +359,7 @@ fn spec(plan: &Plan, workers: usize, budget: u64) -> FarmSpec {
         threads_per_worker: (plan.cores / workers).max(1),
         memory_budget: budget,
         processes: Some(plan.exe.clone()),
+        http: None,
     }
 }
 

@@ -9,6 +9,9 @@ use std::path::{Path, PathBuf};
 #[serde(deny_unknown_fields)]
 pub struct Config {
     pub token: Option<String>,
+    /// A file holding the token (a Compose or Kubernetes secret), read
+    /// when no token is given otherwise.
+    pub token_file: Option<PathBuf>,
     #[serde(default)]
     pub scheduler: SchedulerSection,
     #[serde(default)]
@@ -20,6 +23,8 @@ pub struct Config {
 pub struct SchedulerSection {
     pub listen: Option<String>,
     pub max_queued_jobs: Option<usize>,
+    /// The read-only status page, `/status` and `/metrics`.
+    pub http: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -91,29 +96,74 @@ impl Config {
         }
     }
 
-    /// The cluster token: flag or `LOCUS_TOKEN` (clap merges those two)
-    /// first, then the config file.
-    pub fn token(&self, flag: Option<String>, config: Option<&PathBuf>) -> anyhow::Result<String> {
-        match flag.or_else(|| self.token.clone()) {
+    /// The cluster token, from the first of: `--token` or `LOCUS_TOKEN`
+    /// (clap merges those two), `--token-file` or `LOCUS_TOKEN_FILE`, the
+    /// config file's `token`, its `token_file`.
+    pub fn token(
+        &self,
+        flag: Option<String>,
+        file_flag: Option<&Path>,
+        config: Option<&PathBuf>,
+    ) -> anyhow::Result<String> {
+        let file = file_flag.or(self.token_file.as_deref());
+        let given = match (flag, file_flag, &self.token) {
+            (Some(t), _, _) => Some(t),
+            (None, Some(f), _) => Some(read_token_file(f)?),
+            (None, None, Some(t)) => Some(t.clone()),
+            (None, None, None) => file.map(read_token_file).transpose()?,
+        };
+        match given {
             Some(t) if !t.is_empty() => Ok(t),
             _ => bail!(
-                "no cluster token: pass --token, set LOCUS_TOKEN, or put `token = \"...\"` in {}",
+                "no cluster token: pass --token or --token-file, set LOCUS_TOKEN or \
+                 LOCUS_TOKEN_FILE, or put `token = \"...\"` in {}",
                 config.map_or("a --config file".to_string(), |p| p.display().to_string())
             ),
         }
     }
 }
 
+/// The largest token file read: a token is a line, and a path mistaken for
+/// the token file (a disk image, a device) must not be read whole.
+const MAX_TOKEN_FILE: u64 = 4096;
+
+/// A token file's first line, without surrounding whitespace.
+fn read_token_file(p: &Path) -> anyhow::Result<String> {
+    use std::io::Read;
+    let f =
+        std::fs::File::open(p).with_context(|| format!("reading token file {}", p.display()))?;
+    let mut text = String::new();
+    f.take(MAX_TOKEN_FILE + 1)
+        .read_to_string(&mut text)
+        .with_context(|| format!("reading token file {}", p.display()))?;
+    if text.len() as u64 > MAX_TOKEN_FILE {
+        bail!(
+            "token file {} is over {MAX_TOKEN_FILE} bytes: is it the right file?",
+            p.display()
+        );
+    }
+    let t = text.lines().next().unwrap_or("").trim().to_string();
+    if t.is_empty() {
+        bail!("token file {} is empty", p.display());
+    }
+    Ok(t)
+}
+
 /// Reads a TOML file into `T`; errors name the file and line.
 pub fn load_toml<T: serde::de::DeserializeOwned>(p: &Path) -> anyhow::Result<T> {
     let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-    toml::from_str(&text).map_err(|e| {
+    parse_toml(&text, &p.display().to_string())
+}
+
+/// Parses TOML `text` into `T`; errors name `origin` and the line.
+fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, origin: &str) -> anyhow::Result<T> {
+    toml::from_str(text).map_err(|e| {
         let line = e
             .span()
             .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
         match line {
-            Some(l) => anyhow::anyhow!("{}:{l}: {}", p.display(), e.message()),
-            None => anyhow::anyhow!("{}: {}", p.display(), e.message()),
+            Some(l) => anyhow::anyhow!("{origin}:{l}: {}", e.message()),
+            None => anyhow::anyhow!("{origin}: {}", e.message()),
         }
     })
 }
@@ -130,15 +180,49 @@ pub struct Preset {
     pub cache: locus_core::dircache::CacheParams,
 }
 
+/// The presets built into the binary (the files in `configs/presets/`),
+/// so that `--preset accurate` works from any directory and after
+/// `cargo install`.
+pub const BUILTIN_PRESETS: [(&str, &str); 3] = [
+    (
+        "accurate",
+        include_str!("../../../configs/presets/accurate.toml"),
+    ),
+    ("fast", include_str!("../../../configs/presets/fast.toml")),
+    ("low", include_str!("../../../configs/presets/low.toml")),
+];
+
 impl Preset {
     pub fn load(p: &Path) -> anyhow::Result<Self> {
-        let preset: Preset = load_toml(p)?;
+        let text =
+            std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+        Self::parse(&text, &p.display().to_string())
+    }
+
+    /// A preset by file path or, when no such file exists, by the name of
+    /// a built-in one.
+    pub fn resolve(arg: &str) -> anyhow::Result<Self> {
+        let path = Path::new(arg);
+        if path.exists() {
+            return Self::load(path);
+        }
+        match BUILTIN_PRESETS.iter().find(|(n, _)| *n == arg) {
+            Some((n, text)) => Self::parse(text, &format!("built-in preset {n}")),
+            None => bail!(
+                "no preset {arg:?}: not a file, nor a built-in preset ({})",
+                BUILTIN_PRESETS.map(|(n, _)| n).join(", ")
+            ),
+        }
+    }
+
+    fn parse(text: &str, origin: &str) -> anyhow::Result<Self> {
+        let preset: Preset = parse_toml(text, origin)?;
         preset
             .cache
             .check()
-            .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            .map_err(|e| anyhow::anyhow!("{origin}: {e}"))?;
         if preset.spp == 0 {
-            bail!("{}: spp must be at least 1", p.display());
+            bail!("{origin}: spp must be at least 1");
         }
         Ok(preset)
     }
@@ -185,8 +269,45 @@ mod tests {
         std::fs::write(&p, "token = \"x\"\n[worker]\nthreds = 2\n").unwrap();
         let e = Config::load(Some(&p)).unwrap_err().to_string();
         assert!(e.contains(&format!("{}:3", p.display())), "{e}");
-        let none = Config::default().token(None, None).unwrap_err().to_string();
+        let none = Config::default()
+            .token(None, None, None)
+            .unwrap_err()
+            .to_string();
         assert!(none.contains("LOCUS_TOKEN"));
+    }
+
+    /// A token given outright wins over a token file, a flag's file over
+    /// the config's token; files give their first line, trimmed; an empty,
+    /// missing or oversized file is an error that names it.
+    #[test]
+    fn token_sources_in_order_and_bad_files_named() {
+        let dir = std::env::temp_dir().join(format!("locus-token-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (good, empty, big) = (dir.join("good"), dir.join("empty"), dir.join("big"));
+        std::fs::write(&good, "  s3cret \nsecond line\n").unwrap();
+        std::fs::write(&empty, "\n").unwrap();
+        std::fs::write(&big, vec![b'x'; 5000]).unwrap();
+        let cfg = Config {
+            token: Some("from-config".into()),
+            token_file: Some(empty.clone()),
+            ..Config::default()
+        };
+        let t = |flag: Option<&str>, file: Option<&Path>, c: &Config| {
+            c.token(flag.map(String::from), file, None)
+        };
+        assert_eq!(t(Some("flag"), Some(&good), &cfg).unwrap(), "flag");
+        assert_eq!(t(None, Some(&good), &cfg).unwrap(), "s3cret");
+        assert_eq!(t(None, None, &cfg).unwrap(), "from-config");
+        let only_file = Config {
+            token_file: Some(good.clone()),
+            ..Config::default()
+        };
+        assert_eq!(t(None, None, &only_file).unwrap(), "s3cret");
+        for bad in [&empty, &big, &dir.join("missing")] {
+            let e = format!("{:#}", t(None, Some(bad), &Config::default()).unwrap_err());
+            assert!(e.contains(&bad.display().to_string()), "{e}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
@@ -201,6 +322,26 @@ mod tests {
         assert!(p[0].spp > p[1].spp && p[1].spp > p[2].spp);
         assert!(p[0].cache.answer_rel_error < p[1].cache.answer_rel_error);
         assert!(p[0].cache.radius > p[2].cache.radius);
+    }
+
+    /// Built-in presets are the files, byte for byte parsed alike, and
+    /// resolve by name from any directory; an unknown name lists them.
+    #[test]
+    fn built_in_presets_resolve_by_name() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/presets");
+        for (n, _) in BUILTIN_PRESETS {
+            let b = Preset::resolve(n).unwrap();
+            let f = Preset::load(&dir.join(format!("{n}.toml"))).unwrap();
+            assert_eq!(
+                (b.name.as_str(), b.spp, b.max_depth),
+                (n, f.spp, f.max_depth)
+            );
+            assert_eq!(format!("{:?}", b.cache), format!("{:?}", f.cache));
+        }
+        let by_path = Preset::resolve(dir.join("fast.toml").to_str().unwrap()).unwrap();
+        assert_eq!(by_path.name, "fast");
+        let e = Preset::resolve("ultra").unwrap_err().to_string();
+        assert!(e.contains("accurate, fast, low"), "{e}");
     }
 
     #[test]

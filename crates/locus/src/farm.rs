@@ -18,6 +18,8 @@ use tokio_util::sync::CancellationToken;
 
 pub struct LocalFarm {
     pub scheduler: SocketAddr,
+    /// The status page's address, when the spec asked for one.
+    pub http: Option<SocketAddr>,
     pub token: String,
     handle: SchedulerHandle,
     workers: usize,
@@ -35,6 +37,21 @@ pub struct FarmSpec {
     pub memory_budget: u64,
     /// Run each worker as a child process of this `locus` executable.
     pub processes: Option<PathBuf>,
+    /// Where the scheduler serves its status page and metrics, if at all.
+    pub http: Option<String>,
+}
+
+impl FarmSpec {
+    /// Workers in this process, without budgets or a status page.
+    pub fn embedded(workers: usize, threads_per_worker: usize) -> Self {
+        Self {
+            workers,
+            threads_per_worker,
+            memory_budget: 0,
+            processes: None,
+            http: None,
+        }
+    }
 }
 
 /// A worker child process, killed when dropped.
@@ -66,13 +83,7 @@ impl LocalFarm {
     /// Starts a scheduler and `workers` workers, each tracing on
     /// `threads_per_worker` threads, all on 127.0.0.1 with OS-chosen ports.
     pub async fn start(workers: usize, threads_per_worker: usize) -> anyhow::Result<Self> {
-        Self::launch(&FarmSpec {
-            workers,
-            threads_per_worker,
-            memory_budget: 0,
-            processes: None,
-        })
-        .await
+        Self::launch(&FarmSpec::embedded(workers, threads_per_worker)).await
     }
 
     /// Starts the farm `spec` describes.
@@ -84,8 +95,13 @@ impl LocalFarm {
             listen: "127.0.0.1:0".into(),
             token: token.clone(),
             max_queued_jobs: 16,
+            http: spec.http.clone(),
         })
         .await?;
+        let http = sched.http_addr();
+        if let Some(a) = http {
+            tracing::info!("watch the farm at http://{a}/");
+        }
         let addr = sched.local_addr()?;
         let handle = sched.handle();
         let mut tasks = vec![tokio::spawn(sched.run(shutdown.clone()))];
@@ -116,6 +132,7 @@ impl LocalFarm {
             }
             return Ok(Self {
                 scheduler: addr,
+                http,
                 token,
                 handle,
                 workers,
@@ -140,6 +157,7 @@ impl LocalFarm {
         }
         Ok(Self {
             scheduler: addr,
+            http,
             token,
             handle,
             workers,
@@ -186,8 +204,7 @@ impl LocalFarm {
 /// Runs one job on a fresh embedded farm in its own runtime.
 pub fn render_embedded(
     req: JobRequest,
-    workers: usize,
-    threads_per_worker: usize,
+    spec: &FarmSpec,
     progress: &(dyn Fn(u32, u32) + Sync),
 ) -> anyhow::Result<JobResult> {
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -195,7 +212,7 @@ pub fn render_embedded(
         .enable_all()
         .build()?;
     rt.block_on(async {
-        let farm = LocalFarm::start(workers, threads_per_worker).await?;
+        let farm = LocalFarm::launch(spec).await?;
         crate::cancel_on_signals(farm.shutdown_token());
         let r = tokio::select! {
             r = farm.render(req, progress) => r,

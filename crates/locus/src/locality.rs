@@ -10,6 +10,7 @@
 //! Output: a Markdown table, a CSV and an SVG plot of error against time.
 
 use crate::config::Preset;
+use crate::farm::FarmSpec;
 use anyhow::{Context, Result, bail};
 use locus_core::image_io::Image;
 use locus_core::metrics::{ErrorMetrics, compare};
@@ -28,7 +29,8 @@ pub struct Plan {
     pub workers: usize,
     pub threads_per_worker: usize,
     pub reference_spp: u32,
-    pub presets: Vec<PathBuf>,
+    /// Built-in preset names or preset files.
+    pub presets: Vec<String>,
     pub policies: Vec<FetchPolicy>,
     pub fetch_budget: u64,
     pub out_dir: PathBuf,
@@ -188,7 +190,7 @@ pub fn run(plan: &Plan) -> Result<Vec<Row>> {
     let presets = plan
         .presets
         .iter()
-        .map(|p| Preset::load(p))
+        .map(|p| Preset::resolve(p))
         .collect::<Result<Vec<_>>>()?;
     let mut scene = Scene::load(&plan.scene)?;
     scene.camera.width = plan.width;
@@ -210,12 +212,8 @@ pub fn run(plan: &Plan) -> Result<Vec<Row>> {
                     ..JobOptions::default()
                 };
                 let req = locus_scheduler::client::request(&s, opts);
-                let r = crate::farm::render_embedded(
-                    req,
-                    plan.workers,
-                    plan.threads_per_worker,
-                    &|_, _| {},
-                )?;
+                let spec = FarmSpec::embedded(plan.workers, plan.threads_per_worker);
+                let r = crate::farm::render_embedded(req, &spec, &|_, _| {})?;
                 let img = Image {
                     width: r.width,
                     height: r.height,

@@ -47,6 +47,7 @@ fn four_budgeted_workers_render_what_one_machine_needs_more_for() {
             threads_per_worker: 1,
             memory_budget: BUDGET,
             processes: Some(exe.clone()),
+            http: None,
         };
         let opts = JobOptions {
             workers: 4,

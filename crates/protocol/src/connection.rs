@@ -126,6 +126,11 @@ impl Connection {
         self.peer
     }
 
+    /// This end's address: the interface the peer is reached through.
+    pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        self.framed.get_ref().local_addr()
+    }
+
     /// The next message, or `None` when the peer closed the connection
     /// cleanly between frames. `what` names the message family in errors.
     pub async fn read_msg<T: DeserializeOwned>(

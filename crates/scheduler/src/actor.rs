@@ -11,15 +11,19 @@
 
 use crate::distribute;
 use crate::job::{self, Member};
+use crate::metrics::Metrics;
 use crate::report::build_report;
+use crate::status::{self, EndedJob, Status};
 use crate::tiles::TileQueue;
+use locus_core::image_io::Image;
 use locus_protocol::control::{Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler};
 use locus_protocol::report::WorkerStats;
 use locus_protocol::submit::{JobRequest, JobResult, SchedulerToClient};
 use std::collections::{BTreeMap, VecDeque};
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::time::Instant;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
@@ -46,17 +50,25 @@ pub enum Event {
         job: u64,
         prep: Result<Box<job::Prepared>, String>,
     },
+    /// `/status`: the farm now.
+    Status(oneshot::Sender<Status>),
+    /// `/jobs/{id}/preview.png`: the job's film so far (the running job's
+    /// finished tiles, or the last ended job's image), if it is either.
+    Preview {
+        job: u64,
+        reply: oneshot::Sender<Option<Image>>,
+    },
 }
 
 pub struct WorkerEntry {
     pub reg: Registration,
     pub addr: SocketAddr,
     pub tx: mpsc::Sender<SchedulerToWorker>,
-    busy: bool,
+    pub(crate) busy: bool,
 }
 
-struct Queued {
-    req: Box<JobRequest>,
+pub(crate) struct Queued {
+    pub(crate) req: Box<JobRequest>,
     client: mpsc::Sender<SchedulerToClient>,
 }
 
@@ -75,12 +87,14 @@ pub struct Running {
     client: mpsc::Sender<SchedulerToClient>,
     /// Registry ids; the position is the job's worker id.
     pub members: Vec<u32>,
-    phase: Phase,
+    pub(crate) phase: Phase,
     pub prep: Option<Box<job::Prepared>>,
-    tiles: Vec<TileAssignment>,
+    pub(crate) tiles: Vec<TileAssignment>,
     /// Tiles not yet handed out, by worker (made when the job is prepared).
     queue: TileQueue,
-    done: u32,
+    pub(crate) done: u32,
+    /// Tiles returned, by job worker.
+    pub(crate) tiles_by: Vec<u32>,
     told_no_more: Vec<bool>,
     film: Vec<[f32; 3]>,
     ready: usize,
@@ -101,15 +115,21 @@ impl Running {
 
 pub struct Actor {
     pub workers: BTreeMap<u32, WorkerEntry>,
-    queue: VecDeque<Queued>,
-    job: Option<Running>,
+    pub(crate) queue: VecDeque<Queued>,
+    pub(crate) job: Option<Running>,
     next_job: u64,
     max_queue: usize,
     events: mpsc::Sender<Event>,
+    metrics: Arc<Metrics>,
+    pub(crate) started: Instant,
+    /// The last jobs that ended, newest first (at most [`status::HISTORY`]).
+    pub(crate) history: VecDeque<EndedJob>,
+    /// The last finished job's image, for its preview.
+    last_image: Option<(u64, Arc<Image>)>,
 }
 
 impl Actor {
-    pub fn new(max_queue: usize, events: mpsc::Sender<Event>) -> Self {
+    pub fn new(max_queue: usize, events: mpsc::Sender<Event>, metrics: Arc<Metrics>) -> Self {
         Self {
             workers: BTreeMap::new(),
             queue: VecDeque::new(),
@@ -117,7 +137,34 @@ impl Actor {
             next_job: 1,
             max_queue,
             events,
+            metrics,
+            started: Instant::now(),
+            history: VecDeque::new(),
+            last_image: None,
         }
+    }
+
+    /// Publishes the registry's and queue's counts.
+    fn update_load(&self) {
+        let busy = self.workers.values().filter(|w| w.busy).count();
+        self.metrics.set_load(
+            self.workers.len() - busy,
+            busy,
+            self.queue.len(),
+            self.job.is_some(),
+        );
+    }
+
+    fn preview(&self, id: u64) -> Option<Image> {
+        if let Some(j) = self.job.as_ref().filter(|j| j.id == id) {
+            return Some(Image {
+                width: j.req.camera.width,
+                height: j.req.camera.height,
+                pixels: j.film.clone(),
+            });
+        }
+        let (last, img) = self.last_image.as_ref()?;
+        (*last == id).then(|| (**img).clone())
     }
 
     pub async fn run(mut self, mut rx: mpsc::Receiver<Event>, shutdown: CancellationToken) {
@@ -128,6 +175,7 @@ impl Actor {
             };
             match ev {
                 Event::Joined { id, reg, addr, tx } => {
+                    self.metrics.worker_joined(&reg.listen);
                     self.workers.insert(
                         id,
                         WorkerEntry {
@@ -142,6 +190,7 @@ impl Actor {
                 Event::Left { id, reason } => {
                     if let Some(w) = self.workers.remove(&id) {
                         info!(worker = id, addr = %w.addr, %reason, "worker left");
+                        self.metrics.worker_left(&w.reg.listen);
                         if self.job.as_ref().is_some_and(|j| j.members.contains(&id)) {
                             self.fail(format!(
                                 "worker {id} ({}) left during the job: {reason}",
@@ -153,7 +202,14 @@ impl Actor {
                 Event::Submit { req, client } => self.submit(req, client),
                 Event::Prepared { job, prep } => self.on_prepared(job, prep),
                 Event::FromWorker { id, msg } => self.on_worker(id, msg),
+                Event::Status(reply) => {
+                    let _ = reply.send(self.status());
+                }
+                Event::Preview { job, reply } => {
+                    let _ = reply.send(self.preview(job));
+                }
             }
+            self.update_load();
         }
         if self.job.is_some() {
             self.fail("the scheduler is shutting down".into());
@@ -254,6 +310,7 @@ impl Actor {
             client: q.client,
             reports: vec![None; want],
             told_no_more: vec![false; want],
+            tiles_by: vec![0; want],
             members,
             phase: Phase::Preparing,
             prep: None,
@@ -371,7 +428,7 @@ impl Actor {
                     }
                 }
             }
-            WorkerToScheduler::TileDone(r) => self.on_tile(id, r),
+            WorkerToScheduler::TileDone(r) => self.on_tile(id, w, r),
             WorkerToScheduler::Report { stats, .. } => {
                 if j.phase != Phase::Collecting {
                     self.fail(format!("worker {w} reported before the last tile was in"));
@@ -389,7 +446,7 @@ impl Actor {
         }
     }
 
-    fn on_tile(&mut self, id: u32, r: locus_protocol::control::TileResult) {
+    fn on_tile(&mut self, id: u32, w: usize, r: locus_protocol::control::TileResult) {
         let j = self.job.as_mut().expect("member of a job");
         let Some(t) = j.tiles.get(r.tile as usize).copied() else {
             warn!(
@@ -418,6 +475,8 @@ impl Actor {
             }
         }
         j.done += 1;
+        j.tiles_by[w] += 1;
+        self.metrics.tile();
         let _ = j.client.try_send(SchedulerToClient::Progress {
             job: j.id,
             tiles_done: j.done,
@@ -444,9 +503,44 @@ impl Actor {
         Some(j)
     }
 
+    /// The job's workers' peer addresses, in job order.
+    fn member_names(&self, j: &Running) -> Vec<String> {
+        j.members
+            .iter()
+            .map(|m| {
+                self.workers
+                    .get(m)
+                    .map_or_else(|| format!("worker {m}"), |w| w.reg.listen.clone())
+            })
+            .collect()
+    }
+
+    fn ended(&self, j: &Running, outcome: &str) -> EndedJob {
+        EndedJob {
+            id: j.id,
+            scene: j.req.name.clone(),
+            width: j.req.camera.width,
+            height: j.req.camera.height,
+            spp: j.req.settings.spp,
+            outcome: outcome.to_string(),
+            reason: None,
+            seconds: j.started.elapsed().as_secs_f64(),
+            workers: self.member_names(j),
+            traffic: Vec::new(),
+            forwarded_fraction: None,
+            load_imbalance: None,
+        }
+    }
+
     fn fail(&mut self, reason: String) {
         let Some(j) = self.release() else { return };
         warn!(job = j.id, %reason, "job failed");
+        self.metrics.job_failed();
+        let ended = EndedJob {
+            reason: Some(reason.clone()),
+            ..self.ended(&j, "failed")
+        };
+        status::push_history(&mut self.history, ended);
         for m in &j.members {
             if let Some(w) = self.workers.get(m) {
                 let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
@@ -464,6 +558,19 @@ impl Actor {
     fn finish(&mut self) {
         let Some(mut j) = self.release() else { return };
         let report = build_report(&j, &self.workers);
+        let ended = EndedJob {
+            traffic: report
+                .workers
+                .iter()
+                .map(|w| w.stats.peers.iter().map(|p| p.bytes_sent).collect())
+                .collect(),
+            forwarded_fraction: Some(report.forwarded_fraction),
+            load_imbalance: Some(report.load_imbalance),
+            ..self.ended(&j, "done")
+        };
+        self.metrics
+            .job_done(&report, ended.seconds, &ended.workers);
+        status::push_history(&mut self.history, ended);
         info!(
             job = j.id,
             render_s = report.phases.render_s,
@@ -478,6 +585,15 @@ impl Actor {
             pixels: std::mem::take(&mut j.film),
             report,
         };
+        // The preview keeps the last image (one film, however many jobs).
+        self.last_image = Some((
+            j.id,
+            Arc::new(Image {
+                width: result.width,
+                height: result.height,
+                pixels: result.pixels.clone(),
+            }),
+        ));
         let client = j.client;
         // The result can be large; a dedicated task waits for room.
         tokio::spawn(async move {

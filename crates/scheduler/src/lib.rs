@@ -12,16 +12,21 @@
 //! part), then demand-driven tiles, then the workers' reports, which
 //! become the [`report`]. [`client`] is the submitting side used by `locus
 //! submit`; [`SchedulerHandle`] submits from the same process (the
-//! embedded farm) without copying or re-parsing the scene.
+//! embedded farm) without copying or re-parsing the scene. [`http`] serves
+//! the read-only status page, [`status`] (asked of the actor through the
+//! same channel) and [`metrics`] (kept by the actor as events happen).
 
 pub mod actor;
 pub mod client;
 pub mod cost;
 pub mod distribute;
+pub mod http;
 pub mod job;
 pub mod memory;
+pub mod metrics;
 pub mod partition;
 pub mod report;
+pub mod status;
 pub mod tiles;
 
 use actor::{Actor, Event};
@@ -43,11 +48,15 @@ pub struct SchedulerConfig {
     pub token: String,
     /// Jobs that may wait behind the running one.
     pub max_queued_jobs: usize,
+    /// Where to serve the read-only status page, `/status`, `/metrics` and
+    /// previews ([`http`]); None: nowhere.
+    pub http: Option<String>,
 }
 
 pub struct Scheduler {
     cfg: SchedulerConfig,
     listener: TcpListener,
+    http: Option<TcpListener>,
     events: (mpsc::Sender<Event>, mpsc::Receiver<Event>),
 }
 
@@ -81,11 +90,25 @@ impl Scheduler {
         let listener = TcpListener::bind(&cfg.listen)
             .await
             .with_context(|| format!("scheduler: cannot listen on {}", cfg.listen))?;
+        let http = match &cfg.http {
+            Some(a) => Some(
+                TcpListener::bind(a)
+                    .await
+                    .with_context(|| format!("scheduler: cannot serve HTTP on {a}"))?,
+            ),
+            None => None,
+        };
         Ok(Self {
             cfg,
             listener,
+            http,
             events: mpsc::channel::<Event>(1024),
         })
+    }
+
+    /// The status server's bound address, when there is one.
+    pub fn http_addr(&self) -> Option<SocketAddr> {
+        self.http.as_ref().and_then(|l| l.local_addr().ok())
     }
 
     /// A handle to submit jobs from this process.
@@ -102,9 +125,20 @@ impl Scheduler {
     pub async fn run(self, shutdown: CancellationToken) -> anyhow::Result<()> {
         info!(addr = %self.local_addr()?, "scheduler listening");
         let (ev_tx, ev_rx) = self.events;
+        let metrics = Arc::new(metrics::Metrics::new());
         let actor = tokio::spawn(
-            Actor::new(self.cfg.max_queued_jobs, ev_tx.clone()).run(ev_rx, shutdown.clone()),
+            Actor::new(self.cfg.max_queued_jobs, ev_tx.clone(), metrics.clone())
+                .run(ev_rx, shutdown.clone()),
         );
+        if let Some(l) = self.http {
+            info!("status page on http://{}/", l.local_addr()?);
+            let (ev, sd) = (ev_tx.clone(), shutdown.clone());
+            tokio::spawn(async move {
+                if let Err(e) = http::serve(l, ev, metrics, sd).await {
+                    warn!("status server stopped: {e}");
+                }
+            });
+        }
         let token = Arc::new(self.cfg.token.into_bytes());
         let mut next_id = 0u32;
         loop {

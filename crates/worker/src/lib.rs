@@ -100,10 +100,7 @@ impl Worker {
     /// goes away.
     pub async fn run(self, shutdown: CancellationToken) -> anyhow::Result<()> {
         let token = self.cfg.token.as_bytes().to_vec();
-        let listen = match &self.cfg.advertise {
-            Some(a) => a.clone(),
-            None => self.local_addr()?.to_string(),
-        };
+        let bound = self.local_addr()?;
         let (job_tx, job_rx) = watch::channel::<Option<Arc<JobLink>>>(None);
         let accept = tokio::spawn(peers::accept_loop(
             self.listener,
@@ -113,6 +110,7 @@ impl Worker {
         ));
 
         let mut conn = connect_with_retry(&self.cfg.scheduler, &token, &shutdown).await?;
+        let listen = advertised(self.cfg.advertise.as_deref(), bound, conn.local_addr()?);
         conn.write_msg(&Opening::Register(Registration {
             listen: listen.clone(),
             cores: self.threads as u32,
@@ -239,6 +237,25 @@ async fn forward(current: &Option<Arc<JobLink>>, job: u64, input: Input) {
     }
 }
 
+/// The address peers are told to dial: `--advertise` when given; else the
+/// bound address, unless it is a wildcard (`0.0.0.0`, `::`, as in a
+/// container), which no peer can dial: then the address this worker
+/// reaches the scheduler from (its address on the network the farm
+/// shares), with the bound port.
+fn advertised(
+    advertise: Option<&str>,
+    bound: std::net::SocketAddr,
+    toward_scheduler: std::net::SocketAddr,
+) -> String {
+    match advertise {
+        Some(a) => a.to_string(),
+        None if bound.ip().is_unspecified() => {
+            std::net::SocketAddr::new(toward_scheduler.ip(), bound.port()).to_string()
+        }
+        None => bound.to_string(),
+    }
+}
+
 async fn connect_with_retry(
     addr: &str,
     token: &[u8],
@@ -277,5 +294,25 @@ async fn control_writer(
             shutdown.cancel();
             break;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::advertised;
+
+    #[test]
+    fn a_wildcard_listener_advertises_its_address_toward_the_scheduler() {
+        let toward = "172.18.0.5:40112".parse().unwrap();
+        let any4 = "0.0.0.0:7001".parse().unwrap();
+        let any6 = "[::]:7001".parse().unwrap();
+        let lo = "127.0.0.1:7001".parse().unwrap();
+        assert_eq!(advertised(None, any4, toward), "172.18.0.5:7001");
+        assert_eq!(advertised(None, any6, toward), "172.18.0.5:7001");
+        assert_eq!(advertised(None, lo, toward), "127.0.0.1:7001");
+        assert_eq!(
+            advertised(Some("worker-3.locus:7001"), any4, toward),
+            "worker-3.locus:7001"
+        );
     }
 }

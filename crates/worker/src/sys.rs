@@ -25,6 +25,21 @@ fn clock_s(clock: libc::clockid_t) -> f64 {
     ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
+/// This host's name (a container's is its id, a pod's its name), the
+/// default name a worker registers under.
+pub fn hostname() -> Option<String> {
+    let mut buf = [0u8; 256];
+    // SAFETY: `buf` is writable for its length; gethostname writes at most
+    // that many bytes.
+    let r = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len()) };
+    if r != 0 {
+        return None;
+    }
+    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
+    let name = String::from_utf8_lossy(&buf[..end]).trim().to_string();
+    (!name.is_empty()).then_some(name)
+}
+
 /// Names the calling thread (Linux: the first 15 bytes show in `top -H`,
 /// `perf` and `/proc`), for threads borrowed from a pool, such as the
 /// engine's from tokio's blocking pool.

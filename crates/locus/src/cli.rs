@@ -1,0 +1,369 @@
+//! The command line's definitions (clap): the subcommands and their
+//! arguments, and how farm options become a job's options.
+
+use clap::{Parser, Subcommand};
+use locus_protocol::control::Tuning;
+use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, Partitioner};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(
+    name = "locus",
+    version,
+    about = "Distributed global-illumination render farm"
+)]
+pub(crate) struct Cli {
+    #[command(subcommand)]
+    pub(crate) cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum Cmd {
+    /// Render a scene to EXR, with a PNG preview and a JSON report beside it.
+    Render(RenderArgs),
+    /// Error metrics (RMSE, relative MSE, MAE) between two EXR images.
+    Diff {
+        image: PathBuf,
+        reference: PathBuf,
+        /// Fail (exit status 1) unless every pixel is bit for bit the same.
+        #[arg(long)]
+        exact: bool,
+    },
+    /// Write a generated scene.
+    Gen {
+        #[command(subcommand)]
+        what: GenWhat,
+    },
+    /// Measure BVH build, ray throughput against raw obvhs, and samples/s.
+    Bench(BenchArgs),
+    /// Run the scheduler daemon.
+    Scheduler(SchedulerArgs),
+    /// Run a worker daemon.
+    Worker(WorkerArgs),
+    /// Submit a scene to a running farm and write the result.
+    Submit(SubmitArgs),
+    /// The farm's state (workers, the running job, the queue), from the
+    /// scheduler's status address (`locus scheduler --http`).
+    Status {
+        /// The scheduler's HTTP host:port, or its URL.
+        #[arg(long, env = "LOCUS_HTTP", default_value = "127.0.0.1:8080")]
+        http: String,
+        /// Print the JSON as served.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The farm benchmark: overhead against one machine, speedup, and
+    /// region growing against the Morton baseline for 2, 4 and 8 workers.
+    BenchFarm(BenchFarmArgs),
+}
+
+#[derive(clap::Args)]
+pub(crate) struct BenchFarmArgs {
+    /// Scenes to measure; default: the generated room, and the conference
+    /// room where ../shared has its mesh.
+    pub(crate) scenes: Vec<PathBuf>,
+    #[arg(long, default_value_t = 320)]
+    pub(crate) width: u32,
+    #[arg(long, default_value_t = 240)]
+    pub(crate) height: u32,
+    #[arg(long, default_value_t = 16)]
+    pub(crate) spp: u32,
+    /// Runs per configuration; the fastest is reported (shared machines
+    /// are noisy, and noise only ever adds time).
+    #[arg(long, default_value_t = 1)]
+    pub(crate) repeat: u32,
+    /// Farm sizes to measure.
+    #[arg(long, num_args = 1.., default_values_t = [1usize, 2, 4, 8])]
+    pub(crate) workers: Vec<usize>,
+    #[arg(long, num_args = 1.., default_values = ["forward", "fetch", "adaptive"])]
+    pub(crate) policies: Vec<FetchPolicy>,
+    /// Cores one machine uses and the farms share (0: all of them).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) cores: usize,
+    /// Each of the 4 workers' memory budget for the large scene.
+    #[arg(long, default_value = "160M")]
+    pub(crate) large_budget: locus::config::ByteSize,
+    /// Leave out the large generated scene (4 million triangles).
+    #[arg(long, conflicts_with = "large_only")]
+    pub(crate) no_large: bool,
+    /// Measure only the large generated scene.
+    #[arg(long)]
+    pub(crate) large_only: bool,
+    /// Write the rows as JSON here too.
+    #[arg(long)]
+    pub(crate) json: Option<PathBuf>,
+    /// Write the Markdown tables here too.
+    #[arg(long)]
+    pub(crate) markdown: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Clone)]
+pub(crate) struct TokenArgs {
+    /// Shared cluster token (or LOCUS_TOKEN, or `token` in --config).
+    #[arg(long, env = "LOCUS_TOKEN", hide_env_values = true)]
+    pub(crate) token: Option<String>,
+    /// A file whose first line is the token (a Compose or Kubernetes
+    /// secret), or LOCUS_TOKEN_FILE, or `token_file` in --config.
+    #[arg(long, env = "LOCUS_TOKEN_FILE")]
+    pub(crate) token_file: Option<PathBuf>,
+    /// A TOML config file (see configs/).
+    #[arg(long)]
+    pub(crate) config: Option<PathBuf>,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct SchedulerArgs {
+    /// host:port to listen on (port 0 picks one and logs it).
+    #[arg(long)]
+    pub(crate) listen: Option<String>,
+    /// host:port for the read-only status page, /status, /metrics and job
+    /// previews (or `http` under [scheduler] in --config); none by default.
+    #[arg(long)]
+    pub(crate) http: Option<String>,
+    #[command(flatten)]
+    pub(crate) auth: TokenArgs,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct WorkerArgs {
+    /// The scheduler's host:port.
+    #[arg(long)]
+    pub(crate) scheduler: Option<String>,
+    /// host:port for peer links (port 0 picks one).
+    #[arg(long)]
+    pub(crate) listen: Option<String>,
+    /// Address peers should dial, if not the bound one.
+    #[arg(long)]
+    pub(crate) advertise: Option<String>,
+    /// Tracing threads (0: all cores).
+    #[arg(long)]
+    pub(crate) threads: Option<usize>,
+    /// Memory this worker's process may use, e.g. 4G (default: no limit):
+    /// the scheduler gives it no more of the scene than fits, and it
+    /// builds and fetches within it.
+    #[arg(long)]
+    pub(crate) memory_budget: Option<locus::config::ByteSize>,
+    /// The name reports and the status page show (default: the host name).
+    #[arg(long, env = "LOCUS_WORKER_NAME")]
+    pub(crate) name: Option<String>,
+    #[command(flatten)]
+    pub(crate) auth: TokenArgs,
+}
+
+#[derive(clap::Args, Clone)]
+pub(crate) struct FarmArgs {
+    /// Partitioner of octree leaves into regions.
+    #[arg(long, value_enum, default_value = "region-growing")]
+    pub(crate) partitioner: PartitionerArg,
+    /// Leaf cost prediction the partitioner balances.
+    #[arg(long, value_enum, default_value = "sampled")]
+    pub(crate) cost: CostArg,
+    /// Most ray items per packet (a packet also leaves when its worker
+    /// runs out of work).
+    #[arg(long, default_value_t = 1024)]
+    pub(crate) packet_size: u32,
+    /// Flush deadline of a partly filled packet while its worker is busy,
+    /// in microseconds.
+    #[arg(long, default_value_t = 1000)]
+    pub(crate) flush_us: u32,
+    /// Camera samples each worker keeps in flight.
+    #[arg(long, default_value_t = 65536)]
+    pub(crate) max_inflight: u32,
+    #[arg(long, default_value_t = 16)]
+    pub(crate) tile_size: u32,
+    /// What a worker does with a ray reaching another worker's leaf:
+    /// forward it, fetch the leaf's geometry, hybrid or adaptive (rent or
+    /// buy: the whole scene at the start when that pays and fits, else
+    /// leaf by leaf).
+    #[arg(long, default_value = "adaptive")]
+    pub(crate) fetch: FetchPolicy,
+    /// MiB of fetched geometry each worker keeps (LRU-like eviction).
+    #[arg(long, default_value_t = 256)]
+    pub(crate) fetch_budget_mib: u64,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy)]
+pub(crate) enum PartitionerArg {
+    RegionGrowing,
+    Morton,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy)]
+pub(crate) enum CostArg {
+    Analytic,
+    Sampled,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct SubmitArgs {
+    pub(crate) scene: PathBuf,
+    /// The scheduler's host:port.
+    #[arg(long)]
+    pub(crate) scheduler: Option<String>,
+    #[arg(short, long, default_value = "out.exr")]
+    pub(crate) output: PathBuf,
+    /// Workers to use (0: every registered worker).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) workers: u32,
+    #[arg(long)]
+    pub(crate) spp: Option<u32>,
+    #[arg(long)]
+    pub(crate) max_depth: Option<u32>,
+    #[arg(long)]
+    pub(crate) seed: Option<u64>,
+    #[arg(long)]
+    pub(crate) reference: Option<PathBuf>,
+    #[arg(long, default_value_t = 1.0)]
+    pub(crate) exposure: f32,
+    #[command(flatten)]
+    pub(crate) farm: FarmArgs,
+    #[command(flatten)]
+    pub(crate) auth: TokenArgs,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct RenderArgs {
+    pub(crate) scene: PathBuf,
+    #[arg(short, long, default_value = "out.exr")]
+    pub(crate) output: PathBuf,
+    #[arg(long)]
+    pub(crate) spp: Option<u32>,
+    #[arg(long)]
+    pub(crate) max_depth: Option<u32>,
+    #[arg(long)]
+    pub(crate) seed: Option<u64>,
+    /// Compute threads (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) threads: usize,
+    /// A converged EXR to measure the error against.
+    #[arg(long)]
+    pub(crate) reference: Option<PathBuf>,
+    /// Exposure multiplier for the PNG preview.
+    #[arg(long, default_value_t = 1.0)]
+    pub(crate) exposure: f32,
+    /// Render on the embedded farm with this many workers (scheduler and
+    /// workers in this process, linked over loopback TCP); 0 renders on
+    /// this machine without the farm.
+    #[arg(long, default_value_t = 0)]
+    pub(crate) workers: usize,
+    /// Tracing threads per embedded worker (0: cores / workers, at least 1).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) threads_per_worker: usize,
+    /// With --workers: serve the farm's status page, /status, /metrics and
+    /// the live preview on this address (e.g. 127.0.0.1:8080).
+    #[arg(long)]
+    pub(crate) http: Option<String>,
+    /// A quality preset, built in (accurate, fast, low) or a file like
+    /// configs/presets/*.toml: spp, depth and the directional cache's
+    /// parameters; --spp and --max-depth override it.
+    #[arg(long)]
+    pub(crate) preset: Option<String>,
+    /// Switch the directional cache on (the preset's parameters, or the
+    /// defaults); direct light is then estimated by light sampling alone.
+    #[arg(long)]
+    pub(crate) cache: bool,
+    /// Locality radius in leaf edges (overrides the preset's).
+    #[arg(long)]
+    pub(crate) cache_radius: Option<f32>,
+    #[command(flatten)]
+    pub(crate) farm: FarmArgs,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum GenWhat {
+    /// The conference-like room (about 330k triangles by default).
+    Room {
+        #[arg(short, long, default_value = "scenes/generated")]
+        out_dir: PathBuf,
+        #[arg(long, default_value = "room")]
+        name: String,
+        #[arg(long)]
+        chairs_per_side: Option<u32>,
+        #[arg(long)]
+        detail: Option<u32>,
+    },
+}
+
+#[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true)]
+pub(crate) struct BenchArgs {
+    #[command(subcommand)]
+    pub(crate) what: Option<BenchWhat>,
+    /// Scene to measure; default: the generated room (written to
+    /// scenes/generated if missing).
+    pub(crate) scene: Option<PathBuf>,
+    #[arg(long, default_value_t = 500_000)]
+    pub(crate) rays: usize,
+    #[arg(long, default_value_t = 5)]
+    pub(crate) rounds: usize,
+    #[arg(long, default_value_t = 4)]
+    pub(crate) spp: u32,
+    #[arg(long, default_value_t = 0)]
+    pub(crate) threads: usize,
+    /// Write the results as JSON here too.
+    #[arg(long)]
+    pub(crate) json: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum BenchWhat {
+    /// Paper 000's Tables 1-3: every preset with and without the
+    /// directional cache, under every fetch policy, on the embedded farm,
+    /// against a converged reference; writes locality.md, .csv and .svg.
+    Locality(LocalityArgs),
+}
+
+#[derive(clap::Args)]
+pub(crate) struct LocalityArgs {
+    pub(crate) scene: PathBuf,
+    #[arg(long, default_value_t = 4)]
+    pub(crate) workers: usize,
+    /// Tracing threads per worker (0: cores / workers, at least 1).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) threads_per_worker: usize,
+    #[arg(long, default_value_t = 160)]
+    pub(crate) width: u32,
+    #[arg(long, default_value_t = 120)]
+    pub(crate) height: u32,
+    /// Samples per pixel of the converged reference (MIS, no cache).
+    #[arg(long, default_value_t = 1024)]
+    pub(crate) reference_spp: u32,
+    /// Presets, built in or files; default: accurate fast low.
+    #[arg(long, num_args = 1.., default_values = ["accurate", "fast", "low"])]
+    pub(crate) presets: Vec<String>,
+    /// Policies to measure.
+    #[arg(long, num_args = 1.., default_values = ["forward", "fetch", "hybrid", "adaptive"])]
+    pub(crate) policies: Vec<FetchPolicy>,
+    #[arg(long, default_value_t = 256)]
+    pub(crate) fetch_budget_mib: u64,
+    /// Where the tables, the plot and the reference go; default
+    /// bench-out/locality-<scene>.
+    #[arg(long)]
+    pub(crate) out_dir: Option<PathBuf>,
+}
+
+impl FarmArgs {
+    pub(crate) fn job_options(&self, workers: u32) -> JobOptions {
+        JobOptions {
+            workers,
+            partitioner: match self.partitioner {
+                PartitionerArg::RegionGrowing => Partitioner::RegionGrowing,
+                PartitionerArg::Morton => Partitioner::Morton,
+            },
+            cost_model: match self.cost {
+                CostArg::Analytic => CostModel::Analytic,
+                CostArg::Sampled => CostModel::Sampled,
+            },
+            tile_size: self.tile_size.max(1),
+            tuning: Tuning {
+                packet_size: self.packet_size.max(1),
+                flush_us: self.flush_us,
+                max_inflight: self.max_inflight.max(1),
+                ..Tuning::default()
+            },
+            cache: None,
+            fetch: self.fetch,
+            fetch_budget: self.fetch_budget_mib << 20,
+        }
+    }
+}

@@ -1,0 +1,132 @@
+//! The farm's daemons and clients: `scheduler`, `worker`, `submit` and
+//! `status`.
+
+use crate::cli::*;
+use crate::commands::render::*;
+use crate::output::*;
+use crate::runtime;
+use anyhow::{Context, Result};
+use locus::config::Config;
+use locus_core::image_io::Image;
+use locus_scheduler::{Scheduler, SchedulerConfig};
+use locus_worker::{Worker, WorkerConfig};
+use tokio_util::sync::CancellationToken;
+
+pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
+    let cfg = Config::load(a.auth.config.as_deref())?;
+    let token = cfg.token(
+        a.auth.token.clone(),
+        a.auth.token_file.as_deref(),
+        a.auth.config.as_ref(),
+    )?;
+    let listen = a
+        .listen
+        .or(cfg.scheduler.listen.clone())
+        .context("no listen address: pass --listen or set [scheduler] listen in the config")?;
+    runtime()?.block_on(async {
+        let s = Scheduler::bind(SchedulerConfig {
+            listen,
+            token,
+            max_queued_jobs: cfg.scheduler.max_queued_jobs.unwrap_or(16),
+            http: a.http.or(cfg.scheduler.http.clone()),
+        })
+        .await?;
+        serve("scheduler", s.local_addr()?, |t| s.run(t)).await
+    })
+}
+
+/// Prints the bound address (scripts read it from this line) and runs a
+/// daemon until SIGINT or SIGTERM.
+pub(crate) async fn serve<F: std::future::Future<Output = Result<()>>>(
+    what: &str,
+    addr: std::net::SocketAddr,
+    run: impl FnOnce(CancellationToken) -> F,
+) -> Result<()> {
+    println!("{what} listening on {addr}");
+    let shutdown = CancellationToken::new();
+    locus::cancel_on_signals(shutdown.clone());
+    run(shutdown).await
+}
+
+pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
+    let cfg = Config::load(a.auth.config.as_deref())?;
+    let token = cfg.token(
+        a.auth.token.clone(),
+        a.auth.token_file.as_deref(),
+        a.auth.config.as_ref(),
+    )?;
+    let w = &cfg.worker;
+    let scheduler = a.scheduler.or(w.scheduler.clone()).context(
+        "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
+    )?;
+    let listen = a
+        .listen
+        .or(w.listen.clone())
+        .context("no listen address: pass --listen or set [worker] listen in the config")?;
+    let wc = WorkerConfig {
+        scheduler,
+        listen,
+        advertise: a.advertise.or(w.advertise.clone()),
+        token,
+        threads: a.threads.or(w.threads).unwrap_or(0),
+        memory_budget: a.memory_budget.or(w.memory_budget).map_or(0, |b| b.0),
+        name: a
+            .name
+            .or(w.name.clone())
+            .or_else(locus_worker::sys::hostname)
+            .unwrap_or_else(|| format!("worker-{}", std::process::id())),
+        dedicated: true,
+    };
+    if wc.memory_budget > 0 {
+        locus_worker::sys::tune_allocator();
+    }
+    runtime()?.block_on(async {
+        let worker = Worker::bind(wc).await?;
+        serve("worker", worker.local_addr()?, |t| worker.run(t)).await
+    })
+}
+
+pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
+    let cfg = Config::load(a.auth.config.as_deref())?;
+    let token = cfg.token(
+        a.auth.token.clone(),
+        a.auth.token_file.as_deref(),
+        a.auth.config.as_ref(),
+    )?;
+    let scheduler = a
+        .scheduler
+        .clone()
+        .or(cfg.worker.scheduler.clone())
+        .context(
+            "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
+        )?;
+    let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
+    let reference = match &a.reference {
+        Some(p) => Some(Image::read_exr(p)?),
+        None => None,
+    };
+    let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
+    let (pb, progress) = tile_progress(0);
+    let result = runtime()?.block_on(async {
+        let shutdown = CancellationToken::new();
+        locus::cancel_on_signals(shutdown.clone());
+        tokio::select! {
+            r = locus_scheduler::client::submit(&scheduler, &token, req, &progress) => r,
+            _ = shutdown.cancelled() => Err(anyhow::anyhow!("interrupted")),
+        }
+    })?;
+    if let Some(pb) = pb {
+        pb.finish_and_clear();
+    }
+    write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
+}
+
+pub(crate) fn cmd_status(http: &str, json: bool) -> Result<()> {
+    let (body, status) = locus::status::fetch(http)?;
+    if json {
+        println!("{body}");
+    } else {
+        print!("{}", locus::status::format(&status));
+    }
+    Ok(())
+}

@@ -1,0 +1,5 @@
+//! One module per family of subcommands; `main` dispatches to them.
+
+pub(crate) mod daemons;
+pub(crate) mod render;
+pub(crate) mod tools;

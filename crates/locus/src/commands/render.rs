@@ -1,0 +1,228 @@
+//! `locus render`: on this machine, or on the embedded farm with
+//! `--workers N`.
+
+use crate::cli::*;
+use crate::output::*;
+use anyhow::{Context, Result};
+use locus::config::Preset;
+use locus_core::dircache::CacheParams;
+use locus_core::image_io::Image;
+use locus_core::render::{Prepared, RenderOptions, render};
+use locus_core::report::{PhaseTimes, RenderReport};
+use locus_core::scene::Scene;
+use std::io::IsTerminal;
+use std::path::Path;
+use std::time::Instant;
+
+pub(crate) fn progress_bar(total: u64, what: &str) -> Option<indicatif::ProgressBar> {
+    if !std::io::stderr().is_terminal() {
+        return None;
+    }
+    let pb = indicatif::ProgressBar::new(total);
+    pb.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{msg} [{bar:40}] {pos}/{len} tiles {elapsed_precise} eta {eta}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    pb.set_message(what.to_string());
+    Some(pb)
+}
+
+/// The preset and the directional cache parameters `render` asks for.
+pub(crate) fn render_quality(a: &RenderArgs) -> Result<(Option<Preset>, Option<CacheParams>)> {
+    let preset = a.preset.as_deref().map(Preset::resolve).transpose()?;
+    if !a.cache {
+        return Ok((preset, None));
+    }
+    let mut c = preset.as_ref().map(|p| p.cache).unwrap_or_default();
+    if let Some(r) = a.cache_radius {
+        c.radius = r;
+    }
+    c.check()
+        .map_err(|e| anyhow::anyhow!("--cache-radius: {e}"))?;
+    Ok((preset, Some(c)))
+}
+
+pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
+    if a.workers > 0 {
+        return cmd_render_farm(a);
+    }
+    let t = Instant::now();
+    let scene = Scene::load(&a.scene)?;
+    let load_s = t.elapsed().as_secs_f64();
+    tracing::info!(
+        triangles = scene.tris.len(),
+        dropped = scene.load_stats.degenerate_dropped,
+        load_s,
+        "scene loaded"
+    );
+    let mut opts = RenderOptions::from_scene(&scene);
+    let (preset, cache) = render_quality(&a)?;
+    if let Some(p) = &preset {
+        opts.spp = p.spp;
+        opts.max_depth = p.max_depth;
+    }
+    opts.cache = cache;
+    if let Some(s) = a.spp {
+        opts.spp = s.max(1);
+    }
+    if let Some(d) = a.max_depth {
+        opts.max_depth = d;
+    }
+    if let Some(s) = a.seed {
+        opts.seed = s;
+    }
+    opts.threads = a.threads;
+    // Read the reference before rendering so a bad path fails fast.
+    let reference = match &a.reference {
+        Some(p) => Some(Image::read_exr(p)?),
+        None => None,
+    };
+    let prep = Prepared::new(scene);
+    tracing::info!(bvh_s = prep.timings.bvh_s, "acceleration built");
+    let (w, h) = (prep.scene.camera.width, prep.scene.camera.height);
+    let ntiles = locus_core::render::tiles(w, h, opts.tile_size, opts.tile_order).len();
+    let pb = progress_bar(ntiles as u64, "render");
+    let out = render(&prep, &opts, &|done, _| {
+        if let Some(pb) = &pb {
+            pb.set_position(done as u64);
+        }
+    });
+    if let Some(pb) = pb {
+        pb.finish_and_clear();
+    }
+    let Written { png, json, error } =
+        write_image(&out.image, &a.output, a.exposure, reference.as_ref())?;
+    let st = out.stats;
+    let report = RenderReport {
+        scene: a.scene.display().to_string(),
+        image: a.output.display().to_string(),
+        width: w,
+        height: h,
+        options: opts,
+        threads_used: if opts.threads == 0 {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        } else {
+            opts.threads
+        },
+        triangles: prep.scene.tris.len(),
+        load: prep.scene.load_stats.clone(),
+        octree_leaves: prep.octree_s().map(|_| prep.octree().leaf_count()),
+        octree_references: prep.octree_s().map(|_| prep.octree().reference_count()),
+        emitters: prep.lights.tris.len(),
+        times: PhaseTimes {
+            load_s,
+            octree_s: prep.octree_s().unwrap_or(0.0),
+            bvh_s: prep.timings.bvh_s,
+            render_s: out.render_s,
+        },
+        stats: st,
+        samples_per_second: st.samples as f64 / out.render_s,
+        rays_per_second: st.rays() as f64 / out.render_s,
+        error_vs_reference: error,
+        cache_memory: out.cache_memory,
+    };
+    report
+        .write(&json)
+        .with_context(|| format!("writing {}", json.display()))?;
+    if st.invalid_samples > 0 {
+        tracing::warn!(
+            invalid = st.invalid_samples,
+            "non-finite samples were replaced by zero"
+        );
+    }
+    println!(
+        "wrote {} ({}x{}, {} spp) with {} and {}\n  load {:.3}s  octree {:.3}s  bvh {:.3}s  render {:.3}s  {:.0} samples/s  {:.2} Mrays/s",
+        a.output.display(),
+        w,
+        h,
+        opts.spp,
+        png.display(),
+        json.display(),
+        load_s,
+        prep.octree_s().unwrap_or(0.0),
+        prep.timings.bvh_s,
+        out.render_s,
+        report.samples_per_second,
+        report.rays_per_second / 1e6
+    );
+    if let (Some(m), c) = (out.cache_memory, st.cache) {
+        println!(
+            "  directional cache: {} local, {} global, {} lookups (hit ratio {:.1}%), {} nodes in {} leaves, {:.1} MiB",
+            c.local,
+            c.global,
+            c.lookups,
+            100.0 * c.hit_ratio(),
+            m.nodes,
+            m.leaves_with_cache,
+            m.bytes as f64 / (1024.0 * 1024.0)
+        );
+    }
+    if let Some(e) = error {
+        println!("error vs reference: {e}");
+    }
+    Ok(())
+}
+
+pub(crate) fn load_for_farm(
+    path: &Path,
+    spp: Option<u32>,
+    max_depth: Option<u32>,
+    seed: Option<u64>,
+) -> Result<Scene> {
+    let mut scene = Scene::load(path)?;
+    if let Some(s) = spp {
+        scene.settings.spp = s.max(1);
+    }
+    if let Some(d) = max_depth {
+        scene.settings.max_depth = d;
+    }
+    if let Some(s) = seed {
+        scene.settings.seed = s;
+    }
+    Ok(scene)
+}
+
+pub(crate) fn tile_progress(
+    total_hint: u64,
+) -> (Option<indicatif::ProgressBar>, impl Fn(u32, u32) + Sync) {
+    let pb = progress_bar(total_hint, "farm");
+    let pb2 = pb.clone();
+    (pb, move |done: u32, total: u32| {
+        if let Some(pb) = &pb2 {
+            pb.set_length(total as u64);
+            pb.set_position(done as u64);
+        }
+    })
+}
+
+pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
+    let (preset, cache) = render_quality(&a)?;
+    let spp = a.spp.or(preset.as_ref().map(|p| p.spp));
+    let depth = a.max_depth.or(preset.as_ref().map(|p| p.max_depth));
+    let scene = load_for_farm(&a.scene, spp, depth, a.seed)?;
+    let reference = match &a.reference {
+        Some(p) => Some(Image::read_exr(p)?),
+        None => None,
+    };
+    let threads = if a.threads_per_worker > 0 {
+        a.threads_per_worker
+    } else {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        (cores / a.workers).max(1)
+    };
+    let mut opts = a.farm.job_options(a.workers as u32);
+    opts.cache = cache;
+    let req = locus_scheduler::client::request(&scene, opts);
+    let (pb, progress) = tile_progress(0);
+    let spec = locus::farm::FarmSpec {
+        http: a.http.clone(),
+        ..locus::farm::FarmSpec::embedded(a.workers, threads)
+    };
+    let result = locus::farm::render_embedded(req, &spec, &progress)?;
+    if let Some(pb) = pb {
+        pb.finish_and_clear();
+    }
+    write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
+}

@@ -1,0 +1,161 @@
+//! What a render writes, on one machine or on the farm alike: the EXR, its
+//! PNG preview and the JSON report beside it, and the summary printed.
+
+use anyhow::{Context, Result};
+use locus_core::image_io::Image;
+use locus_core::metrics::{ErrorMetrics, compare};
+use locus_protocol::report::FarmReport;
+use locus_protocol::submit::{FetchPolicy, JobResult};
+use std::path::{Path, PathBuf};
+
+/// What [`write_image`] wrote, and the error against the reference.
+pub(crate) struct Written {
+    pub(crate) png: PathBuf,
+    /// Where the caller's JSON report goes.
+    pub(crate) json: PathBuf,
+    pub(crate) error: Option<ErrorMetrics>,
+}
+
+/// Writes `image` as the EXR `output` (creating its folder) and its sRGB
+/// PNG preview beside it, and measures it against `reference`: the one
+/// writer of both one machine's and the farm's images.
+pub(crate) fn write_image(
+    image: &Image,
+    output: &Path,
+    exposure: f32,
+    reference: Option<&Image>,
+) -> Result<Written> {
+    if let Some(dir) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    image.write_exr(output)?;
+    let png = sibling(output, "png");
+    image.write_png(&png, exposure)?;
+    let error = match reference {
+        Some(re) => Some(compare(image, re)?),
+        None => None,
+    };
+    Ok(Written {
+        png,
+        json: sibling(output, "json"),
+        error,
+    })
+}
+
+pub(crate) fn sibling(path: &Path, ext: &str) -> PathBuf {
+    path.with_extension(ext)
+}
+
+/// The JSON a farm render writes beside its EXR.
+#[derive(serde::Serialize)]
+pub(crate) struct FarmOutput<'a> {
+    pub(crate) scene: String,
+    pub(crate) image: String,
+    pub(crate) farm: &'a FarmReport,
+    pub(crate) error_vs_reference: Option<locus_core::metrics::ErrorMetrics>,
+}
+
+pub(crate) fn write_farm_result(
+    scene: &Path,
+    output: &Path,
+    exposure: f32,
+    r: &JobResult,
+    reference: Option<&Image>,
+) -> Result<()> {
+    let image = Image {
+        width: r.width,
+        height: r.height,
+        pixels: r.pixels.clone(),
+    };
+    let Written { png, json, error } = write_image(&image, output, exposure, reference)?;
+    let out = FarmOutput {
+        scene: scene.display().to_string(),
+        image: output.display().to_string(),
+        farm: &r.report,
+        error_vs_reference: error,
+    };
+    std::fs::write(&json, serde_json::to_string_pretty(&out)?)
+        .with_context(|| format!("writing {}", json.display()))?;
+    let f = &r.report;
+    println!(
+        "wrote {} ({}x{}, {} spp, {} workers, {}) with {} and {}",
+        output.display(),
+        r.width,
+        r.height,
+        f.spp,
+        f.workers.len(),
+        f.partitioner,
+        png.display(),
+        json.display()
+    );
+    println!(
+        "  partition {:.3}s  distribution {:.3}s  render {:.3}s  {:.0} samples/s",
+        f.phases.partition_s, f.phases.distribution_s, f.phases.render_s, f.samples_per_s
+    );
+    println!(
+        "  load imbalance {:.3}  forwarded per ray {:.3}  bytes per sample {:.1}  prediction r: analytic {:.2}, sampled {:.2}",
+        f.load_imbalance,
+        f.forwarded_fraction,
+        f.bytes_per_sample,
+        f.prediction.analytic_r,
+        f.prediction.sampled_r
+    );
+    if f.replicated {
+        let why = if f.policy == FetchPolicy::Adaptive.name() {
+            "it fit, and its rays would have cost more than its geometry"
+        } else {
+            "it fit every worker's memory plan"
+        };
+        println!("  {}: every worker held the whole scene ({why})", f.policy);
+    }
+    let t = &f.totals;
+    let c = t.trace.cache;
+    if c.local + c.global + c.lookups > 0 {
+        println!(
+            "  directional caches: {} local, {} global, {} lookups (hit ratio {:.1}%), {} nodes in {} leaves, {:.1} MiB",
+            c.local,
+            c.global,
+            c.lookups,
+            100.0 * c.hit_ratio(),
+            t.cache_memory.nodes,
+            t.cache_memory.leaves_with_cache,
+            t.cache_memory.bytes as f64 / (1024.0 * 1024.0)
+        );
+    }
+    if t.fetch_requests > 0 {
+        println!(
+            "  fetched {} leaves ({:.2} MB on the wire) for {} waiting rays; {} crossings of fetched leaves; store peak {:.1} of {:.1} MiB per worker",
+            t.fetched_leaves,
+            t.fetched_bytes as f64 / 1e6,
+            t.fetch_waits,
+            t.fetched_leaf_traces,
+            t.fetch_cache_peak as f64 / (1024.0 * 1024.0),
+            t.fetch_cache_bound as f64 / (1024.0 * 1024.0)
+        );
+    }
+    println!(
+        "  worker  leaves  triangles  rays-local  fwd-out  queries-in  MB-sent  busy-s  idle-s  pred%  meas%"
+    );
+    for w in &f.workers {
+        let s = &w.stats;
+        let sent: u64 = s.peers.iter().map(|p| p.bytes_sent).sum();
+        println!(
+            "  {:>6}  {:>6}  {:>9}  {:>10}  {:>7}  {:>10}  {:>7.2}  {:>6.2}  {:>6.2}  {:>5.1}  {:>5.1}",
+            w.id,
+            s.leaves,
+            s.triangles,
+            s.trace.bvh_queries,
+            s.forwarded_out,
+            s.queries_in,
+            sent as f64 / 1e6,
+            s.busy_s,
+            s.idle_s,
+            w.predicted_cost_share * 100.0,
+            w.measured_cost_share * 100.0
+        );
+    }
+    if let Some(e) = error {
+        println!("error vs reference: {e}");
+    }
+    Ok(())
+}

@@ -1,0 +1,185 @@
+//! What `/status` answers: the farm as the actor sees it at one moment,
+//! workers, the queue, the running job with its progress and estimated time
+//! left, and the last jobs that ended (with the traffic between their
+//! workers). Built by the actor on request, so it is always consistent.
+
+use crate::actor::{Actor, Phase, Running};
+use locus_protocol::submit::CostModel;
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::time::Instant;
+
+/// Ended jobs `/status` lists.
+pub const HISTORY: usize = 16;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Status {
+    pub version: String,
+    pub uptime_s: f64,
+    pub workers: Vec<WorkerStatus>,
+    pub queued: Vec<QueuedJob>,
+    pub running: Option<RunningJob>,
+    /// Newest first.
+    pub ended: Vec<EndedJob>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct WorkerStatus {
+    pub id: u32,
+    pub name: String,
+    /// The address its peers dial.
+    pub listen: String,
+    pub cores: u32,
+    /// Bytes; 0 for no limit.
+    pub memory_budget: u64,
+    /// `idle` or `busy`.
+    pub state: String,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct QueuedJob {
+    pub scene: String,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    /// Workers asked for (0: every registered one).
+    pub workers: u32,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunningJob {
+    pub id: u64,
+    pub scene: String,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    pub policy: String,
+    /// preparing, distributing, rendering or collecting.
+    pub phase: String,
+    pub elapsed_s: f64,
+    pub tiles: u32,
+    pub tiles_done: u32,
+    /// From the rate of tiles since the first one; None before it.
+    pub eta_s: Option<f64>,
+    pub members: Vec<Member>,
+}
+
+/// A worker of the running job: its registry id, the share of the
+/// predicted cost its region holds, and the tiles it has returned.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Member {
+    pub worker: u32,
+    pub listen: String,
+    pub predicted_share: Option<f64>,
+    pub tiles_done: u32,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EndedJob {
+    pub id: u64,
+    pub scene: String,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    /// `done` or `failed`.
+    pub outcome: String,
+    pub reason: Option<String>,
+    pub seconds: f64,
+    /// The job's workers' peer addresses, in job order.
+    pub workers: Vec<String>,
+    /// `traffic[a][b]`: bytes worker `a` sent to worker `b` (done jobs).
+    pub traffic: Vec<Vec<u64>>,
+    pub forwarded_fraction: Option<f64>,
+    pub load_imbalance: Option<f64>,
+}
+
+impl Running {
+    /// Seconds left at the rate tiles have come in since the first one.
+    fn eta(&self, now: Instant) -> Option<f64> {
+        let first = self.t_first_tile?;
+        if self.done == 0 {
+            return None;
+        }
+        let rate = self.done as f64 / now.duration_since(first).as_secs_f64().max(1e-3);
+        Some((self.tiles.len() as u32 - self.done) as f64 / rate)
+    }
+}
+
+pub(crate) fn push_history(h: &mut VecDeque<EndedJob>, e: EndedJob) {
+    h.push_front(e);
+    h.truncate(HISTORY);
+}
+
+impl Actor {
+    pub(crate) fn status(&self) -> Status {
+        let now = Instant::now();
+        let workers = self
+            .workers
+            .iter()
+            .map(|(&id, w)| WorkerStatus {
+                id,
+                name: w.reg.name.clone(),
+                listen: w.reg.listen.clone(),
+                cores: w.reg.cores,
+                memory_budget: w.reg.memory_budget,
+                state: if w.busy { "busy" } else { "idle" }.to_string(),
+            })
+            .collect();
+        let queued = self
+            .queue
+            .iter()
+            .map(|q| QueuedJob {
+                scene: q.req.name.clone(),
+                width: q.req.camera.width,
+                height: q.req.camera.height,
+                spp: q.req.settings.spp,
+                workers: q.req.options.workers,
+            })
+            .collect();
+        let running = self.job.as_ref().map(|j| RunningJob {
+            id: j.id,
+            scene: j.req.name.clone(),
+            width: j.req.camera.width,
+            height: j.req.camera.height,
+            spp: j.req.settings.spp,
+            policy: j.req.options.fetch.name().to_string(),
+            phase: match j.phase {
+                Phase::Preparing => "preparing",
+                Phase::Distributing => "distributing",
+                Phase::Rendering => "rendering",
+                Phase::Collecting => "collecting",
+            }
+            .to_string(),
+            elapsed_s: now.duration_since(j.started).as_secs_f64(),
+            tiles: j.tiles.len() as u32,
+            tiles_done: j.done,
+            eta_s: j.eta(now),
+            members: j
+                .members
+                .iter()
+                .enumerate()
+                .map(|(w, m)| Member {
+                    worker: *m,
+                    listen: self
+                        .workers
+                        .get(m)
+                        .map(|e| e.reg.listen.clone())
+                        .unwrap_or_default(),
+                    predicted_share: j.prep.as_ref().map(|p| match j.req.options.cost_model {
+                        CostModel::Analytic => p.analytic_share[w],
+                        CostModel::Sampled => p.sampled_share[w],
+                    }),
+                    tiles_done: j.tiles_by[w],
+                })
+                .collect(),
+        });
+        Status {
+            version: env!("CARGO_PKG_VERSION").to_string(),
+            uptime_s: now.duration_since(self.started).as_secs_f64(),
+            workers,
+            queued,
+            running,
+            ended: self.history.iter().cloned().collect(),
+        }
+    }
+}

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Builds the locus image (default tag locus:latest) from this checkout:
+#   deploy/docker/build-image.sh [TAG]
+# The binary is linked statically (glibc's static libc, crt-static) so the
+# image is FROM scratch and needs no registry. With LOCUS_BIN=path, that
+# binary is used instead; if it is dynamically linked, exactly the shared
+# libraries it needs (ldd) go into the image beside it.
+set -euo pipefail
+root="$(cd "$(dirname "$0")/../.." && pwd)"
+tag="${1:-locus:latest}"
+ctx="$root/target/docker-context"
+
+if [[ -z "${LOCUS_BIN:-}" ]]; then
+    target="$(rustc -vV | sed -n 's/^host: //p')"
+    echo "building a static locus for $target" >&2
+    (cd "$root" && RUSTFLAGS="-C target-feature=+crt-static" \
+        CARGO_TARGET_DIR="$root/target/static" \
+        cargo build --release --locked --target "$target" -p locus)
+    LOCUS_BIN="$root/target/static/$target/release/locus"
+fi
+
+rm -rf "$ctx"
+mkdir -p "$ctx/tmp"
+chmod 1777 "$ctx/tmp"
+cp "$LOCUS_BIN" "$ctx/locus"
+if ldd "$LOCUS_BIN" >/dev/null 2>&1; then
+    # Dynamically linked: its libraries and loader, at the paths it names.
+    ldd "$LOCUS_BIN" | awk '/=> \// {print $3} /^\s*\/.*ld-linux/ {print $1}' |
+        while read -r lib; do
+            mkdir -p "$ctx$(dirname "$lib")"
+            cp -L "$lib" "$ctx$lib"
+        done
+fi
+cp "$root/deploy/docker/Dockerfile" "$ctx/Dockerfile"
+printf 'Dockerfile\n.dockerignore\n' >"$ctx/.dockerignore"
+echo "image context: $(du -sh "$ctx" | cut -f1) in $ctx" >&2
+docker build -q -t "$tag" -f "$ctx/Dockerfile" "$ctx" >/dev/null
+echo "$tag"
