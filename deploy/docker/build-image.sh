@@ -23,6 +23,11 @@ rm -rf "$ctx"
 mkdir -p "$ctx/tmp"
 chmod 1777 "$ctx/tmp"
 cp "$LOCUS_BIN" "$ctx/locus"
+# Symbols stay (a panic's backtrace names its functions); the line tables
+# the release profile keeps would double the image.
+if command -v strip >/dev/null 2>&1; then
+    strip --strip-debug "$ctx/locus"
+fi
 if ldd "$LOCUS_BIN" >/dev/null 2>&1; then
     # Dynamically linked: its libraries and loader, at the paths it names.
     ldd "$LOCUS_BIN" | awk '/=> \// {print $3} /^\s*\/.*ld-linux/ {print $1}' |

@@ -126,6 +126,18 @@ impl Connection {
         self.peer
     }
 
+    /// Changes the largest frame this connection reads or writes: small
+    /// until the handshake has authenticated the peer (see
+    /// [`crate::handshake::MAX_HANDSHAKE_FRAME`]), then the caller's.
+    pub fn set_max_frame(&mut self, max: usize) {
+        self.framed.codec_mut().set_max_frame_length(max);
+        self.max_frame = max;
+    }
+
+    pub fn max_frame(&self) -> usize {
+        self.max_frame
+    }
+
     /// This end's address: the interface the peer is reached through.
     pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
         self.framed.get_ref().local_addr()

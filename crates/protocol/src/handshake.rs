@@ -56,6 +56,26 @@ impl Handshake {
 /// How long a peer may take over the whole handshake.
 pub const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// The largest frame either side reads before the peer has proved the
+/// token: handshake messages take under 100 bytes (a refusal's reason a few
+/// hundred), and an unauthenticated peer must not make a daemon buffer
+/// more (with the 64 MiB of an authenticated frame, eight connections once
+/// held 500 MB of a scheduler's memory in under a second).
+pub const MAX_HANDSHAKE_FRAME: usize = 2048;
+
+/// Runs `f` with the connection's frames limited to
+/// [`MAX_HANDSHAKE_FRAME`], restoring its own limit only on success.
+async fn limited<T>(
+    conn: &mut Connection,
+    f: impl AsyncFnOnce(&mut Connection) -> Result<T, ProtocolError>,
+) -> Result<T, ProtocolError> {
+    let full = conn.max_frame();
+    conn.set_max_frame(full.min(MAX_HANDSHAKE_FRAME));
+    let r = f(conn).await?;
+    conn.set_max_frame(full);
+    Ok(r)
+}
+
 fn nonce() -> [u8; 32] {
     let mut n = [0u8; 32];
     // The OS generator only fails on platforms locus does not run on; a
@@ -111,6 +131,17 @@ pub async fn client(
     token: &[u8],
     version: u32,
 ) -> Result<(), ProtocolError> {
+    limited(conn, async |conn| {
+        client_exchange(conn, token, version).await
+    })
+    .await
+}
+
+async fn client_exchange(
+    conn: &mut Connection,
+    token: &[u8],
+    version: u32,
+) -> Result<(), ProtocolError> {
     let peer = conn.peer();
     with_timeout(peer, async {
         let nc = nonce();
@@ -162,6 +193,10 @@ pub async fn client(
 
 /// The accepting side.
 pub async fn server(conn: &mut Connection, token: &[u8]) -> Result<(), ProtocolError> {
+    limited(conn, async |conn| server_exchange(conn, token).await).await
+}
+
+async fn server_exchange(conn: &mut Connection, token: &[u8]) -> Result<(), ProtocolError> {
     let peer = conn.peer();
     with_timeout(peer, async {
         let nc = match next(conn, "handshake").await? {

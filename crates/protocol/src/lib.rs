@@ -30,3 +30,8 @@ pub const PROTOCOL_VERSION: u32 = 6;
 /// big octree leaf, small enough that a bad length prefix cannot make a peer
 /// allocate gigabytes.
 pub const MAX_FRAME_LEN: usize = 64 << 20;
+
+/// Connections a daemon serves at once (a semaphore, as in mini-redis);
+/// more wait in the kernel's backlog until one closes, so no number of
+/// clients can exhaust its memory or file descriptors.
+pub const MAX_CONNECTIONS: usize = 1024;

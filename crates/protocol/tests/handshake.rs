@@ -207,3 +207,42 @@ async fn a_frame_buffered_before_the_split_is_read_after_it() {
     assert_eq!(second.map(|(v, _)| v), Some(1234567));
     client.abort();
 }
+
+/// Before the handshake a frame may be at most `MAX_HANDSHAKE_FRAME`, even
+/// on a connection whose authenticated frames may be 64 MiB; after it, the
+/// connection's own limit holds again, on both sides.
+#[tokio::test]
+async fn frames_before_the_handshake_are_small() {
+    use handshake::MAX_HANDSHAKE_FRAME;
+    let (l, addr) = pair().await;
+    let srv = tokio::spawn(async move {
+        let (s, _) = l.accept().await.unwrap();
+        let mut c = Connection::new(s, MAX_FRAME_LEN).unwrap();
+        let e = handshake::server(&mut c, b"k").await.unwrap_err();
+        let (s, _) = l.accept().await.unwrap();
+        let mut good = Connection::new(s, MAX_FRAME_LEN).unwrap();
+        handshake::server(&mut good, b"k").await.unwrap();
+        assert_eq!(good.max_frame(), MAX_FRAME_LEN);
+        let big: Vec<u8> = good.read_msg("test").await.unwrap().unwrap();
+        (e, big.len())
+    });
+    // A frame one byte over the bound, announced before any Hello.
+    let mut raw = TcpStream::connect(addr).await.unwrap();
+    let len = (MAX_HANDSHAKE_FRAME as u32 + 1).to_be_bytes();
+    raw.write_all(&len).await.unwrap();
+    raw.write_all(&vec![0u8; MAX_HANDSHAKE_FRAME + 1])
+        .await
+        .unwrap();
+    let mut c = Connection::new(TcpStream::connect(addr).await.unwrap(), MAX_FRAME_LEN).unwrap();
+    handshake::client(&mut c, b"k", PROTOCOL_VERSION)
+        .await
+        .unwrap();
+    assert_eq!(c.max_frame(), MAX_FRAME_LEN);
+    c.write_msg(&vec![7u8; 1 << 20]).await.unwrap();
+    let (e, n) = srv.await.unwrap();
+    assert!(
+        matches!(e, ProtocolError::FrameTooLarge { max, .. } if max == MAX_HANDSHAKE_FRAME),
+        "{e}"
+    );
+    assert!(n == 1 << 20, "{n}");
+}

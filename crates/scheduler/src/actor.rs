@@ -70,7 +70,22 @@ pub struct WorkerEntry {
 pub(crate) struct Queued {
     pub(crate) req: Box<JobRequest>,
     client: mpsc::Sender<SchedulerToClient>,
+    /// On tokio's clock, so that a test can let [`WORKER_WAIT`] pass.
+    since: tokio::time::Instant,
 }
+
+/// How long a job may wait for the workers it asks for to register (a farm
+/// coming up registers its workers over a few seconds) before it fails,
+/// saying how many it asked for and how many there are.
+pub const WORKER_WAIT: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// The most tiles one request may ask for: a worker asks for a few, and a
+/// request for billions must not keep the actor busy.
+pub const MAX_TILE_REQUEST: u32 = 256;
+
+/// How often the actor looks at what no event announces: a client that
+/// went away, a job waiting too long for workers.
+const TICK: std::time::Duration = std::time::Duration::from_millis(500);
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Phase {
@@ -95,6 +110,9 @@ pub struct Running {
     pub(crate) done: u32,
     /// Tiles returned, by job worker.
     pub(crate) tiles_by: Vec<u32>,
+    /// Which tiles are in the film: a tile is counted once, however often
+    /// it arrives.
+    received: Vec<bool>,
     told_no_more: Vec<bool>,
     film: Vec<[f32; 3]>,
     ready: usize,
@@ -168,9 +186,15 @@ impl Actor {
     }
 
     pub async fn run(mut self, mut rx: mpsc::Receiver<Event>, shutdown: CancellationToken) {
+        let mut tick = tokio::time::interval(TICK);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             let ev = tokio::select! {
                 _ = shutdown.cancelled() => break,
+                _ = tick.tick() => {
+                    self.watch();
+                    continue;
+                }
                 e = rx.recv() => match e { Some(e) => e, None => break },
             };
             match ev {
@@ -216,6 +240,42 @@ impl Actor {
         }
     }
 
+    /// What no event announces: a running job whose client went away is
+    /// cancelled, queued ones are dropped, and a job that has waited
+    /// [`WORKER_WAIT`] for more workers than are registered fails.
+    fn watch(&mut self) {
+        if self.job.as_ref().is_some_and(|j| j.client.is_closed()) {
+            self.fail("the client disconnected".into());
+        }
+        let before = self.queue.len();
+        self.queue.retain(|q| !q.client.is_closed());
+        if self.queue.len() < before {
+            info!(
+                dropped = before - self.queue.len(),
+                "queued jobs whose clients disconnected dropped"
+            );
+        }
+        if self.job.is_none()
+            && let Some(q) = self.queue.front()
+            && q.since.elapsed() >= WORKER_WAIT
+        {
+            let want = (q.req.options.workers as usize).max(1);
+            let have = self.workers.len();
+            let q = self.queue.pop_front().expect("peeked");
+            let reason = format!(
+                "the job asks for {want} workers but {have} registered within {} s",
+                WORKER_WAIT.as_secs()
+            );
+            warn!(scene = %q.req.name, "{reason}");
+            self.metrics.job_failed();
+            let _ = q
+                .client
+                .try_send(SchedulerToClient::Failed { job: 0, reason });
+            self.try_start();
+        }
+        self.update_load();
+    }
+
     fn submit(&mut self, req: Box<JobRequest>, client: mpsc::Sender<SchedulerToClient>) {
         let refuse = |reason: String| {
             let _ = client.try_send(SchedulerToClient::Failed { job: 0, reason });
@@ -228,7 +288,11 @@ impl Actor {
         } else if let Err(reason) = job::validate(&req) {
             refuse(format!("invalid job {}: {reason}", req.name));
         } else {
-            self.queue.push_back(Queued { req, client });
+            self.queue.push_back(Queued {
+                req,
+                client,
+                since: tokio::time::Instant::now(),
+            });
             self.try_start();
         }
     }
@@ -311,6 +375,7 @@ impl Actor {
             reports: vec![None; want],
             told_no_more: vec![false; want],
             tiles_by: vec![0; want],
+            received: Vec::new(),
             members,
             phase: Phase::Preparing,
             prep: None,
@@ -413,7 +478,7 @@ impl Actor {
             }
             WorkerToScheduler::NeedTiles { count, .. } => {
                 let tx = &self.workers[&id].tx;
-                for _ in 0..count {
+                for _ in 0..count.min(MAX_TILE_REQUEST) {
                     if let Some(k) = j.queue.next_for(w) {
                         let t = j.tiles[k as usize];
                         if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
@@ -422,9 +487,12 @@ impl Actor {
                             break;
                         }
                         j.t_first_tile.get_or_insert_with(Instant::now);
-                    } else if !j.told_no_more[w] {
-                        j.told_no_more[w] = true;
-                        let _ = tx.try_send(SchedulerToWorker::NoMoreTiles { job: j.id });
+                    } else {
+                        if !j.told_no_more[w] {
+                            j.told_no_more[w] = true;
+                            let _ = tx.try_send(SchedulerToWorker::NoMoreTiles { job: j.id });
+                        }
+                        break;
                     }
                 }
             }
@@ -448,12 +516,12 @@ impl Actor {
 
     fn on_tile(&mut self, id: u32, w: usize, r: locus_protocol::control::TileResult) {
         let j = self.job.as_mut().expect("member of a job");
+        let ignore = |why: &str| {
+            warn!(worker = id, tile = r.tile, why, "tile result ignored");
+            self.metrics.tile_ignored(why);
+        };
         let Some(t) = j.tiles.get(r.tile as usize).copied() else {
-            warn!(
-                worker = id,
-                tile = r.tile,
-                "result for an unknown tile ignored"
-            );
+            ignore("unknown");
             return;
         };
         if r.pixels.len() != t.pixels() as usize {
@@ -464,6 +532,13 @@ impl Actor {
                 t.pixels()
             );
             self.fail(reason);
+            return;
+        }
+        if j.received.is_empty() {
+            j.received = vec![false; j.tiles.len()];
+        }
+        if std::mem::replace(&mut j.received[r.tile as usize], true) {
+            ignore("duplicate");
             return;
         }
         let width = j.req.camera.width;

@@ -141,7 +141,12 @@ impl Scheduler {
         }
         let token = Arc::new(self.cfg.token.into_bytes());
         let mut next_id = 0u32;
+        let permits = Arc::new(tokio::sync::Semaphore::new(locus_protocol::MAX_CONNECTIONS));
         loop {
+            let permit = tokio::select! {
+                _ = shutdown.cancelled() => break,
+                p = permits.clone().acquire_owned() => p.expect("the semaphore is never closed"),
+            };
             let (stream, addr) = tokio::select! {
                 _ = shutdown.cancelled() => break,
                 r = self.listener.accept() => match r {
@@ -157,6 +162,7 @@ impl Scheduler {
             let (token, ev, sd) = (token.clone(), ev_tx.clone(), shutdown.clone());
             let id = next_id;
             tokio::spawn(async move {
+                let _permit = permit;
                 if let Err(e) = serve(stream, id, &token, ev, sd).await {
                     warn!(%addr, "connection dropped: {e:#}");
                 }
@@ -220,10 +226,23 @@ async fn serve(
         Some(Opening::Submit(req)) => {
             let (tx, mut rx) = mpsc::channel::<SchedulerToClient>(64);
             ev.send(Event::Submit { req, client: tx }).await?;
+            let (mut r, mut conn) = conn.into_split();
             loop {
                 let m = tokio::select! {
                     _ = shutdown.cancelled() => return Ok(()),
                     m = rx.recv() => m,
+                    // A client says nothing after its request: a read
+                    // that ends is the client gone, and dropping `rx`
+                    // tells the actor to cancel its job.
+                    gone = r.read_msg::<Opening>("submit") => {
+                        let why = match gone {
+                            Ok(None) => "closed the connection".to_string(),
+                            Ok(Some(_)) => "sent a second request".to_string(),
+                            Err(e) => e.to_string(),
+                        };
+                        info!(%addr, "client {why}; its job is cancelled");
+                        return Ok(());
+                    }
                 };
                 let Some(m) = m else { return Ok(()) };
                 let last = matches!(

@@ -32,6 +32,7 @@ pub struct Metrics {
     jobs: Family<Labels, Counter>,
     job_seconds: Histogram,
     tiles: Counter,
+    tiles_ignored: Family<Labels, Counter>,
     samples: Counter,
     rays: Family<Labels, Counter>,
     forwarded: Counter,
@@ -66,6 +67,7 @@ impl Metrics {
             jobs: Family::default(),
             job_seconds: Histogram::new(exponential_buckets(0.25, 2.0, 16)),
             tiles: Counter::default(),
+            tiles_ignored: Family::default(),
             samples: Counter::default(),
             rays: Family::default(),
             forwarded: Counter::default(),
@@ -99,6 +101,11 @@ impl Metrics {
             m.job_seconds.clone(),
         );
         r.register("tiles", "Tiles received from workers", m.tiles.clone());
+        r.register(
+            "tiles_ignored",
+            "Tile results ignored, by why (duplicate, unknown)",
+            m.tiles_ignored.clone(),
+        );
         r.register("samples", "Camera samples rendered", m.samples.clone());
         r.register(
             "rays",
@@ -178,6 +185,12 @@ impl Metrics {
 
     pub fn tile(&self) {
         self.tiles.inc();
+    }
+
+    pub fn tile_ignored(&self, why: &str) {
+        self.tiles_ignored
+            .get_or_create(&labels(&[("why", why)]))
+            .inc();
     }
 
     pub fn job_failed(&self) {

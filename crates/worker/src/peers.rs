@@ -98,7 +98,12 @@ pub async fn accept_loop(
     shutdown: CancellationToken,
 ) {
     let token = Arc::new(token);
+    let permits = Arc::new(tokio::sync::Semaphore::new(locus_protocol::MAX_CONNECTIONS));
     loop {
+        let permit = tokio::select! {
+            _ = shutdown.cancelled() => return,
+            p = permits.clone().acquire_owned() => p.expect("the semaphore is never closed"),
+        };
         let (stream, addr) = tokio::select! {
             _ = shutdown.cancelled() => return,
             r = listener.accept() => match r {
@@ -112,6 +117,7 @@ pub async fn accept_loop(
         };
         let (token, job, shutdown) = (token.clone(), job.clone(), shutdown.clone());
         tokio::spawn(async move {
+            let _permit = permit;
             if let Err(e) = serve_peer(stream, &token, job, shutdown).await {
                 warn!(%addr, "peer link dropped: {e}");
             }

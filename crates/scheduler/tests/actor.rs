@@ -1,0 +1,243 @@
+//! The scheduler's actor through its channels, without sockets: a worker
+//! is a channel of `SchedulerToWorker`, a client one of
+//! `SchedulerToClient`, and every event goes in as the connection tasks
+//! would send it.
+
+use locus_core::scene::Scene;
+use locus_protocol::control::{
+    Registration, SchedulerToWorker, TileAssignment, TileResult, WorkerToScheduler,
+};
+use locus_protocol::report::WorkerStats;
+use locus_protocol::submit::{JobOptions, SchedulerToClient};
+use locus_scheduler::actor::{Actor, Event, WORKER_WAIT};
+use locus_scheduler::metrics::Metrics;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot};
+use tokio::time::timeout;
+use tokio_util::sync::CancellationToken;
+
+struct Farm {
+    events: mpsc::Sender<Event>,
+    metrics: Arc<Metrics>,
+    shutdown: CancellationToken,
+}
+
+fn start() -> Farm {
+    let (tx, rx) = mpsc::channel(64);
+    let metrics = Arc::new(Metrics::new());
+    let shutdown = CancellationToken::new();
+    tokio::spawn(Actor::new(4, tx.clone(), metrics.clone()).run(rx, shutdown.clone()));
+    Farm {
+        events: tx,
+        metrics,
+        shutdown,
+    }
+}
+
+impl Farm {
+    async fn worker(&self, id: u32) -> mpsc::Receiver<SchedulerToWorker> {
+        let (tx, rx) = mpsc::channel(1024);
+        let reg = Registration {
+            listen: format!("w{id}:7879"),
+            cores: 1,
+            memory_budget: 0,
+            resident: 0,
+            name: format!("w{id}"),
+        };
+        let addr = "127.0.0.1:9".parse().unwrap();
+        self.events
+            .send(Event::Joined { id, reg, addr, tx })
+            .await
+            .unwrap();
+        rx
+    }
+
+    async fn submit(&self, workers: u32) -> mpsc::Receiver<SchedulerToClient> {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let mut scene = Scene::load(&root.join("scenes/cornell-box/cornell.toml")).unwrap();
+        scene.camera.width = 32;
+        scene.camera.height = 32;
+        scene.settings.spp = 1;
+        let opts = JobOptions {
+            workers,
+            tile_size: 16,
+            ..Default::default()
+        };
+        let req = locus_scheduler::client::request(&scene, opts);
+        let (tx, rx) = mpsc::channel(64);
+        self.events
+            .send(Event::Submit {
+                req: Box::new(req),
+                client: tx,
+            })
+            .await
+            .unwrap();
+        rx
+    }
+
+    async fn from(&self, id: u32, msg: WorkerToScheduler) {
+        self.events
+            .send(Event::FromWorker { id, msg })
+            .await
+            .unwrap();
+    }
+
+    async fn tiles_done(&self) -> u32 {
+        let (tx, rx) = oneshot::channel();
+        self.events.send(Event::Status(tx)).await.unwrap();
+        rx.await.unwrap().running.map_or(0, |j| j.tiles_done)
+    }
+}
+
+async fn recv<T>(rx: &mut mpsc::Receiver<T>) -> T {
+    timeout(Duration::from_secs(20), rx.recv())
+        .await
+        .expect("a message within 20 s")
+        .expect("channel open")
+}
+
+/// One worker and a job for it, up to the worker having its region: the
+/// worker's and the client's channels and the job's id.
+async fn shipped_job(
+    farm: &Farm,
+) -> (
+    mpsc::Receiver<SchedulerToWorker>,
+    mpsc::Receiver<SchedulerToClient>,
+    u64,
+) {
+    let mut w = farm.worker(1).await;
+    let mut client = farm.submit(1).await;
+    assert!(matches!(
+        recv(&mut client).await,
+        SchedulerToClient::Accepted { .. }
+    ));
+    let job = until_shipped(&mut w).await;
+    (w, client, job)
+}
+
+/// Waits until the worker has its region, and returns the job id.
+async fn until_shipped(w: &mut mpsc::Receiver<SchedulerToWorker>) -> u64 {
+    loop {
+        if let SchedulerToWorker::Geometry {
+            job, last: true, ..
+        } = recv(w).await
+        {
+            return job;
+        }
+    }
+}
+
+fn result(t: &TileAssignment, value: f32) -> WorkerToScheduler {
+    WorkerToScheduler::TileDone(TileResult {
+        job: t.job,
+        tile: t.tile,
+        pixels: vec![[value; 3]; t.pixels() as usize],
+    })
+}
+
+/// A request for u32::MAX tiles is answered with the tiles there are and
+/// one NoMoreTiles; a tile sent twice is counted once and its second copy
+/// does not reach the film; an unknown tile is ignored; both are counted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiles_count_once_and_requests_are_clamped() {
+    let farm = start();
+    let (mut w, mut client, job) = shipped_job(&farm).await;
+    farm.from(1, WorkerToScheduler::Ready { job }).await;
+    farm.from(
+        1,
+        WorkerToScheduler::NeedTiles {
+            job,
+            count: u32::MAX,
+        },
+    )
+    .await;
+    let mut tiles = Vec::new();
+    loop {
+        match recv(&mut w).await {
+            SchedulerToWorker::Tile(t) => tiles.push(t),
+            SchedulerToWorker::NoMoreTiles { .. } => break,
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    assert_eq!(tiles.len(), 4, "32x32 in 16x16 tiles");
+    farm.from(1, result(&tiles[0], 1.0)).await;
+    farm.from(1, result(&tiles[0], 2.0)).await;
+    let mut unknown = tiles[0];
+    unknown.tile = 99;
+    farm.from(1, result(&unknown, 3.0)).await;
+    assert_eq!(farm.tiles_done().await, 1);
+    let text = farm.metrics.encode();
+    assert!(
+        text.contains("locus_tiles_ignored_total{why=\"duplicate\"} 1"),
+        "{text}"
+    );
+    assert!(
+        text.contains("locus_tiles_ignored_total{why=\"unknown\"} 1"),
+        "{text}"
+    );
+    for t in &tiles[1..] {
+        farm.from(1, result(t, 0.5)).await;
+    }
+    assert!(matches!(
+        recv(&mut w).await,
+        SchedulerToWorker::EndJob { .. }
+    ));
+    let stats = Box::new(WorkerStats {
+        peers: vec![Default::default()],
+        ..Default::default()
+    });
+    farm.from(1, WorkerToScheduler::Report { job, stats }).await;
+    let done = loop {
+        match recv(&mut client).await {
+            SchedulerToClient::Done(r) => break r,
+            SchedulerToClient::Progress { .. } => {}
+            other => panic!("unexpected {other:?}"),
+        }
+    };
+    let t0 = tiles[0];
+    let first = done.pixels[(t0.y0 * 32 + t0.x0) as usize];
+    assert_eq!(first, [1.0; 3], "the duplicate overwrote the film");
+    farm.shutdown.cancel();
+}
+
+/// A client that goes away cancels its running job: the workers are told
+/// to abort, and the next job starts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_leaves_cancels_its_job() {
+    let farm = start();
+    let (mut w, client, job) = shipped_job(&farm).await;
+    drop(client);
+    match recv(&mut w).await {
+        SchedulerToWorker::AbortJob { job: j, reason } => {
+            assert_eq!(j, job);
+            assert!(reason.contains("client"), "{reason}");
+        }
+        other => panic!("unexpected {other:?}"),
+    }
+    let mut next = farm.submit(1).await;
+    assert!(matches!(
+        recv(&mut next).await,
+        SchedulerToClient::Accepted { .. }
+    ));
+    farm.shutdown.cancel();
+}
+
+/// A job that asks for more workers than register fails once
+/// `WORKER_WAIT` has passed, saying how many it asked for and how many
+/// there are.
+#[tokio::test(start_paused = true)]
+async fn a_job_waits_for_workers_within_a_deadline() {
+    let farm = start();
+    let _w = farm.worker(1).await;
+    let mut client = farm.submit(3).await;
+    let t = tokio::time::Instant::now();
+    let reason = match timeout(WORKER_WAIT * 2, client.recv()).await.unwrap() {
+        Some(SchedulerToClient::Failed { reason, .. }) => reason,
+        other => panic!("expected a failure, got {other:?}"),
+    };
+    assert!(t.elapsed() >= WORKER_WAIT, "{:?}", t.elapsed());
+    assert!(reason.contains("asks for 3 workers but 1"), "{reason}");
+    farm.shutdown.cancel();
+}
