@@ -182,9 +182,10 @@ impl LocalFarm {
         if req.options.workers == 0 {
             req.options.workers = self.workers as u32;
         }
+        let mut collect = client::Collector::new(req.camera.width, req.camera.height);
         let mut rx = self.handle.submit(req).await?;
         loop {
-            if let Some(r) = client::take(rx.recv().await, progress) {
+            if let Some(r) = collect.take(rx.recv().await, progress) {
                 return r;
             }
         }

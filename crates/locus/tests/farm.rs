@@ -133,3 +133,27 @@ fn invalid_job_is_refused_and_the_farm_stays_up() {
         farm.stop().await.expect("clean stop");
     });
 }
+
+/// An image of more pixels than one result message carries arrives whole,
+/// in order and bit for bit.
+#[test]
+fn an_image_larger_than_a_result_chunk_arrives_whole() {
+    use locus_protocol::submit::RESULT_CHUNK_PIXELS;
+    let mut scene = common::small_cornell(1100, 1000, 3);
+    scene.settings.spp = 1;
+    const { assert!(1100 * 1000 > RESULT_CHUNK_PIXELS) };
+    let want = single_machine(&scene);
+    runtime().block_on(async {
+        let farm = locus::farm::LocalFarm::start(2, 1).await.expect("farm");
+        let opts = JobOptions {
+            workers: 2,
+            tile_size: 64,
+            ..Default::default()
+        };
+        let req = locus_scheduler::client::request(&scene, opts);
+        let r = farm.render(req, &|_, _| {}).await.expect("job");
+        assert_eq!(r.pixels.len(), 1100 * 1000);
+        assert!(bits(&r) == want, "the assembled image differs");
+        farm.stop().await.expect("stop");
+    });
+}

@@ -138,7 +138,20 @@ pub enum SchedulerToClient {
         job: u64,
         reason: String,
     },
+    /// A run of the finished image's pixels, row-major from `offset`: the
+    /// image travels in these, in order, before `Done` (whose `pixels` is
+    /// then empty), so no frame outgrows the frame limit however large
+    /// the image.
+    Pixels {
+        job: u64,
+        offset: u64,
+        pixels: Vec<[f32; 3]>,
+    },
 }
+
+/// Pixels per [`SchedulerToClient::Pixels`] message: 12 MiB, well within
+/// the frame limit.
+pub const RESULT_CHUNK_PIXELS: usize = 1 << 20;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobResult {

@@ -236,6 +236,7 @@ proptest! {
             SchedulerToClient::Progress { job: seed, tiles_done: workers / 2, tiles: workers },
             SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report })),
             SchedulerToClient::Failed { job: seed, reason: reason.clone() },
+            SchedulerToClient::Pixels { job: seed, offset: seed, pixels: vec![[f32::MIN_POSITIVE, -1e30, f32::INFINITY]; workers as usize % 5] },
         ] {
             roundtrip(&m);
         }

@@ -18,7 +18,7 @@ use crate::tiles::TileQueue;
 use locus_core::image_io::Image;
 use locus_protocol::control::{Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler};
 use locus_protocol::report::WorkerStats;
-use locus_protocol::submit::{JobRequest, JobResult, SchedulerToClient};
+use locus_protocol::submit::{JobRequest, JobResult, RESULT_CHUNK_PIXELS, SchedulerToClient};
 use std::collections::{BTreeMap, VecDeque};
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -670,8 +670,22 @@ impl Actor {
             }),
         ));
         let client = j.client;
-        // The result can be large; a dedicated task waits for room.
+        // The result can be large: a dedicated task sends it in chunks,
+        // waiting for room, then `Done` without pixels.
         tokio::spawn(async move {
+            let mut result = result;
+            let pixels = std::mem::take(&mut result.pixels);
+            for (k, run) in pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
+                let chunk = SchedulerToClient::Pixels {
+                    job: result.job,
+                    offset: (k * RESULT_CHUNK_PIXELS) as u64,
+                    pixels: run.to_vec(),
+                };
+                if client.send(chunk).await.is_err() {
+                    return;
+                }
+            }
+            drop(pixels);
             let _ = client.send(SchedulerToClient::Done(Box::new(result))).await;
         });
         self.try_start();

@@ -21,31 +21,82 @@ pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobR
     }
 }
 
-/// Takes one of a job's messages: `Some` with the result (or why the job
-/// failed) once it has come, `None` while it goes on. `progress(done,
-/// total)` is called as tiles come in.
-pub fn take(
-    m: Option<SchedulerToClient>,
-    progress: &(dyn Fn(u32, u32) + Sync),
-) -> Option<anyhow::Result<JobResult>> {
-    match m {
-        Some(SchedulerToClient::Accepted { job, workers }) => {
-            tracing::info!(job, workers, "job accepted");
-            None
+/// Gathers one job's messages into its result: `take` gives `Some` with
+/// the result (or why the job failed) once it has come, `None` while it
+/// goes on; `progress(done, total)` is called as tiles come in. The image
+/// arrives in [`SchedulerToClient::Pixels`] runs, in order, which are
+/// checked against the size the job asked for, so a scheduler cannot make
+/// the client hold more.
+pub struct Collector {
+    pixels: Vec<[f32; 3]>,
+    expected: usize,
+}
+
+impl Collector {
+    /// For a job of `width` x `height` pixels.
+    pub fn new(width: u32, height: u32) -> Self {
+        Self {
+            pixels: Vec::new(),
+            expected: width as usize * height as usize,
         }
-        Some(SchedulerToClient::Progress {
-            tiles_done, tiles, ..
-        }) => {
-            progress(tiles_done, tiles);
-            None
+    }
+
+    pub fn take(
+        &mut self,
+        m: Option<SchedulerToClient>,
+        progress: &(dyn Fn(u32, u32) + Sync),
+    ) -> Option<anyhow::Result<JobResult>> {
+        match m {
+            Some(SchedulerToClient::Accepted { job, workers }) => {
+                tracing::info!(job, workers, "job accepted");
+                None
+            }
+            Some(SchedulerToClient::Progress {
+                tiles_done, tiles, ..
+            }) => {
+                progress(tiles_done, tiles);
+                None
+            }
+            Some(SchedulerToClient::Pixels {
+                job,
+                offset,
+                pixels,
+            }) => {
+                if offset != self.pixels.len() as u64
+                    || self.pixels.len() + pixels.len() > self.expected
+                {
+                    return Some(Err(anyhow::anyhow!(
+                        "job {job}: pixels {offset}..{} arrived after {} of {}",
+                        offset + pixels.len() as u64,
+                        self.pixels.len(),
+                        self.expected
+                    )));
+                }
+                self.pixels.extend_from_slice(&pixels);
+                None
+            }
+            Some(SchedulerToClient::Done(r)) => {
+                let mut r = *r;
+                if r.pixels.is_empty() {
+                    r.pixels = std::mem::take(&mut self.pixels);
+                }
+                if r.pixels.len() != self.expected {
+                    return Some(Err(anyhow::anyhow!(
+                        "job {}: the image has {} pixels, {} were asked for",
+                        r.job,
+                        r.pixels.len(),
+                        self.expected
+                    )));
+                }
+                Some(Ok(r))
+            }
+            Some(SchedulerToClient::Failed { job, reason }) => {
+                Some(Err(anyhow::anyhow!("job {job} failed: {reason}")))
+            }
+            None => Some(Err(anyhow::anyhow!(
+                "the scheduler went away before the job finished"
+            ))),
         }
-        Some(SchedulerToClient::Done(r)) => Some(Ok(*r)),
-        Some(SchedulerToClient::Failed { job, reason }) => {
-            Some(Err(anyhow::anyhow!("job {job} failed: {reason}")))
-        }
-        None => Some(Err(anyhow::anyhow!(
-            "the scheduler went away before the job finished"
-        ))),
     }
 }
 
@@ -74,6 +125,7 @@ pub async fn submit(
         .await
         .context("submit: connecting to the scheduler")?;
     let name = req.name.clone();
+    let mut collect = Collector::new(req.camera.width, req.camera.height);
     conn.write_msg(&Opening::Submit(Box::new(req)))
         .await
         .with_context(|| format!("submit: sending {name}"))?;
@@ -83,8 +135,55 @@ pub async fn submit(
         if m.is_none() {
             bail!("scheduler {peer} closed the connection before the job finished");
         }
-        if let Some(r) = take(m, progress) {
+        if let Some(r) = collect.take(m, progress) {
             return r;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use locus_protocol::report::FarmReport;
+
+    fn pixels(offset: u64, n: usize) -> Option<SchedulerToClient> {
+        Some(SchedulerToClient::Pixels {
+            job: 1,
+            offset,
+            pixels: (0..n).map(|i| [(offset as usize + i) as f32; 3]).collect(),
+        })
+    }
+
+    fn done() -> Option<SchedulerToClient> {
+        Some(SchedulerToClient::Done(Box::new(JobResult {
+            job: 1,
+            width: 3,
+            height: 2,
+            pixels: Vec::new(),
+            report: FarmReport::default(),
+        })))
+    }
+
+    /// Runs in order make the image; a gap, an overlap, a run past the
+    /// size asked for, or an image short of it is an error.
+    #[test]
+    fn chunks_assemble_in_order_within_the_size_asked_for() {
+        let none = &|_, _| {};
+        let mut c = Collector::new(3, 2);
+        assert!(c.take(pixels(0, 4), none).is_none());
+        assert!(c.take(pixels(4, 2), none).is_none());
+        let r = c.take(done(), none).unwrap().unwrap();
+        let firsts: Vec<f32> = r.pixels.iter().map(|p| p[0]).collect();
+        assert_eq!(firsts, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
+        for (a, b) in [(0, 5), (3, 3)] {
+            let mut c = Collector::new(3, 2);
+            assert!(c.take(pixels(0, 4), none).is_none());
+            let e = c.take(pixels(a, b), none).unwrap().unwrap_err();
+            assert!(e.to_string().contains("arrived after 4 of 6"), "{e}");
+        }
+        let mut c = Collector::new(3, 2);
+        assert!(c.take(pixels(0, 5), none).is_none());
+        let e = c.take(done(), none).unwrap().unwrap_err();
+        assert!(e.to_string().contains("5 pixels, 6 were asked"), "{e}");
     }
 }

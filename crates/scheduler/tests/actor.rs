@@ -189,11 +189,10 @@ async fn tiles_count_once_and_requests_are_clamped() {
         ..Default::default()
     });
     farm.from(1, WorkerToScheduler::Report { job, stats }).await;
+    let mut collect = locus_scheduler::client::Collector::new(32, 32);
     let done = loop {
-        match recv(&mut client).await {
-            SchedulerToClient::Done(r) => break r,
-            SchedulerToClient::Progress { .. } => {}
-            other => panic!("unexpected {other:?}"),
+        if let Some(r) = collect.take(Some(recv(&mut client).await), &|_, _| {}) {
+            break r.expect("the job's image");
         }
     };
     let t0 = tiles[0];
