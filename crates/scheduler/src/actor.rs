@@ -653,29 +653,27 @@ impl Actor {
             forwarded = report.forwarded_fraction,
             "job done"
         );
-        let result = JobResult {
-            job: j.id,
+        // One image serves the client and the preview (the last finished
+        // job's, however many jobs): the client's copy is sent from it in
+        // runs, never copied whole.
+        let image = Arc::new(Image {
             width: j.req.camera.width,
             height: j.req.camera.height,
             pixels: std::mem::take(&mut j.film),
+        });
+        self.last_image = Some((j.id, image.clone()));
+        let result = JobResult {
+            job: j.id,
+            width: image.width,
+            height: image.height,
+            pixels: Vec::new(),
             report,
         };
-        // The preview keeps the last image (one film, however many jobs).
-        self.last_image = Some((
-            j.id,
-            Arc::new(Image {
-                width: result.width,
-                height: result.height,
-                pixels: result.pixels.clone(),
-            }),
-        ));
         let client = j.client;
         // The result can be large: a dedicated task sends it in chunks,
         // waiting for room, then `Done` without pixels.
         tokio::spawn(async move {
-            let mut result = result;
-            let pixels = std::mem::take(&mut result.pixels);
-            for (k, run) in pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
+            for (k, run) in image.pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
                 let chunk = SchedulerToClient::Pixels {
                     job: result.job,
                     offset: (k * RESULT_CHUNK_PIXELS) as u64,
@@ -685,7 +683,7 @@ impl Actor {
                     return;
                 }
             }
-            drop(pixels);
+            drop(image);
             let _ = client.send(SchedulerToClient::Done(Box::new(result))).await;
         });
         self.try_start();
