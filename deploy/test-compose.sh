@@ -9,7 +9,7 @@
 #   4. tear the farm down (also on failure).
 # It never skips: without a Docker engine and Compose it fails, saying so.
 # LOCUS_BIN=path uses that binary for the image (see docker/build-image.sh);
-# the host side uses target/release/locus, built if missing.
+# the host side uses target/release/locus.
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 root="$(cd "$here/.." && pwd)"
@@ -26,7 +26,9 @@ else
 fi
 docker info >/dev/null 2>&1 || fail "no Docker engine answers (docker info failed)"
 
-[[ -x target/release/locus ]] || cargo build --release --locked -p locus
+# Built (or found up to date) every time: a stale host binary would be
+# compared with a fresh image.
+cargo build --release --locked -p locus
 locus="$root/target/release/locus"
 
 work="$(mktemp -d)"

@@ -1,7 +1,9 @@
 //! The command line's definitions (clap): the subcommands and their
 //! arguments, and how farm options become a job's options.
 
+use anyhow::Result;
 use clap::{Parser, Subcommand};
+use locus::config::Config;
 use locus_protocol::control::Tuning;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, Partitioner};
 use std::path::PathBuf;
@@ -109,6 +111,20 @@ pub(crate) struct TokenArgs {
     /// A TOML config file (see configs/).
     #[arg(long)]
     pub(crate) config: Option<PathBuf>,
+}
+
+impl TokenArgs {
+    /// The config file (empty without --config) and the cluster token from
+    /// the flags, the environment or that file.
+    pub(crate) fn load(&self) -> Result<(Config, String)> {
+        let cfg = Config::load(self.config.as_deref())?;
+        let token = cfg.token(
+            self.token.clone(),
+            self.token_file.as_deref(),
+            self.config.as_ref(),
+        )?;
+        Ok((cfg, token))
+    }
 }
 
 #[derive(clap::Args)]

@@ -105,18 +105,23 @@ impl Config {
         file_flag: Option<&Path>,
         config: Option<&PathBuf>,
     ) -> anyhow::Result<String> {
-        let file = file_flag.or(self.token_file.as_deref());
-        let given = match (flag, file_flag, &self.token) {
-            (Some(t), _, _) => Some(t),
-            (None, Some(f), _) => Some(read_token_file(f)?),
-            (None, None, Some(t)) => Some(t.clone()),
-            (None, None, None) => file.map(read_token_file).transpose()?,
+        let given = if flag.is_some() {
+            flag
+        } else if let Some(f) = file_flag {
+            Some(read_token_file(f)?)
+        } else if self.token.is_some() {
+            self.token.clone()
+        } else {
+            self.token_file
+                .as_deref()
+                .map(read_token_file)
+                .transpose()?
         };
         match given {
             Some(t) if !t.is_empty() => Ok(t),
             _ => bail!(
                 "no cluster token: pass --token or --token-file, set LOCUS_TOKEN or \
-                 LOCUS_TOKEN_FILE, or put `token = \"...\"` in {}",
+                 LOCUS_TOKEN_FILE, or put `token = \"...\"` or `token_file = \"...\"` in {}",
                 config.map_or("a --config file".to_string(), |p| p.display().to_string())
             ),
         }

@@ -66,6 +66,7 @@ fn unauthenticated_frames_cannot_grow_the_scheduler() {
         f.join().unwrap();
     }
     let after = peak_mib(child.id());
+    eprintln!("scheduler peak resident memory: {before} MiB before the flood, {after} MiB after");
     let _ = child.kill();
     let _ = child.wait();
     assert!(

@@ -263,7 +263,8 @@ impl Actor {
             let have = self.workers.len();
             let q = self.queue.pop_front().expect("peeked");
             let reason = format!(
-                "the job asks for {want} workers but {have} registered within {} s",
+                "the job asks for {want} workers but {have} registered within {} s: \
+                 start more workers, or submit with --workers {have}",
                 WORKER_WAIT.as_secs()
             );
             warn!(scene = %q.req.name, "{reason}");
@@ -343,7 +344,7 @@ impl Actor {
         // all along, not only when the tiles that look at it come up (in
         // scanline order a worker whose region the top of the image sees
         // little of waited half the job for the others).
-        let tiles = locus_core::render::tiles(
+        let tiles: Vec<TileAssignment> = locus_core::render::tiles(
             cam.width,
             cam.height,
             q.req.options.tile_size,
@@ -375,7 +376,7 @@ impl Actor {
             reports: vec![None; want],
             told_no_more: vec![false; want],
             tiles_by: vec![0; want],
-            received: Vec::new(),
+            received: vec![false; tiles.len()],
             members,
             phase: Phase::Preparing,
             prep: None,
@@ -533,9 +534,6 @@ impl Actor {
             );
             self.fail(reason);
             return;
-        }
-        if j.received.is_empty() {
-            j.received = vec![false; j.tiles.len()];
         }
         if std::mem::replace(&mut j.received[r.tile as usize], true) {
             ignore("duplicate");

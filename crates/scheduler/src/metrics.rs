@@ -26,7 +26,10 @@ type Labels = Vec<(String, String)>;
 pub struct Metrics {
     registry: Registry,
     worker_up: Family<Labels, Gauge>,
-    workers: Family<Labels, Gauge>,
+    /// `locus_workers{state="idle"}` and `{state="busy"}`, set after
+    /// every event: kept at hand rather than looked up by label.
+    idle: Gauge,
+    busy: Gauge,
     queued: Gauge,
     running: Gauge,
     jobs: Family<Labels, Counter>,
@@ -59,9 +62,12 @@ impl Default for Metrics {
 impl Metrics {
     pub fn new() -> Self {
         let mut r = Registry::with_prefix("locus");
+        // Gauges are shared handles: these two are the family's own series.
+        let workers = Family::<Labels, Gauge>::default();
         let m = Metrics {
             worker_up: Family::default(),
-            workers: Family::default(),
+            idle: workers.get_or_create_owned(&labels(&[("state", "idle")])),
+            busy: workers.get_or_create_owned(&labels(&[("state", "busy")])),
             queued: Gauge::default(),
             running: Gauge::default(),
             jobs: Family::default(),
@@ -86,7 +92,7 @@ impl Metrics {
         r.register(
             "workers",
             "Registered workers by state (idle, busy)",
-            m.workers.clone(),
+            workers,
         );
         r.register("jobs_queued", "Jobs waiting", m.queued.clone());
         r.register("jobs_running", "Jobs running (0 or 1)", m.running.clone());
@@ -173,12 +179,8 @@ impl Metrics {
     /// The registry's counts: idle and busy workers, queued and running
     /// jobs.
     pub fn set_load(&self, idle: usize, busy: usize, queued: usize, running: bool) {
-        self.workers
-            .get_or_create(&labels(&[("state", "idle")]))
-            .set(idle as i64);
-        self.workers
-            .get_or_create(&labels(&[("state", "busy")]))
-            .set(busy as i64);
+        self.idle.set(idle as i64);
+        self.busy.set(busy as i64);
         self.queued.set(queued as i64);
         self.running.set(running as i64);
     }

@@ -6,19 +6,13 @@ use crate::commands::render::*;
 use crate::output::*;
 use crate::runtime;
 use anyhow::{Context, Result};
-use locus::config::Config;
 use locus_core::image_io::Image;
 use locus_scheduler::{Scheduler, SchedulerConfig};
 use locus_worker::{Worker, WorkerConfig};
 use tokio_util::sync::CancellationToken;
 
 pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
-    let cfg = Config::load(a.auth.config.as_deref())?;
-    let token = cfg.token(
-        a.auth.token.clone(),
-        a.auth.token_file.as_deref(),
-        a.auth.config.as_ref(),
-    )?;
+    let (cfg, token) = a.auth.load()?;
     let listen = a
         .listen
         .or(cfg.scheduler.listen.clone())
@@ -49,12 +43,7 @@ pub(crate) async fn serve<F: std::future::Future<Output = Result<()>>>(
 }
 
 pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
-    let cfg = Config::load(a.auth.config.as_deref())?;
-    let token = cfg.token(
-        a.auth.token.clone(),
-        a.auth.token_file.as_deref(),
-        a.auth.config.as_ref(),
-    )?;
+    let (cfg, token) = a.auth.load()?;
     let w = &cfg.worker;
     let scheduler = a.scheduler.or(w.scheduler.clone()).context(
         "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
@@ -87,12 +76,7 @@ pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
 }
 
 pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
-    let cfg = Config::load(a.auth.config.as_deref())?;
-    let token = cfg.token(
-        a.auth.token.clone(),
-        a.auth.token_file.as_deref(),
-        a.auth.config.as_ref(),
-    )?;
+    let (cfg, token) = a.auth.load()?;
     let scheduler = a
         .scheduler
         .clone()
@@ -101,10 +85,7 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
             "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
         )?;
     let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
-    let reference = match &a.reference {
-        Some(p) => Some(Image::read_exr(p)?),
-        None => None,
-    };
+    let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
     let (pb, progress) = tile_progress(0);
     let result = runtime()?.block_on(async {

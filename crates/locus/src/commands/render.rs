@@ -75,10 +75,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     opts.threads = a.threads;
     // Read the reference before rendering so a bad path fails fast.
-    let reference = match &a.reference {
-        Some(p) => Some(Image::read_exr(p)?),
-        None => None,
-    };
+    let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let prep = Prepared::new(scene);
     tracing::info!(bvh_s = prep.timings.bvh_s, "acceleration built");
     let (w, h) = (prep.scene.camera.width, prep.scene.camera.height);
@@ -202,10 +199,7 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
     let spp = a.spp.or(preset.as_ref().map(|p| p.spp));
     let depth = a.max_depth.or(preset.as_ref().map(|p| p.max_depth));
     let scene = load_for_farm(&a.scene, spp, depth, a.seed)?;
-    let reference = match &a.reference {
-        Some(p) => Some(Image::read_exr(p)?),
-        None => None,
-    };
+    let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let threads = if a.threads_per_worker > 0 {
         a.threads_per_worker
     } else {
