@@ -6,7 +6,11 @@
 #      port (`forward`: rays cross between the containers) and with the
 #      one-shot submit service (`adaptive`), and compare both images bit for
 #      bit with the single-machine render;
-#   4. tear the farm down (also on failure).
+#   4. lose a worker mid-job twice: `docker kill` one worker container,
+#      then, with it started again, cut another off the farm network
+#      (`docker network disconnect`); both jobs must complete bit-identical
+#      to one machine, and the cut-off worker, connected again, rejoins;
+#   5. tear the farm down (also on failure).
 # It never skips: without a Docker engine and Compose it fails, saying so.
 # LOCUS_BIN=path uses that binary for the image (see docker/build-image.sh);
 # the host side uses target/release/locus.
@@ -92,4 +96,53 @@ grep -E '^locus_(tiles_total|jobs_total|forwarded_queries_total|worker_up)' "$wo
 grep -q '^locus_jobs_total{outcome="done"} 2$' "$work/metrics" || fail "/metrics does not count 2 jobs done"
 echo "test-compose: ok: 3 worker containers, $forwarded rays forwarded between them, both farm images bit-identical to one machine" >&2
 
-echo "== 4. down" >&2
+echo "== 4. a worker lost mid-job: killed, then cut off the network" >&2
+status_json() { curl -fsS "http://127.0.0.1:$LOCUS_HTTP_PORT/status"; }
+# Waits until the running job has tiles in: the loss then lands mid-render.
+wait_rendering() {
+    local deadline=$((SECONDS + 120))
+    until status_json | python3 -c 'import json,sys; r=json.load(sys.stdin)["running"]; sys.exit(0 if r and r["tiles_done"] > 0 else 1)' 2>/dev/null; do
+        ((SECONDS < deadline)) || fail "the job did not start rendering within 120 s"
+        sleep 0.2
+    done
+}
+registered() { status_json | python3 -c 'import json,sys; print(len(json.load(sys.stdin)["workers"]))'; }
+long=(--spp 96)
+"$locus" render "$scene" "${long[@]}" -o "$work/single-long.exr" >/dev/null
+lose() { # $1: what is done to the worker container $2 (kill | disconnect)
+    timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
+        "$scene" "${long[@]}" --workers 3 --fetch forward -o "$work/$1.exr" >/dev/null &
+    local pid=$!
+    wait_rendering
+    case $1 in
+        kill) docker kill "$2" >/dev/null ;;
+        disconnect) docker network disconnect "$network" "$2" ;;
+    esac
+    echo "   $1: worker container ${2:0:12} lost mid-job" >&2
+    wait "$pid" || fail "the job with a worker lost ($1) failed"
+    "$locus" diff --exact "$work/$1.exr" "$work/single-long.exr" ||
+        fail "the job with a worker lost ($1) differs from one machine"
+    python3 -c 'import json,sys; r=json.load(open(sys.argv[1]))["farm"]["recovery"]; print("   attempts:", r["attempts"], "lost:", r["lost"], "tiles kept:", r["tiles_kept"]); sys.exit(0 if r["lost"] else 1)' \
+        "$work/$1.json" >&2 || fail "the report of the $1 job names no lost worker"
+}
+mapfile -t workers < <(dc ps -q worker)
+((${#workers[@]} == 3)) || fail "expected 3 worker containers, found ${#workers[@]}"
+network="$(docker network ls -q --filter "name=${project}_farm" | head -n 1)"
+[[ -n "$network" ]] || fail "the farm network ${project}_farm is missing"
+lose kill "${workers[1]}"
+docker start "${workers[1]}" >/dev/null
+deadline=$((SECONDS + 60))
+until [[ "$(registered)" -ge 3 ]]; do
+    ((SECONDS < deadline)) || fail "the killed worker, started again, did not rejoin within 60 s"
+    sleep 0.5
+done
+lose disconnect "${workers[2]}"
+docker network connect "$network" "${workers[2]}"
+deadline=$((SECONDS + 60))
+until [[ "$(registered)" -ge 3 ]]; do
+    ((SECONDS < deadline)) || fail "the cut-off worker, connected again, did not rejoin within 60 s"
+    sleep 0.5
+done
+echo "test-compose: ok: killed and cut-off workers lost mid-job, both jobs bit-identical, both workers back" >&2
+
+echo "== 5. down" >&2

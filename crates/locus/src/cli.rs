@@ -136,8 +136,30 @@ pub(crate) struct SchedulerArgs {
     /// previews (or `http` under [scheduler] in --config); none by default.
     #[arg(long)]
     pub(crate) http: Option<String>,
+    /// Seconds a worker may be silent (no heartbeat) before it counts as
+    /// lost and its job goes on without it (or `worker_timeout_s` under
+    /// [scheduler]); 5 by default. Workers send heartbeats five times
+    /// within it.
+    #[arg(long, value_parser = parse_timeout)]
+    pub(crate) worker_timeout: Option<f64>,
     #[command(flatten)]
     pub(crate) auth: TokenArgs,
+}
+
+/// A timeout in seconds: positive, finite, at most an hour.
+pub(crate) fn parse_timeout(s: &str) -> Result<f64, String> {
+    let t: f64 = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number of seconds"))?;
+    check_timeout(t)
+}
+
+pub(crate) fn check_timeout(t: f64) -> Result<f64, String> {
+    if (0.05..=3600.0).contains(&t) {
+        Ok(t)
+    } else {
+        Err(format!("a timeout of {t} s is out of range (0.05 to 3600)"))
+    }
 }
 
 #[derive(clap::Args)]

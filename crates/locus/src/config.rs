@@ -25,6 +25,8 @@ pub struct SchedulerSection {
     pub max_queued_jobs: Option<usize>,
     /// The read-only status page, `/status` and `/metrics`.
     pub http: Option<String>,
+    /// Seconds a worker may be silent before it is lost (default 5).
+    pub worker_timeout_s: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

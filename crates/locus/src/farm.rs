@@ -96,6 +96,7 @@ impl LocalFarm {
             token: token.clone(),
             max_queued_jobs: 16,
             http: spec.http.clone(),
+            worker_timeout: locus_scheduler::WORKER_TIMEOUT,
         })
         .await?;
         let http = sched.http_addr();

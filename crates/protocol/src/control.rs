@@ -57,12 +57,19 @@ pub enum WorkerToScheduler {
         job: u64,
         reason: String,
     },
+    /// The worker is alive, whatever its engine is doing.
+    Heartbeat,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum SchedulerToWorker {
     Welcome {
         worker: u32,
+        /// How often each side says it is alive ([`Heartbeat`]); a link
+        /// silent for [`HEARTBEATS_MISSED`] of these is lost.
+        ///
+        /// [`Heartbeat`]: SchedulerToWorker::Heartbeat
+        heartbeat_ms: u32,
     },
     StartJob(Box<JobSetup>),
     /// One BVH part of the worker's region: the triangles of `leaves`
@@ -86,7 +93,16 @@ pub enum SchedulerToWorker {
         job: u64,
         reason: String,
     },
+    /// The scheduler is alive (sent every `heartbeat_ms` of [`Welcome`]).
+    ///
+    /// [`Welcome`]: SchedulerToWorker::Welcome
+    Heartbeat,
 }
+
+/// Heartbeats a link may miss before the other side counts it lost: a
+/// worker (or scheduler) silent for this many intervals is stopped,
+/// crashed or cut off.
+pub const HEARTBEATS_MISSED: u32 = 5;
 
 /// Per-job knobs of the ray traffic.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -234,8 +234,11 @@ pub async fn dial(addr: &str, token: &[u8], max_frame: usize) -> Result<Connecti
         addr: addr.to_string(),
         source,
     };
-    let stream = tokio::net::TcpStream::connect(addr)
+    // A host that vanished answers no SYN: the kernel would retry for
+    // minutes.
+    let stream = tokio::time::timeout(HANDSHAKE_TIMEOUT, tokio::net::TcpStream::connect(addr))
         .await
+        .map_err(|_| connect_err(std::io::ErrorKind::TimedOut.into()))?
         .map_err(connect_err)?;
     let mut conn = Connection::new(stream, max_frame).map_err(connect_err)?;
     client(&mut conn, token, PROTOCOL_VERSION).await?;

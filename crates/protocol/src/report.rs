@@ -191,4 +191,20 @@ pub struct FarmReport {
     pub forwarded_fraction: f64,
     pub bytes_per_sample: f64,
     pub samples_per_s: f64,
+    /// What the job survived. The counters above are the last attempt's:
+    /// a lost worker never reports.
+    pub recovery: Recovery,
+}
+
+/// Workers a job lost and the attempts it took: after a loss the job is
+/// partitioned again over the workers left and only its unfinished tiles
+/// are rendered again; the image is the same bits either way.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Recovery {
+    /// Attempts the job took (1: nothing failed).
+    pub attempts: u32,
+    /// Each worker lost during the job: its address and why.
+    pub lost: Vec<(String, String)>,
+    /// Tiles finished in earlier attempts and kept.
+    pub tiles_kept: u32,
 }

@@ -193,13 +193,14 @@ proptest! {
         let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n] };
         let tile = TileAssignment { job: seed, tile: count, x0: 0, y0: 0, x1: 4, y1: 3 };
         for m in [
-            SchedulerToWorker::Welcome { worker: count },
+            SchedulerToWorker::Welcome { worker: count, heartbeat_ms: count / 3 },
             SchedulerToWorker::StartJob(Box::new(s)),
             SchedulerToWorker::Geometry { job: seed, leaves: vec![1, 2, count], chunk, last: count % 2 == 0 },
             SchedulerToWorker::Tile(tile),
             SchedulerToWorker::NoMoreTiles { job: seed },
             SchedulerToWorker::EndJob { job: seed },
             SchedulerToWorker::AbortJob { job: seed, reason: reason.clone() },
+            SchedulerToWorker::Heartbeat,
         ] {
             roundtrip(&m);
         }
@@ -210,6 +211,7 @@ proptest! {
             WorkerToScheduler::TileDone(TileResult { job: seed, tile: count, pixels: vec![[n as f32, 0.5, -1.0]; 12] }),
             WorkerToScheduler::Report { job: seed, stats: Box::new(stats) },
             WorkerToScheduler::Failed { job: seed, reason: reason.clone() },
+            WorkerToScheduler::Heartbeat,
         ] {
             roundtrip(&m);
         }

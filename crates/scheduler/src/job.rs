@@ -13,7 +13,7 @@ use locus_core::scene::{LoadStats, Scene};
 use locus_protocol::control::{MemoryPlan, TileAssignment};
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
-use locus_protocol::submit::{CostModel, FetchPolicy, JobRequest, Partitioner};
+use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobRequest, Partitioner};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -175,18 +175,11 @@ pub fn octree_for(scene: &Scene, workers: usize) -> Octree {
     tree
 }
 
-/// Builds the job's octree, predicts leaf costs, partitions the leaves
-/// among `members` by their cores within their memory budgets, and plans
-/// each worker's parts and memory. Fails when the budgets cannot hold the
-/// scene.
-pub fn prepare(
-    mut req: JobRequest,
-    members: &[Member],
-    tiles: &[TileAssignment],
-) -> Result<Prepared, String> {
-    let t = Instant::now();
-    let workers = members.len().max(1);
-    let scene = Arc::new(Scene {
+/// The submitted scene, its triangles moved out of the request: kept by
+/// the running job for its whole life, so that an attempt after a lost
+/// worker is prepared again from it without the client.
+pub fn scene_of(req: &mut JobRequest) -> Arc<Scene> {
+    Arc::new(Scene {
         path: PathBuf::from(&req.name),
         camera: req.camera.clone(),
         settings: req.settings.clone(),
@@ -194,11 +187,25 @@ pub fn prepare(
         tris: std::mem::take(&mut req.tris),
         tri_material: std::mem::take(&mut req.tri_material),
         load_stats: LoadStats::default(),
-    });
+    })
+}
+
+/// Builds the job's octree, predicts leaf costs, partitions the leaves
+/// among `members` by their cores within their memory budgets, and plans
+/// each worker's parts and memory. Fails when the budgets cannot hold the
+/// scene.
+pub fn prepare(
+    scene: Arc<Scene>,
+    options: &JobOptions,
+    members: &[Member],
+    tiles: &[TileAssignment],
+) -> Result<Prepared, String> {
+    let t = Instant::now();
+    let workers = members.len().max(1);
     let t_oct = Instant::now();
     let tree = octree_for(&scene, workers);
     let octree_s = t_oct.elapsed().as_secs_f64();
-    let caches = req.options.cache.is_some();
+    let caches = options.cache.is_some();
     let usable: Vec<Option<u64>> = members
         .iter()
         .map(|m| memory::usable(m.budget, m.resident))
@@ -221,13 +228,13 @@ pub fn prepare(
     // draw them); `adaptive` does when the preview predicts that the rays
     // would cost more bytes than the geometry (see [`buying_pays`]).
     let fits_everywhere = workers > 1
-        && all_refs * memory::REGION_BYTES_PER_TRIANGLE <= req.options.fetch_budget
+        && all_refs * memory::REGION_BYTES_PER_TRIANGLE <= options.fetch_budget
         && caps.iter().all(|c| c.is_none_or(|c| c >= all_refs));
-    let replicate_now = req.options.fetch == FetchPolicy::Fetch && fits_everywhere;
+    let replicate_now = options.fetch == FetchPolicy::Fetch && fits_everywhere;
     let t_pre = Instant::now();
     let lights = LightSet::build(&scene);
     let analytic = cost::analytic(&tree);
-    let (sampled, preview_rays, preview_paths, crossings) = match req.options.cost_model {
+    let (sampled, preview_rays, preview_paths, crossings) = match options.cost_model {
         _ if replicate_now => (analytic.clone(), 0, 0, Default::default()),
         CostModel::Analytic => (analytic.clone(), 0, 0, Default::default()),
         CostModel::Sampled => {
@@ -255,11 +262,11 @@ pub fn prepare(
         caps: &caps,
         refs: &refs,
     };
-    let chosen = match req.options.cost_model {
+    let chosen = match options.cost_model {
         CostModel::Analytic => &analytic,
         CostModel::Sampled => &sampled,
     };
-    let owner = match req.options.partitioner {
+    let owner = match options.partitioner {
         Partitioner::RegionGrowing => {
             let graph = partition::LeafGraph::new(&tree, &crossings);
             partition::region_growing(&tree, &graph, chosen, &lim)?
@@ -270,7 +277,7 @@ pub fn prepare(
     let samples =
         scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
     let replicated = replicate_now
-        || (req.options.fetch == FetchPolicy::Adaptive
+        || (options.fetch == FetchPolicy::Adaptive
             && fits_everywhere
             && buying_pays(
                 &crossings,
@@ -325,8 +332,8 @@ pub fn prepare(
             m.budget,
             usable[w],
             held,
-            req.options.cache.map(|c| c.max_nodes_total as u64),
-            req.options.fetch_budget,
+            options.cache.map(|c| c.max_nodes_total as u64),
+            options.fetch_budget,
         );
         let (p, n) = cut_parts(held_leaves, plan.part_triangles as u64);
         plans.push(plan);
@@ -339,20 +346,16 @@ pub fn prepare(
         sampled_share: cost::shares(&sampled, &map.owner, workers),
         preview_rays,
         leaves: tree.leaves.len() as u32,
-        max_inflight: crate::tiles::inflight(
-            &tile_affinity,
-            workers,
-            req.options.tuning.max_inflight,
-        )
-        .into_iter()
-        .zip(members)
-        .map(|(n, m)| match m.budget {
-            // A worker with a budget keeps its queues within the plan's
-            // room for them.
-            0 => n,
-            _ => n.min(memory::INFLIGHT_IN_QUEUE_ROOM),
-        })
-        .collect(),
+        max_inflight: crate::tiles::inflight(&tile_affinity, workers, options.tuning.max_inflight)
+            .into_iter()
+            .zip(members)
+            .map(|(n, m)| match m.budget {
+                // A worker with a budget keeps its queues within the plan's
+                // room for them.
+                0 => n,
+                _ => n.min(memory::INFLIGHT_IN_QUEUE_ROOM),
+            })
+            .collect(),
         map,
         tile_affinity,
         own_leaves,

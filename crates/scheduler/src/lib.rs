@@ -1,12 +1,15 @@
 //! locus-scheduler: the scheduler daemon of the locus farm, and the client
 //! that submits jobs to it.
 //!
-//! Connections are accepted here and authenticated by the handshake; the
-//! first message says whether the peer is a worker ([`Opening::Register`])
-//! or a client ([`Opening::Submit`]). Every connection task talks to the
-//! [`actor`] through a bounded channel; the actor owns the worker registry
-//! and the running job, so no state is shared between tasks. A job goes
-//! through [`job::prepare`] (octree, [`cost`] prediction, [`partition`]
+//! Connections are accepted here and served by [`server`]: the handshake,
+//! then the first message says whether the peer is a worker
+//! ([`Opening::Register`]) or a client ([`Opening::Submit`]); workers are
+//! watched by heartbeats. Every connection task talks to the [`actor`]
+//! through a bounded channel; the actor owns the worker registry and the
+//! running job, so no state is shared between tasks. A job runs in
+//! attempts (a lost worker's attempt is aborted and the unfinished tiles
+//! are rendered by a new one on the workers left); each goes through
+//! [`job::prepare`] (octree, [`cost`] prediction, [`partition`]
 //! within the workers' [`memory`] budgets) on a blocking thread, then
 //! [`distribute`] (processor map plus each region's geometry, part by
 //! part), then demand-driven tiles, then the workers' reports, which
@@ -26,21 +29,20 @@ pub mod memory;
 pub mod metrics;
 pub mod partition;
 pub mod report;
+mod server;
 pub mod status;
 pub mod tiles;
 
 use actor::{Actor, Event};
 use anyhow::Context;
-use locus_protocol::control::{Opening, SchedulerToWorker, WorkerToScheduler};
 use locus_protocol::submit::{JobRequest, SchedulerToClient};
-use locus_protocol::{Connection, MAX_FRAME_LEN, handshake};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
-use tracing::{info, instrument, warn};
+use tracing::{info, warn};
 
 #[derive(Clone, Debug)]
 pub struct SchedulerConfig {
@@ -51,7 +53,14 @@ pub struct SchedulerConfig {
     /// Where to serve the read-only status page, `/status`, `/metrics` and
     /// previews ([`http`]); None: nowhere.
     pub http: Option<String>,
+    /// How long a worker may be silent (no message, no heartbeat) before
+    /// it is lost and its job recovers without it.
+    pub worker_timeout: Duration,
 }
+
+/// The default of [`SchedulerConfig::worker_timeout`]: heartbeats go every
+/// second, so five are missed.
+pub const WORKER_TIMEOUT: Duration = Duration::from_secs(5);
 
 pub struct Scheduler {
     cfg: SchedulerConfig,
@@ -139,7 +148,12 @@ impl Scheduler {
                 }
             });
         }
-        let token = Arc::new(self.cfg.token.into_bytes());
+        let shared = server::Shared {
+            token: Arc::new(self.cfg.token.into_bytes()),
+            events: ev_tx.clone(),
+            shutdown: shutdown.clone(),
+            worker_timeout: self.cfg.worker_timeout,
+        };
         let mut next_id = 0u32;
         let permits = Arc::new(tokio::sync::Semaphore::new(locus_protocol::MAX_CONNECTIONS));
         loop {
@@ -159,101 +173,16 @@ impl Scheduler {
                 },
             };
             next_id += 1;
-            let (token, ev, sd) = (token.clone(), ev_tx.clone(), shutdown.clone());
-            let id = next_id;
+            let (sh, id) = (shared.clone(), next_id);
             tokio::spawn(async move {
                 let _permit = permit;
-                if let Err(e) = serve(stream, id, &token, ev, sd).await {
+                if let Err(e) = server::serve(stream, id, sh).await {
                     warn!(%addr, "connection dropped: {e:#}");
                 }
             });
         }
-        drop(ev_tx);
+        drop((ev_tx, shared));
         let _ = actor.await;
         Ok(())
-    }
-}
-
-#[instrument(skip_all, fields(conn = id, peer = %stream.peer_addr().map(|a| a.to_string()).unwrap_or_default()))]
-async fn serve(
-    stream: tokio::net::TcpStream,
-    id: u32,
-    token: &[u8],
-    ev: mpsc::Sender<Event>,
-    shutdown: CancellationToken,
-) -> anyhow::Result<()> {
-    let mut conn = Connection::new(stream, MAX_FRAME_LEN)?;
-    handshake::server(&mut conn, token).await?;
-    let addr = conn.peer();
-    let opening = tokio::select! {
-        _ = shutdown.cancelled() => return Ok(()),
-        m = conn.read_msg::<Opening>("opening") => m?,
-    };
-    match opening {
-        None => Ok(()),
-        Some(Opening::Register(reg)) => {
-            conn.write_msg(&SchedulerToWorker::Welcome { worker: id })
-                .await?;
-            let (mut r, mut w) = conn.into_split();
-            let (tx, mut rx) = mpsc::channel::<SchedulerToWorker>(256);
-            info!(worker = id, listen = %reg.listen, cores = reg.cores, "worker registered");
-            ev.send(Event::Joined { id, reg, addr, tx }).await?;
-            let writer = tokio::spawn(async move {
-                while let Some(m) = rx.recv().await {
-                    w.write_msg(&m).await?;
-                }
-                Ok::<(), locus_protocol::ProtocolError>(())
-            });
-            let reason = loop {
-                let m = tokio::select! {
-                    _ = shutdown.cancelled() => break "scheduler shutting down".to_string(),
-                    m = r.read_msg::<WorkerToScheduler>("control") => m,
-                };
-                match m {
-                    Ok(Some((msg, _))) => {
-                        if ev.send(Event::FromWorker { id, msg }).await.is_err() {
-                            break "scheduler shutting down".into();
-                        }
-                    }
-                    Ok(None) => break "closed the connection".into(),
-                    Err(e) => break e.to_string(),
-                }
-            };
-            writer.abort();
-            let _ = ev.send(Event::Left { id, reason }).await;
-            Ok(())
-        }
-        Some(Opening::Submit(req)) => {
-            let (tx, mut rx) = mpsc::channel::<SchedulerToClient>(64);
-            ev.send(Event::Submit { req, client: tx }).await?;
-            let (mut r, mut conn) = conn.into_split();
-            loop {
-                let m = tokio::select! {
-                    _ = shutdown.cancelled() => return Ok(()),
-                    m = rx.recv() => m,
-                    // A client says nothing after its request: a read
-                    // that ends is the client gone, and dropping `rx`
-                    // tells the actor to cancel its job.
-                    gone = r.read_msg::<Opening>("submit") => {
-                        let why = match gone {
-                            Ok(None) => "closed the connection".to_string(),
-                            Ok(Some(_)) => "sent a second request".to_string(),
-                            Err(e) => e.to_string(),
-                        };
-                        info!(%addr, "client {why}; its job is cancelled");
-                        return Ok(());
-                    }
-                };
-                let Some(m) = m else { return Ok(()) };
-                let last = matches!(
-                    m,
-                    SchedulerToClient::Done(_) | SchedulerToClient::Failed { .. }
-                );
-                conn.write_msg(&m).await?;
-                if last {
-                    return Ok(());
-                }
-            }
-        }
     }
 }

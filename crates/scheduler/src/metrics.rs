@@ -36,6 +36,9 @@ pub struct Metrics {
     job_seconds: Histogram,
     tiles: Counter,
     tiles_ignored: Family<Labels, Counter>,
+    workers_lost: Counter,
+    attempts_restarted: Counter,
+    stale_messages: Counter,
     samples: Counter,
     rays: Family<Labels, Counter>,
     forwarded: Counter,
@@ -74,6 +77,9 @@ impl Metrics {
             job_seconds: Histogram::new(exponential_buckets(0.25, 2.0, 16)),
             tiles: Counter::default(),
             tiles_ignored: Family::default(),
+            workers_lost: Counter::default(),
+            attempts_restarted: Counter::default(),
+            stale_messages: Counter::default(),
             samples: Counter::default(),
             rays: Family::default(),
             forwarded: Counter::default(),
@@ -111,6 +117,21 @@ impl Metrics {
             "tiles_ignored",
             "Tile results ignored, by why (duplicate, unknown)",
             m.tiles_ignored.clone(),
+        );
+        r.register(
+            "workers_lost",
+            "Workers lost during a job (connection closed, heartbeats missed)",
+            m.workers_lost.clone(),
+        );
+        r.register(
+            "job_attempts_restarted",
+            "Attempts of a job started again after a loss or a failure",
+            m.attempts_restarted.clone(),
+        );
+        r.register(
+            "stale_messages",
+            "Worker messages of an aborted attempt or a finished job, ignored",
+            m.stale_messages.clone(),
         );
         r.register("samples", "Camera samples rendered", m.samples.clone());
         r.register(
@@ -193,6 +214,18 @@ impl Metrics {
         self.tiles_ignored
             .get_or_create(&labels(&[("why", why)]))
             .inc();
+    }
+
+    pub fn worker_lost(&self) {
+        self.workers_lost.inc();
+    }
+
+    pub fn attempt_restarted(&self) {
+        self.attempts_restarted.inc();
+    }
+
+    pub fn stale_message(&self) {
+        self.stale_messages.inc();
     }
 
     pub fn job_failed(&self) {

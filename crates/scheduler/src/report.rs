@@ -1,15 +1,17 @@
 //! The report of a finished job: per-worker counters as the workers
 //! counted them, and the job's derived figures.
 
-use crate::actor::{Running, WorkerEntry};
+use crate::actor::Running;
 use crate::cost;
 use locus_protocol::report::{FarmReport, Phases, Prediction, WorkerStats, WorkerSummary};
-use std::collections::BTreeMap;
 use std::time::Instant;
 
-pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmReport {
-    let prep = j.prep.as_ref().expect("prepared before reporting");
-    let stats: Vec<WorkerStats> = j
+/// The report of job `j`, whose last attempt's workers are `names` (their
+/// peer addresses, in job order). Counters are the last attempt's.
+pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
+    let a = &j.attempt;
+    let prep = a.prep.as_ref().expect("prepared before reporting");
+    let stats: Vec<WorkerStats> = a
         .reports
         .iter()
         .map(|r| r.clone().unwrap_or_default())
@@ -47,10 +49,10 @@ pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmRe
     };
     let mean_busy = busy.iter().sum::<f64>() / busy.len().max(1) as f64;
     let max_busy = busy.iter().cloned().fold(0.0, f64::max);
-    let end = j.t_rendered.unwrap_or_else(Instant::now);
-    let prepared = j.t_prepared.unwrap_or(j.started);
-    let ready = j.t_ready.unwrap_or(end);
-    let render_s = (end - j.t_first_tile.unwrap_or(end)).as_secs_f64();
+    let end = a.t_rendered.unwrap_or_else(Instant::now);
+    let prepared = a.t_prepared.unwrap_or(a.started);
+    let ready = a.t_ready.unwrap_or(end);
+    let render_s = (end - a.t_first_tile.unwrap_or(end)).as_secs_f64();
     let t = &prep.timings;
     let samples = totals.trace.samples;
     FarmReport {
@@ -69,7 +71,7 @@ pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmRe
         route_leaves: prep.map.route.leaves() as u32,
         phases: Phases {
             load_s: j.req.load_s,
-            prepare_s: (prepared - j.started).as_secs_f64(),
+            prepare_s: (prepared - a.started).as_secs_f64(),
             octree_s: t.octree_s,
             preview_s: t.preview_s,
             partition_s: t.partition_s,
@@ -88,10 +90,7 @@ pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmRe
             .enumerate()
             .map(|(w, s)| WorkerSummary {
                 id: w as u16,
-                addr: workers
-                    .get(&j.members[w])
-                    .map(|e| e.reg.listen.clone())
-                    .unwrap_or_default(),
+                addr: names.get(w).cloned().unwrap_or_default(),
                 predicted_cost_share: match j.req.options.cost_model {
                     locus_protocol::submit::CostModel::Analytic => prep.analytic_share[w],
                     locus_protocol::submit::CostModel::Sampled => prep.sampled_share[w],
@@ -109,5 +108,6 @@ pub fn build_report(j: &Running, workers: &BTreeMap<u32, WorkerEntry>) -> FarmRe
         bytes_per_sample: bytes as f64 / samples.max(1) as f64,
         samples_per_s: samples as f64 / render_s.max(1e-9),
         totals,
+        recovery: j.recovery.clone(),
     }
 }

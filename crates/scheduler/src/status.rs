@@ -3,7 +3,7 @@
 //! left, and the last jobs that ended (with the traffic between their
 //! workers). Built by the actor on request, so it is always consistent.
 
-use crate::actor::{Actor, Phase, Running};
+use crate::actor::{Actor, Running};
 use locus_protocol::submit::CostModel;
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
@@ -54,8 +54,13 @@ pub struct RunningJob {
     pub height: u32,
     pub spp: u32,
     pub policy: String,
-    /// preparing, distributing, rendering or collecting.
+    /// waiting for workers, preparing, distributing, rendering or
+    /// collecting.
     pub phase: String,
+    /// Attempts so far (more than 1 after a lost worker).
+    pub attempt: u32,
+    /// Peer addresses of the workers the job lost.
+    pub lost: Vec<String>,
     pub elapsed_s: f64,
     pub tiles: u32,
     pub tiles_done: u32,
@@ -91,16 +96,22 @@ pub struct EndedJob {
     pub traffic: Vec<Vec<u64>>,
     pub forwarded_fraction: Option<f64>,
     pub load_imbalance: Option<f64>,
+    pub attempts: u32,
+    /// Peer addresses of the workers the job lost.
+    pub lost: Vec<String>,
 }
 
 impl Running {
-    /// Seconds left at the rate tiles have come in since the first one.
+    /// Seconds left at the rate tiles have come in since the attempt's
+    /// first one.
     fn eta(&self, now: Instant) -> Option<f64> {
-        let first = self.t_first_tile?;
-        if self.done == 0 {
+        let a = &self.attempt;
+        let first = a.t_first_tile?;
+        let done = self.done - a.done_before;
+        if done == 0 {
             return None;
         }
-        let rate = self.done as f64 / now.duration_since(first).as_secs_f64().max(1e-3);
+        let rate = done as f64 / now.duration_since(first).as_secs_f64().max(1e-3);
         Some((self.tiles.len() as u32 - self.done) as f64 / rate)
     }
 }
@@ -143,18 +154,15 @@ impl Actor {
             height: j.req.camera.height,
             spp: j.req.settings.spp,
             policy: j.req.options.fetch.name().to_string(),
-            phase: match j.phase {
-                Phase::Preparing => "preparing",
-                Phase::Distributing => "distributing",
-                Phase::Rendering => "rendering",
-                Phase::Collecting => "collecting",
-            }
-            .to_string(),
+            phase: j.attempt.phase.name().to_string(),
+            attempt: j.recovery.attempts,
+            lost: j.recovery.lost.iter().map(|(a, _)| a.clone()).collect(),
             elapsed_s: now.duration_since(j.started).as_secs_f64(),
             tiles: j.tiles.len() as u32,
             tiles_done: j.done,
             eta_s: j.eta(now),
             members: j
+                .attempt
                 .members
                 .iter()
                 .enumerate()
@@ -165,11 +173,13 @@ impl Actor {
                         .get(m)
                         .map(|e| e.reg.listen.clone())
                         .unwrap_or_default(),
-                    predicted_share: j.prep.as_ref().map(|p| match j.req.options.cost_model {
-                        CostModel::Analytic => p.analytic_share[w],
-                        CostModel::Sampled => p.sampled_share[w],
+                    predicted_share: j.attempt.prep.as_ref().map(|p| {
+                        match j.req.options.cost_model {
+                            CostModel::Analytic => p.analytic_share[w],
+                            CostModel::Sampled => p.sampled_share[w],
+                        }
                     }),
-                    tiles_done: j.tiles_by[w],
+                    tiles_done: j.attempt.tiles_by[w],
                 })
                 .collect(),
         });

@@ -9,7 +9,7 @@ use locus_protocol::control::{
 };
 use locus_protocol::report::WorkerStats;
 use locus_protocol::submit::{JobOptions, SchedulerToClient};
-use locus_scheduler::actor::{Actor, Event, WORKER_WAIT};
+use locus_scheduler::actor::{Actor, Event, MAX_FAILED_ATTEMPTS, WORKER_WAIT};
 use locus_scheduler::metrics::Metrics;
 use std::path::Path;
 use std::sync::Arc;
@@ -238,5 +238,199 @@ async fn a_job_waits_for_workers_within_a_deadline() {
     };
     assert!(t.elapsed() >= WORKER_WAIT, "{:?}", t.elapsed());
     assert!(reason.contains("asks for 3 workers but 1"), "{reason}");
+    farm.shutdown.cancel();
+}
+
+/// Waits for the next StartJob and the end of its region, skipping
+/// anything else; returns the run id and how many workers it has.
+async fn next_start(w: &mut mpsc::Receiver<SchedulerToWorker>) -> (u64, usize) {
+    let (run, peers) = loop {
+        if let SchedulerToWorker::StartJob(s) = recv(w).await {
+            break (s.job, s.peers.len());
+        }
+    };
+    assert_eq!(until_shipped(w).await, run);
+    (run, peers)
+}
+
+/// Asks for `count` tiles as member `id` of run `run` and returns them.
+async fn ask(
+    farm: &Farm,
+    w: &mut mpsc::Receiver<SchedulerToWorker>,
+    id: u32,
+    run: u64,
+    count: u32,
+) -> Vec<TileAssignment> {
+    farm.from(id, WorkerToScheduler::NeedTiles { job: run, count })
+        .await;
+    let mut tiles = Vec::new();
+    while tiles.len() < count as usize {
+        match recv(w).await {
+            SchedulerToWorker::Tile(t) => {
+                assert_eq!(t.job, run, "a tile handed out under another run");
+                tiles.push(t);
+            }
+            SchedulerToWorker::NoMoreTiles { .. } => break,
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    tiles
+}
+
+async fn report(farm: &Farm, id: u32, run: u64, workers: usize) {
+    let stats = Box::new(WorkerStats {
+        peers: vec![Default::default(); workers],
+        ..Default::default()
+    });
+    farm.from(id, WorkerToScheduler::Report { job: run, stats })
+        .await;
+}
+
+async fn image(
+    client: &mut mpsc::Receiver<SchedulerToClient>,
+) -> locus_protocol::submit::JobResult {
+    let mut collect = locus_scheduler::client::Collector::new(32, 32);
+    loop {
+        if let Some(r) = collect.take(Some(recv(client).await), &|_, _| {}) {
+            return r.expect("the job's image");
+        }
+    }
+}
+
+/// A member lost mid-job: the attempt is aborted, the job restarts on the
+/// survivor under a new run id, renders only the tiles not yet in, keeps
+/// the finished tile's pixels, ignores the old run's late results, and
+/// reports what it survived.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
+    let farm = start();
+    let mut w1 = farm.worker(1).await;
+    let mut w2 = farm.worker(2).await;
+    let mut client = farm.submit(2).await;
+    assert!(matches!(
+        recv(&mut client).await,
+        SchedulerToClient::Accepted { .. }
+    ));
+    let (r1, n) = next_start(&mut w1).await;
+    assert_eq!(n, 2);
+    assert_eq!(next_start(&mut w2).await.0, r1);
+    farm.from(1, WorkerToScheduler::Ready { job: r1 }).await;
+    farm.from(2, WorkerToScheduler::Ready { job: r1 }).await;
+    let first = ask(&farm, &mut w1, 1, r1, 1).await;
+    let held = ask(&farm, &mut w2, 2, r1, 1).await;
+    farm.from(1, result(&first[0], 1.0)).await;
+    farm.events
+        .send(Event::Left {
+            id: 2,
+            reason: "no heartbeat for 5.0 s".into(),
+        })
+        .await
+        .unwrap();
+    match recv(&mut w1).await {
+        SchedulerToWorker::AbortJob { job, .. } => assert_eq!(job, r1),
+        other => panic!("expected the attempt aborted, got {other:?}"),
+    }
+    let (r2, n) = next_start(&mut w1).await;
+    assert_ne!(r2, r1, "a new attempt needs a new run id");
+    assert_eq!(n, 1, "the survivor alone");
+    // The lost worker's tile, arriving late under the old run, is fenced.
+    farm.from(1, result(&held[0], 9.0)).await;
+    assert_eq!(farm.tiles_done().await, 1);
+    assert!(
+        farm.metrics
+            .encode()
+            .contains("locus_stale_messages_total 1"),
+        "{}",
+        farm.metrics.encode()
+    );
+    farm.from(1, WorkerToScheduler::Ready { job: r2 }).await;
+    let rest = ask(&farm, &mut w1, 1, r2, 64).await;
+    assert_eq!(rest.len(), 3, "only the tiles not yet in");
+    assert!(rest.iter().all(|t| t.tile != first[0].tile));
+    for t in &rest {
+        farm.from(1, result(t, 0.5)).await;
+    }
+    assert!(matches!(
+        recv(&mut w1).await,
+        SchedulerToWorker::EndJob { job } if job == r2
+    ));
+    report(&farm, 1, r2, 1).await;
+    let done = image(&mut client).await;
+    let t0 = first[0];
+    assert_eq!(done.pixels[(t0.y0 * 32 + t0.x0) as usize], [1.0; 3]);
+    let h = held[0];
+    assert_eq!(done.pixels[(h.y0 * 32 + h.x0) as usize], [0.5; 3]);
+    let rec = &done.report.recovery;
+    assert_eq!(rec.attempts, 2);
+    assert_eq!(rec.tiles_kept, 1);
+    assert_eq!(rec.lost.len(), 1);
+    assert!(rec.lost[0].0.contains("w2") && rec.lost[0].1.contains("heartbeat"));
+    farm.shutdown.cancel();
+}
+
+/// A failure that repeats with every worker still there is the job's: it
+/// fails after `MAX_FAILED_ATTEMPTS` attempts, with the worker's reason.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn attempts_that_keep_failing_fail_the_job() {
+    let farm = start();
+    let mut w = farm.worker(1).await;
+    let mut client = farm.submit(1).await;
+    assert!(matches!(
+        recv(&mut client).await,
+        SchedulerToClient::Accepted { .. }
+    ));
+    let mut runs = Vec::new();
+    for _ in 0..MAX_FAILED_ATTEMPTS {
+        let (run, _) = next_start(&mut w).await;
+        runs.push(run);
+        let reason = "region exceeds the memory budget".to_string();
+        farm.from(1, WorkerToScheduler::Failed { job: run, reason })
+            .await;
+    }
+    runs.dedup();
+    assert_eq!(runs.len(), MAX_FAILED_ATTEMPTS as usize, "{runs:?}");
+    let reason = loop {
+        match recv(&mut client).await {
+            SchedulerToClient::Failed { reason, .. } => break reason,
+            SchedulerToClient::Progress { .. } => {}
+            other => panic!("unexpected {other:?}"),
+        }
+    };
+    assert!(reason.contains("memory budget"), "{reason}");
+    assert!(reason.contains("without a worker lost"), "{reason}");
+    farm.shutdown.cancel();
+}
+
+/// A member lost after the last tile is in: the image is complete, and the
+/// job ends without that worker's report.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
+    let farm = start();
+    let mut w1 = farm.worker(1).await;
+    let mut w2 = farm.worker(2).await;
+    let mut client = farm.submit(2).await;
+    recv(&mut client).await;
+    let (run, _) = next_start(&mut w1).await;
+    next_start(&mut w2).await;
+    for id in [1, 2] {
+        farm.from(id, WorkerToScheduler::Ready { job: run }).await;
+    }
+    let tiles = ask(&farm, &mut w1, 1, run, 64).await;
+    assert_eq!(tiles.len(), 4);
+    for t in &tiles {
+        farm.from(1, result(t, 0.25)).await;
+    }
+    report(&farm, 1, run, 2).await;
+    farm.events
+        .send(Event::Left {
+            id: 2,
+            reason: "closed the connection".into(),
+        })
+        .await
+        .unwrap();
+    let done = image(&mut client).await;
+    assert!(done.pixels.iter().all(|p| *p == [0.25; 3]));
+    assert_eq!(done.report.recovery.attempts, 1);
+    assert_eq!(done.report.recovery.lost.len(), 1);
     farm.shutdown.cancel();
 }

@@ -128,16 +128,19 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
 }
 
 /// What starting a job needs from the daemon.
-pub struct Env<'a> {
-    pub token: &'a [u8],
-    pub pool: &'a Option<Arc<rayon::ThreadPool>>,
-    pub control: &'a flume::Sender<WorkerToScheduler>,
-    pub links: &'a watch::Sender<Option<Arc<JobLink>>>,
+pub struct Env {
+    pub token: Arc<[u8]>,
+    pub pool: Option<Arc<rayon::ThreadPool>>,
+    pub control: flume::Sender<WorkerToScheduler>,
+    pub links: Arc<watch::Sender<Option<Arc<JobLink>>>>,
     pub dedicated: bool,
+    /// The job's cancellation: aborting it while the peers are being
+    /// dialed (one may be stopped and never answer) ends the start.
+    pub cancel: CancellationToken,
 }
 
 /// Links to every peer and starts the engine on the built region.
-pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
+pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
     let Building {
         setup,
         parts,
@@ -162,7 +165,7 @@ pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
         bvh_s,
         "region built"
     );
-    let cancel = CancellationToken::new();
+    let cancel = env.cancel.clone();
     let traffic = Arc::new(Traffic::new(n));
     let (events_tx, events_rx) = flume::bounded::<Event>(EVENTS);
     let link = Arc::new(JobLink {
@@ -182,18 +185,20 @@ pub async fn start(b: Building, env: Env<'_>) -> anyhow::Result<Arc<JobLink>> {
             continue;
         }
         let (tx, rx) = flume::bounded(PEER_OUT);
-        let h = peers::dial(
+        let dial = peers::dial(
             addr,
-            env.token,
+            &env.token,
             job,
             me,
             w as u16,
             rx,
             traffic.clone(),
             cancel.clone(),
-        )
-        .await
-        .with_context(|| format!("linking to peer {w} at {addr}"))?;
+        );
+        let h = tokio::select! {
+            _ = cancel.cancelled() => bail!("the job was aborted while linking to its peers"),
+            h = dial => h.with_context(|| format!("linking to peer {w} at {addr}"))?,
+        };
         writers.push(h);
         outs.push(Some(tx));
     }

@@ -20,14 +20,16 @@ pub mod peers;
 pub mod reach;
 pub mod sys;
 
-use anyhow::{Context, bail};
+use anyhow::Context;
 use engine::{Event, Input};
 use job::Building;
-use locus_protocol::control::{Opening, Registration, SchedulerToWorker, WorkerToScheduler};
+use locus_protocol::control::{
+    HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
+};
 use locus_protocol::{ConnWriter, MAX_FRAME_LEN, handshake};
 use peers::JobLink;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
@@ -96,21 +98,73 @@ impl Worker {
         self.listener.local_addr()
     }
 
-    /// Registers and serves jobs until `shutdown` or until the scheduler
-    /// goes away.
+    /// Registers and serves jobs until `shutdown`. A lost scheduler link
+    /// (closed, or silent for [`HEARTBEATS_MISSED`] heartbeats) drops the
+    /// job in hand, and the worker registers again, retrying with backoff
+    /// for as long as it takes; only a fatal error (a wrong token, another
+    /// protocol version) ends it with an error.
     pub async fn run(self, shutdown: CancellationToken) -> anyhow::Result<()> {
-        let token = self.cfg.token.as_bytes().to_vec();
+        let token: Arc<[u8]> = self.cfg.token.as_bytes().into();
         let bound = self.local_addr()?;
         let (job_tx, job_rx) = watch::channel::<Option<Arc<JobLink>>>(None);
         let accept = tokio::spawn(peers::accept_loop(
             self.listener,
-            token.clone(),
+            token.to_vec(),
             job_rx,
             shutdown.clone(),
         ));
+        let ctx = Session {
+            cfg: &self.cfg,
+            token: token.clone(),
+            bound,
+            pool: &self.pool,
+            threads: self.threads,
+            links: Arc::new(job_tx),
+            shutdown: &shutdown,
+        };
+        let mut backoff = Backoff::default();
+        let result = loop {
+            let conn = match connect(&self.cfg.scheduler, &token, &shutdown, &mut backoff).await {
+                Ok(Some(c)) => c,
+                Ok(None) => break Ok(()),
+                Err(e) => break Err(e),
+            };
+            match ctx.serve(conn, &mut backoff).await {
+                Ok(None) => break Ok(()),
+                Ok(Some(why)) => warn!(scheduler = %self.cfg.scheduler, "{why}; registering again"),
+                Err(e) => break Err(e),
+            }
+        };
+        shutdown.cancel();
+        let _ = accept.await;
+        result
+    }
+}
 
-        let mut conn = connect_with_retry(&self.cfg.scheduler, &token, &shutdown).await?;
-        let listen = advertised(self.cfg.advertise.as_deref(), bound, conn.local_addr()?);
+/// What one registration with the scheduler needs from the worker.
+struct Session<'a> {
+    cfg: &'a WorkerConfig,
+    token: Arc<[u8]>,
+    bound: std::net::SocketAddr,
+    pool: &'a Option<Arc<rayon::ThreadPool>>,
+    threads: usize,
+    links: Arc<watch::Sender<Option<Arc<JobLink>>>>,
+    shutdown: &'a CancellationToken,
+}
+
+impl Session<'_> {
+    /// Registers on `conn` and serves jobs until the link is lost (Some:
+    /// why) or the worker shuts down (None).
+    async fn serve(
+        &self,
+        mut conn: locus_protocol::Connection,
+        backoff: &mut Backoff,
+    ) -> anyhow::Result<Option<String>> {
+        let listen = advertised(
+            self.cfg.advertise.as_deref(),
+            self.bound,
+            conn.local_addr()?,
+        );
         conn.write_msg(&Opening::Register(Registration {
             listen: listen.clone(),
             cores: self.threads as u32,
@@ -123,96 +177,228 @@ impl Worker {
             name: self.cfg.name.clone(),
         }))
         .await?;
-        let id = match conn.read_msg::<SchedulerToWorker>("control").await? {
-            Some(SchedulerToWorker::Welcome { worker }) => worker,
-            other => bail!("scheduler {}: expected Welcome, got {other:?}", conn.peer()),
+        let welcome = tokio::time::timeout(
+            handshake::HANDSHAKE_TIMEOUT,
+            conn.read_msg::<SchedulerToWorker>("control"),
+        )
+        .await;
+        let (id, heartbeat_ms) = match welcome {
+            Ok(Ok(Some(SchedulerToWorker::Welcome {
+                worker,
+                heartbeat_ms,
+            }))) => (worker, heartbeat_ms.max(1)),
+            Ok(Ok(other)) => return Ok(Some(format!("expected Welcome, got {other:?}"))),
+            Ok(Err(e)) => return Ok(Some(format!("registration: {e}"))),
+            Err(_) => return Ok(Some("no Welcome from the scheduler".into())),
         };
+        backoff.reset();
         info!(worker = id, %listen, scheduler = %self.cfg.scheduler, "registered");
-        let sched = conn.peer();
+        let every = Duration::from_millis(heartbeat_ms as u64);
+        let silent = every * HEARTBEATS_MISSED;
         let (mut reader, writer) = conn.into_split();
         let (ctl_tx, ctl_rx) = flume::bounded::<WorkerToScheduler>(256);
-        let writer_task = tokio::spawn(control_writer(writer, ctl_rx, shutdown.clone()));
-
-        let mut building: Option<Building> = None;
-        let mut current: Option<Arc<JobLink>> = None;
-        let result = loop {
+        let link = self.shutdown.child_token();
+        let writer_task = tokio::spawn(control_writer(writer, ctl_rx, every, link.clone()));
+        let mut jobs = Jobs::default();
+        let end = loop {
             let msg = tokio::select! {
-                _ = shutdown.cancelled() => break Ok(()),
-                m = reader.read_msg::<SchedulerToWorker>("control") => m,
+                _ = self.shutdown.cancelled() => break None,
+                _ = link.cancelled() => break Some("the scheduler link failed".to_string()),
+                r = jobs.started(), if jobs.starting.is_some() => {
+                    jobs.settle(r, &ctl_tx).await;
+                    continue;
+                }
+                m = tokio::time::timeout(silent, reader.read_msg::<SchedulerToWorker>("control")) => m,
             };
             let msg = match msg {
-                Ok(Some((m, _))) => m,
-                Ok(None) => {
-                    info!(%sched, "scheduler closed the connection");
-                    break Ok(());
+                Ok(Ok(Some((m, _)))) => m,
+                Ok(Ok(None)) => break Some("the scheduler closed the connection".into()),
+                Ok(Err(e)) => break Some(format!("scheduler link: {e}")),
+                Err(_) => {
+                    break Some(format!(
+                        "no heartbeat from the scheduler for {:.1} s",
+                        silent.as_secs_f64()
+                    ));
                 }
-                Err(e) => break Err(anyhow::Error::from(e).context("scheduler link")),
             };
-            match msg {
-                SchedulerToWorker::Welcome { .. } => warn!(%sched, "duplicate Welcome ignored"),
-                SchedulerToWorker::StartJob(s) => {
-                    if let Some(j) = current.take() {
-                        j.cancel.cancel();
-                    }
-                    let job = s.job;
-                    building = None;
-                    match Building::new(s, self.cfg.dedicated) {
-                        Ok(b) => building = Some(b),
-                        Err(e) => fail(&ctl_tx, job, e).await,
-                    }
-                }
-                SchedulerToWorker::Geometry {
-                    job,
-                    leaves,
-                    chunk,
-                    last,
-                } => {
-                    let Some(b) = building.as_mut().filter(|b| b.setup.job == job) else {
-                        warn!(job, "geometry for a job not started here; ignored");
-                        continue;
-                    };
-                    if let Err(e) = b.add_part(leaves, chunk).await {
-                        building = None;
-                        fail(&ctl_tx, job, e).await;
-                        continue;
-                    }
-                    if last {
-                        let b = building.take().expect("checked above");
-                        let env = job::Env {
-                            token: &token,
-                            pool: &self.pool,
-                            control: &ctl_tx,
-                            links: &job_tx,
-                            dedicated: self.cfg.dedicated,
-                        };
-                        match job::start(b, env).await {
-                            Ok(link) => current = Some(link),
-                            Err(e) => fail(&ctl_tx, job, e).await,
-                        }
-                    }
-                }
-                SchedulerToWorker::Tile(t) => forward(&current, t.job, Input::Tile(t)).await,
-                SchedulerToWorker::NoMoreTiles { job } => {
-                    forward(&current, job, Input::NoMoreTiles).await
-                }
-                SchedulerToWorker::EndJob { job } => forward(&current, job, Input::End).await,
-                SchedulerToWorker::AbortJob { job, reason } => {
-                    if let Some(j) = current.take_if(|j| j.job == job) {
-                        warn!(job, %reason, "job aborted by the scheduler");
-                        j.cancel.cancel();
-                    }
-                    building.take_if(|b| b.setup.job == job);
-                }
-            }
+            self.handle(msg, &mut jobs, &ctl_tx).await;
         };
-        if let Some(j) = current.take() {
-            j.cancel.cancel();
-        }
-        shutdown.cancel();
-        let _ = accept.await;
+        jobs.cancel_all();
+        link.cancel();
         drop(ctl_tx);
         let _ = writer_task.await;
-        result
+        Ok(end)
+    }
+
+    /// One message from the scheduler.
+    async fn handle(
+        &self,
+        msg: SchedulerToWorker,
+        jobs: &mut Jobs,
+        ctl_tx: &flume::Sender<WorkerToScheduler>,
+    ) {
+        match msg {
+            SchedulerToWorker::Welcome { .. } => warn!("duplicate Welcome ignored"),
+            SchedulerToWorker::Heartbeat => {}
+            SchedulerToWorker::StartJob(s) => {
+                jobs.cancel_all();
+                let job = s.job;
+                match Building::new(s, self.cfg.dedicated) {
+                    Ok(b) => jobs.building = Some(b),
+                    Err(e) => fail(ctl_tx, job, e).await,
+                }
+            }
+            SchedulerToWorker::Geometry {
+                job,
+                leaves,
+                chunk,
+                last,
+            } => {
+                let Some(b) = jobs.building.as_mut().filter(|b| b.setup.job == job) else {
+                    warn!(job, "geometry for a job not started here; ignored");
+                    return;
+                };
+                if let Err(e) = b.add_part(leaves, chunk).await {
+                    jobs.building = None;
+                    fail(ctl_tx, job, e).await;
+                    return;
+                }
+                if last {
+                    // Linking to the peers may wait on one that is stopped:
+                    // it runs as a task, and the link to the scheduler is
+                    // served meanwhile (an abort must get through).
+                    let b = jobs.building.take().expect("checked above");
+                    let cancel = CancellationToken::new();
+                    let env = job::Env {
+                        token: self.token.clone(),
+                        pool: self.pool.clone(),
+                        control: ctl_tx.clone(),
+                        links: self.links.clone(),
+                        dedicated: self.cfg.dedicated,
+                        cancel: cancel.clone(),
+                    };
+                    jobs.starting = Some(Starting {
+                        job,
+                        cancel,
+                        task: tokio::spawn(job::start(b, env)),
+                    });
+                }
+            }
+            SchedulerToWorker::Tile(t) => jobs.forward(t.job, Input::Tile(t), ctl_tx).await,
+            SchedulerToWorker::NoMoreTiles { job } => {
+                jobs.forward(job, Input::NoMoreTiles, ctl_tx).await
+            }
+            SchedulerToWorker::EndJob { job } => jobs.forward(job, Input::End, ctl_tx).await,
+            SchedulerToWorker::AbortJob { job, reason } => {
+                if jobs.job() == Some(job) {
+                    warn!(job, %reason, "job aborted by the scheduler");
+                    jobs.cancel_all();
+                }
+            }
+        }
+    }
+}
+
+/// The job a worker is receiving, starting (linking to its peers) or
+/// running: at most one at a time.
+#[derive(Default)]
+struct Jobs {
+    building: Option<Building>,
+    starting: Option<Starting>,
+    current: Option<Arc<JobLink>>,
+}
+
+struct Starting {
+    job: u64,
+    cancel: CancellationToken,
+    task: tokio::task::JoinHandle<anyhow::Result<Arc<JobLink>>>,
+}
+
+type Started = Result<anyhow::Result<Arc<JobLink>>, tokio::task::JoinError>;
+
+impl Jobs {
+    /// The job in hand, whatever its stage.
+    fn job(&self) -> Option<u64> {
+        (self.building.as_ref().map(|b| b.setup.job))
+            .or(self.starting.as_ref().map(|s| s.job))
+            .or(self.current.as_ref().map(|c| c.job))
+    }
+
+    fn cancel_all(&mut self) {
+        self.building = None;
+        if let Some(s) = self.starting.take() {
+            s.cancel.cancel();
+        }
+        if let Some(j) = self.current.take() {
+            j.cancel.cancel();
+        }
+    }
+
+    /// Waits for the starting job's task (only while there is one).
+    async fn started(&mut self) -> Started {
+        let s = self.starting.as_mut().expect("polled only while starting");
+        (&mut s.task).await
+    }
+
+    /// Takes the starting job's outcome: it runs, or its failure goes to
+    /// the scheduler.
+    async fn settle(&mut self, r: Started, ctl: &flume::Sender<WorkerToScheduler>) {
+        let s = self.starting.take().expect("settled only while starting");
+        match r {
+            Ok(Ok(link)) => self.current = Some(link),
+            // Aborted: the scheduler knows.
+            _ if s.cancel.is_cancelled() => {}
+            Ok(Err(e)) => fail(ctl, s.job, e).await,
+            Err(e) => fail(ctl, s.job, anyhow::anyhow!("job start crashed: {e}")).await,
+        }
+    }
+
+    /// Hands a scheduler message to the job's engine. The engine asks for
+    /// tiles as soon as it runs, a moment before its start has settled
+    /// here: a message for the starting job waits for the start.
+    async fn forward(&mut self, job: u64, input: Input, ctl: &flume::Sender<WorkerToScheduler>) {
+        if self.starting.as_ref().is_some_and(|s| s.job == job) {
+            let r = self.started().await;
+            self.settle(r, ctl).await;
+        }
+        match &self.current {
+            Some(j) if j.job == job => {
+                if j.inbox.send_async(Event::Input(input)).await.is_err() {
+                    warn!(job, "the job's engine has stopped; message dropped");
+                }
+            }
+            _ => warn!(job, "message for a job not running here; ignored"),
+        }
+    }
+}
+
+/// Delays between attempts to reach the scheduler: doubling from 100 ms to
+/// 5 s, each shortened by up to half at random so that a farm's workers
+/// do not all knock at once when a scheduler comes back.
+#[derive(Default)]
+struct Backoff {
+    failures: u32,
+}
+
+impl Backoff {
+    const FIRST: Duration = Duration::from_millis(100);
+    const MAX: Duration = Duration::from_secs(5);
+
+    fn next(&mut self) -> Duration {
+        let d = Self::FIRST
+            .saturating_mul(1 << self.failures.min(16))
+            .min(Self::MAX);
+        self.failures += 1;
+        let mut b = [0u8; 1];
+        let jitter = match getrandom::fill(&mut b) {
+            Ok(()) => b[0] as f64 / 510.0,
+            Err(_) => 0.0,
+        };
+        d.mul_f64(1.0 - jitter)
+    }
+
+    fn reset(&mut self) {
+        self.failures = 0;
     }
 }
 
@@ -224,17 +410,6 @@ async fn fail(ctl: &flume::Sender<WorkerToScheduler>, job: u64, e: anyhow::Error
             reason: format!("{e:#}"),
         })
         .await;
-}
-
-async fn forward(current: &Option<Arc<JobLink>>, job: u64, input: Input) {
-    match current {
-        Some(j) if j.job == job => {
-            if j.inbox.send_async(Event::Input(input)).await.is_err() {
-                warn!(job, "the job's engine has stopped; message dropped");
-            }
-        }
-        _ => warn!(job, "message for a job not running here; ignored"),
-    }
 }
 
 /// The address peers are told to dial: `--advertise` when given; else the
@@ -256,42 +431,65 @@ fn advertised(
     }
 }
 
-async fn connect_with_retry(
+/// Reaches the scheduler and completes the handshake, retrying with
+/// `backoff` while it cannot be reached (daemons may start before it, and
+/// it may restart); None when shut down first. A refused handshake (a
+/// wrong token, another protocol version) is fatal: retrying cannot help.
+async fn connect(
     addr: &str,
     token: &[u8],
     shutdown: &CancellationToken,
-) -> anyhow::Result<locus_protocol::Connection> {
-    // Daemons may start before the scheduler; a refused handshake (token,
-    // version) is final.
-    let deadline = Instant::now() + Duration::from_secs(30);
+    backoff: &mut Backoff,
+) -> anyhow::Result<Option<locus_protocol::Connection>> {
+    use locus_protocol::ProtocolError as E;
     loop {
-        match handshake::dial(addr, token, MAX_FRAME_LEN).await {
-            Ok(c) => return Ok(c),
-            Err(e @ locus_protocol::ProtocolError::Connect { .. }) if Instant::now() < deadline => {
-                warn!("{e}; retrying");
-                tokio::select! {
-                    _ = shutdown.cancelled() => bail!("shut down before reaching the scheduler"),
-                    _ = tokio::time::sleep(Duration::from_millis(500)) => {}
-                }
-            }
-            Err(e) => return Err(anyhow::Error::from(e).context("worker: scheduler handshake")),
+        let e = tokio::select! {
+            _ = shutdown.cancelled() => return Ok(None),
+            r = handshake::dial(addr, token, MAX_FRAME_LEN) => match r {
+                Ok(c) => return Ok(Some(c)),
+                Err(e) => e,
+            },
+        };
+        if matches!(
+            e,
+            E::Version { .. } | E::WrongToken { .. } | E::Refused { .. }
+        ) {
+            return Err(anyhow::Error::from(e).context("worker: scheduler handshake"));
+        }
+        let wait = backoff.next();
+        warn!("{e}; retrying in {:.1} s", wait.as_secs_f64());
+        tokio::select! {
+            _ = shutdown.cancelled() => return Ok(None),
+            _ = tokio::time::sleep(wait) => {}
         }
     }
 }
 
+/// Writes the worker's messages to the scheduler, and a heartbeat whenever
+/// the link has been quiet for `every`; a failed write ends the session
+/// (`link`).
 async fn control_writer(
     mut w: ConnWriter,
     rx: flume::Receiver<WorkerToScheduler>,
-    shutdown: CancellationToken,
+    every: Duration,
+    link: CancellationToken,
 ) {
     loop {
         let m = tokio::select! {
-            _ = shutdown.cancelled() => break,
-            m = rx.recv_async() => match m { Ok(m) => m, Err(_) => break },
+            _ = link.cancelled() => break,
+            m = tokio::time::timeout(every, rx.recv_async()) => match m {
+                Ok(Ok(m)) => m,
+                Ok(Err(_)) => break,
+                Err(_) => WorkerToScheduler::Heartbeat,
+            },
         };
-        if let Err(e) = w.write_msg(&m).await {
+        let written = tokio::select! {
+            _ = link.cancelled() => break,
+            r = w.write_msg(&m) => r,
+        };
+        if let Err(e) = written {
             warn!("scheduler link: {e}");
-            shutdown.cancel();
+            link.cancel();
             break;
         }
     }

@@ -75,7 +75,13 @@ pub async fn dial(
                 _ = cancel.cancelled() => break,
                 m = rx.recv_async() => match m { Ok(m) => m, Err(_) => break },
             };
-            match w.write_msg(&msg).await {
+            // A peer that stopped reading (stopped, cut off) must not
+            // hold this task once the job is aborted.
+            let written = tokio::select! {
+                _ = cancel.cancelled() => break,
+                r = w.write_msg(&msg) => r,
+            };
+            match written {
                 Ok(n) => {
                     c.msgs_sent.fetch_add(1, Relaxed);
                     c.bytes_sent.fetch_add(n as u64, Relaxed);

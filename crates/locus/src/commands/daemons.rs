@@ -17,12 +17,19 @@ pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
         .listen
         .or(cfg.scheduler.listen.clone())
         .context("no listen address: pass --listen or set [scheduler] listen in the config")?;
+    let worker_timeout = match a.worker_timeout.or(cfg.scheduler.worker_timeout_s) {
+        Some(t) => std::time::Duration::from_secs_f64(
+            check_timeout(t).map_err(|e| anyhow::anyhow!("worker_timeout_s: {e}"))?,
+        ),
+        None => locus_scheduler::WORKER_TIMEOUT,
+    };
     runtime()?.block_on(async {
         let s = Scheduler::bind(SchedulerConfig {
             listen,
             token,
             max_queued_jobs: cfg.scheduler.max_queued_jobs.unwrap_or(16),
             http: a.http.or(cfg.scheduler.http.clone()),
+            worker_timeout,
         })
         .await?;
         serve("scheduler", s.local_addr()?, |t| s.run(t)).await

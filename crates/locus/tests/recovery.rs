@@ -1,0 +1,228 @@
+//! Worker loss on real processes: a scheduler and three `locus worker`
+//! daemons on loopback, and jobs that lose a worker to `kill -9` at random
+//! moments, or to SIGSTOP. Every job must finish with the single-machine
+//! image's bits; the killed worker is started again and rejoins, and the
+//! stopped one, resumed, is fenced out of the job it was stopped in and
+//! takes part in the next.
+#![cfg(unix)]
+
+mod common;
+
+use locus_core::sampler::mix64;
+use locus_protocol::submit::{JobOptions, JobResult};
+use std::io::BufRead;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+const TOKEN: &str = "recovery-test-token";
+
+/// A daemon process, killed when dropped.
+struct Daemon(Child);
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Daemon {
+    fn spawn(args: &[&str]) -> (Self, String) {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_locus"))
+            .args(args)
+            .env("LOCUS_TOKEN", TOKEN)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("locus starts");
+        let mut line = String::new();
+        std::io::BufReader::new(c.stdout.take().expect("piped"))
+            .read_line(&mut line)
+            .expect("a daemon prints its address");
+        let addr = line.trim().rsplit(' ').next().unwrap_or("").to_string();
+        (Self(c), addr)
+    }
+
+    fn scheduler(worker_timeout_s: &str) -> (Self, String) {
+        Self::spawn(&[
+            "scheduler",
+            "--listen",
+            "127.0.0.1:0",
+            "--worker-timeout",
+            worker_timeout_s,
+        ])
+    }
+
+    fn worker(scheduler: &str) -> Self {
+        Self::spawn(&[
+            "worker",
+            "--scheduler",
+            scheduler,
+            "--listen",
+            "127.0.0.1:0",
+            "--threads",
+            "1",
+        ])
+        .0
+    }
+
+    fn signal(&self, sig: &str) {
+        let ok = Command::new("kill")
+            .args([sig, &self.0.id().to_string()])
+            .status()
+            .expect("kill runs");
+        assert!(ok.success(), "kill {sig}");
+    }
+}
+
+/// Submits `scene` for `workers` workers from a thread of its own, so that
+/// the test can act while the job runs; the result arrives on the channel.
+fn submit(
+    addr: &str,
+    scene: &locus_core::scene::Scene,
+    workers: u32,
+) -> mpsc::Receiver<anyhow::Result<JobResult>> {
+    let req = locus_scheduler::client::request(
+        scene,
+        JobOptions {
+            workers,
+            tile_size: 16,
+            ..Default::default()
+        },
+    );
+    let (tx, rx) = mpsc::channel();
+    let addr = addr.to_string();
+    std::thread::spawn(move || {
+        let rt = common::runtime();
+        let r = rt.block_on(locus_scheduler::client::submit(
+            &addr,
+            TOKEN,
+            req,
+            &|_, _| {},
+        ));
+        let _ = tx.send(r);
+    });
+    rx
+}
+
+fn wait(rx: &mpsc::Receiver<anyhow::Result<JobResult>>) -> JobResult {
+    rx.recv_timeout(Duration::from_secs(180))
+        .expect("the job ends within 180 s")
+        .expect("the job completes")
+}
+
+fn scene() -> locus_core::scene::Scene {
+    let mut s = common::small_cornell(160, 120, 11);
+    s.settings.spp = 16;
+    s
+}
+
+/// Twenty jobs, each losing one of three workers to `kill -9` at a moment
+/// drawn from a fixed seed over the job's length: every one completes with
+/// the single-machine bits, and the killed worker, started again, rejoins
+/// for the next job.
+#[test]
+fn jobs_survive_a_worker_killed_at_random_moments() {
+    let scene = scene();
+    let reference = common::single_machine(&scene);
+    let (_sched, addr) = Daemon::scheduler("2");
+    let mut workers: Vec<Daemon> = (0..3).map(|_| Daemon::worker(&addr)).collect();
+    // Undisturbed jobs set the time scale of the kills (the first one
+    // also pays for the workers' start).
+    let mut span = Duration::MAX;
+    for _ in 0..2 {
+        let t = Instant::now();
+        let warm = wait(&submit(&addr, &scene, 3));
+        span = span.min(t.elapsed());
+        assert_eq!(common::bits(&warm), reference);
+        assert_eq!(warm.report.recovery.attempts, 1);
+    }
+    // LOCUS_SOAK_RUNS=500 makes this the soak (tests/soak-recovery.sh).
+    let runs: u64 = std::env::var("LOCUS_SOAK_RUNS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20);
+    let mut recovered = 0;
+    for k in 0..runs {
+        let h = mix64(0x6b11 ^ k);
+        let delay = span.mul_f64((h % 1000) as f64 / 1250.0);
+        let victim = (h >> 32) as usize % workers.len();
+        let rx = submit(&addr, &scene, 3);
+        std::thread::sleep(delay);
+        let killed = Instant::now();
+        workers[victim].signal("-KILL");
+        let r = wait(&rx);
+        let rec = &r.report.recovery;
+        eprintln!(
+            "run {k}: kill after {:.0} ms, job done {:.0} ms later, {} attempts, lost {:?}, {} tiles kept",
+            delay.as_secs_f64() * 1e3,
+            killed.elapsed().as_secs_f64() * 1e3,
+            rec.attempts,
+            rec.lost,
+            rec.tiles_kept
+        );
+        assert_eq!(common::bits(&r), reference, "run {k}: the image differs");
+        if !rec.lost.is_empty() {
+            recovered += 1;
+        }
+        workers[victim] = Daemon::worker(&addr);
+    }
+    eprintln!("{recovered} of {runs} jobs lost a worker while running and completed bit-identical");
+    assert!(
+        recovered >= runs / 2,
+        "only {recovered} of {runs} kills landed during a job: the test is not testing recovery"
+    );
+}
+
+/// A worker stopped mid-job (SIGSTOP: its sockets stay open, it just stops
+/// answering) is lost once its heartbeats are missed; the job completes on
+/// the others with the single-machine bits. Resumed, it finds itself
+/// dropped, registers again, and renders its share of the next job.
+#[test]
+fn a_stopped_worker_is_fenced_out_and_rejoins_when_resumed() {
+    let scene = scene();
+    let reference = common::single_machine(&scene);
+    let (_sched, addr) = Daemon::scheduler("1.5");
+    let workers: Vec<Daemon> = (0..3).map(|_| Daemon::worker(&addr)).collect();
+    let t = Instant::now();
+    assert_eq!(common::bits(&wait(&submit(&addr, &scene, 3))), reference);
+    let span = t.elapsed();
+    let rx = submit(&addr, &scene, 3);
+    std::thread::sleep(span / 3);
+    workers[1].signal("-STOP");
+    let stopped = Instant::now();
+    let r = wait(&rx);
+    eprintln!(
+        "stopped worker: job done {:.2} s after the stop, {} attempts, lost {:?}",
+        stopped.elapsed().as_secs_f64(),
+        r.report.recovery.attempts,
+        r.report.recovery.lost
+    );
+    assert_eq!(common::bits(&r), reference, "the image differs");
+    assert_eq!(r.report.recovery.lost.len(), 1, "{:?}", r.report.recovery);
+    assert!(
+        r.report.recovery.lost[0].1.contains("heartbeat"),
+        "{:?}",
+        r.report.recovery.lost
+    );
+    assert!(
+        r.report.workers.len() == 2,
+        "the job went on with the others"
+    );
+    workers[1].signal("-CONT");
+    // The next job asks for all three: it starts once the resumed worker
+    // has registered again, and each of them renders tiles.
+    let next = wait(&submit(&addr, &scene, 3));
+    assert_eq!(common::bits(&next), reference);
+    assert_eq!(next.report.workers.len(), 3);
+    assert!(
+        next.report.workers.iter().all(|w| w.stats.tiles > 0),
+        "every worker rendered tiles: {:?}",
+        next.report
+            .workers
+            .iter()
+            .map(|w| w.stats.tiles)
+            .collect::<Vec<_>>()
+    );
+}

@@ -1,0 +1,236 @@
+//! An attempt of the running job: preparation on a blocking thread for the
+//! attempt's workers, distribution, demand-driven tiles of those not yet
+//! in the film, and the workers' reports. Every worker message names a
+//! run; one that does not name the running attempt's is stale.
+
+use super::recovery::Setback;
+use super::{Actor, Attempt, Event, MAX_TILE_REQUEST, Phase};
+use crate::distribute;
+use crate::job::{self, Member};
+use crate::tiles::TileQueue;
+use locus_protocol::control::{SchedulerToWorker, TileResult, WorkerToScheduler};
+use locus_protocol::submit::SchedulerToClient;
+use std::time::Instant;
+use tracing::{info, warn};
+
+impl Actor {
+    /// Starts an attempt of the running job on `members` (registry ids,
+    /// idle): marks them busy, gives the attempt a fresh run id and
+    /// prepares it on a blocking thread, for the tiles not yet in.
+    pub(super) fn start_attempt(&mut self, members: Vec<u32>) {
+        let run = self.next_run;
+        self.next_run += 1;
+        let info: Vec<Member> = members
+            .iter()
+            .map(|m| {
+                let w = self.workers.get_mut(m).expect("an idle worker");
+                w.busy = true;
+                Member {
+                    cores: w.reg.cores,
+                    budget: w.reg.memory_budget,
+                    resident: w.reg.resident,
+                }
+            })
+            .collect();
+        let j = self.job.as_mut().expect("a running job");
+        let n = members.len();
+        j.recovery.attempts += 1;
+        j.attempt = Attempt {
+            run,
+            members,
+            phase: Phase::Preparing,
+            reports: vec![None; n],
+            told_no_more: vec![false; n],
+            tiles_by: vec![0; n],
+            ..Attempt::waiting(j.done)
+        };
+        if j.recovery.attempts > 1 {
+            info!(
+                job = j.id,
+                run,
+                workers = n,
+                tiles_left = j.tiles.len() as u32 - j.done,
+                "job restarting on the workers left"
+            );
+        }
+        let (events, scene, options) =
+            (self.events.clone(), j.scene.clone(), j.req.options.clone());
+        let rects = j.tiles.clone();
+        tokio::spawn(async move {
+            let prep =
+                tokio::task::spawn_blocking(move || job::prepare(scene, &options, &info, &rects))
+                    .await;
+            let prep = match prep {
+                Ok(Ok(p)) => Ok(Box::new(p)),
+                Ok(Err(e)) => Err(e),
+                Err(e) => Err(format!("preparation crashed: {e}")),
+            };
+            let _ = events.send(Event::Prepared { run, prep }).await;
+        });
+    }
+
+    pub(super) fn on_prepared(&mut self, run: u64, prep: Result<Box<job::Prepared>, String>) {
+        let Some(j) = self.job.as_mut().filter(|j| j.attempt.run == run) else {
+            return;
+        };
+        let mut prep = match prep {
+            Ok(p) => p,
+            Err(e) => {
+                let id = j.id;
+                self.fail(format!("job {id} could not be prepared: {e}"));
+                return;
+            }
+        };
+        let a = &mut j.attempt;
+        a.t_prepared = Some(Instant::now());
+        a.advance(Phase::Distributing);
+        let left = (0..j.tiles.len() as u32).filter(|&t| !j.received[t as usize]);
+        a.queue = TileQueue::new(left, &prep.tile_affinity, a.members.len());
+        info!(
+            job = j.id,
+            run,
+            leaves = prep.leaves,
+            seconds = prep.timings.total_s,
+            "partitioned"
+        );
+        let txs: Vec<_> = a
+            .members
+            .iter()
+            .map(|m| {
+                let w = &self.workers[m];
+                (w.reg.listen.clone(), w.tx.clone())
+            })
+            .collect();
+        distribute::ship(run, &j.req, &mut prep, txs);
+        a.prep = Some(prep);
+    }
+
+    pub(super) fn on_worker(&mut self, id: u32, msg: WorkerToScheduler) {
+        let run_of = match &msg {
+            WorkerToScheduler::Ready { job }
+            | WorkerToScheduler::NeedTiles { job, .. }
+            | WorkerToScheduler::Report { job, .. }
+            | WorkerToScheduler::Failed { job, .. } => *job,
+            WorkerToScheduler::TileDone(t) => t.job,
+            WorkerToScheduler::Heartbeat => return,
+        };
+        let (Some(w), Some(j)) = (self.member(id), self.job.as_mut()) else {
+            self.stale(id, run_of);
+            return;
+        };
+        if run_of != j.attempt.run {
+            self.stale(id, run_of);
+            return;
+        }
+        let a = &mut j.attempt;
+        match msg {
+            WorkerToScheduler::Ready { .. } => {
+                a.ready += 1;
+                if a.ready == a.members.len() {
+                    a.t_ready = Some(Instant::now());
+                    a.advance(Phase::Rendering);
+                    info!(job = j.id, run = a.run, "all workers ready");
+                }
+            }
+            WorkerToScheduler::NeedTiles { count, .. } => {
+                let tx = &self.workers[&id].tx;
+                for _ in 0..count.min(MAX_TILE_REQUEST) {
+                    if let Some(k) = a.queue.next_for(w) {
+                        let mut t = j.tiles[k as usize];
+                        t.job = a.run;
+                        if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
+                            // The worker asked for it, so its queue has
+                            // room unless it is gone, which the attempt
+                            // recovers from.
+                            break;
+                        }
+                        a.t_first_tile.get_or_insert_with(Instant::now);
+                    } else {
+                        if !a.told_no_more[w] {
+                            a.told_no_more[w] = true;
+                            let _ = tx.try_send(SchedulerToWorker::NoMoreTiles { job: a.run });
+                        }
+                        break;
+                    }
+                }
+            }
+            WorkerToScheduler::TileDone(r) => self.on_tile(id, w, r),
+            WorkerToScheduler::Report { stats, .. } => {
+                if a.phase != Phase::Collecting {
+                    let reason = format!("worker {w} reported before the last tile was in");
+                    self.recover(Setback::Failed { w }, reason);
+                    return;
+                }
+                a.reports[w] = Some(*stats);
+                if a.reports.iter().all(Option::is_some) {
+                    self.finish();
+                }
+            }
+            WorkerToScheduler::Failed { reason, .. } => {
+                let addr = self.workers[&id].reg.listen.clone();
+                self.recover(
+                    Setback::Failed { w },
+                    format!("worker {w} ({addr}): {reason}"),
+                );
+            }
+            WorkerToScheduler::Heartbeat => {}
+        }
+    }
+
+    /// A message of another attempt, a finished job, or from a worker
+    /// outside the running attempt: ignored and counted.
+    fn stale(&self, id: u32, run: u64) {
+        tracing::debug!(worker = id, run, "stale message ignored");
+        self.metrics.stale_message();
+    }
+
+    fn on_tile(&mut self, id: u32, w: usize, r: TileResult) {
+        let j = self.job.as_mut().expect("member of a job");
+        let ignore = |why: &str| {
+            warn!(worker = id, tile = r.tile, why, "tile result ignored");
+            self.metrics.tile_ignored(why);
+        };
+        let Some(t) = j.tiles.get(r.tile as usize).copied() else {
+            ignore("unknown");
+            return;
+        };
+        if r.pixels.len() != t.pixels() as usize {
+            let reason = format!(
+                "worker {id} sent tile {} with {} pixels, expected {}",
+                r.tile,
+                r.pixels.len(),
+                t.pixels()
+            );
+            self.fail(reason);
+            return;
+        }
+        if std::mem::replace(&mut j.received[r.tile as usize], true) {
+            ignore("duplicate");
+            return;
+        }
+        let width = j.req.camera.width;
+        let mut k = 0;
+        for y in t.y0..t.y1 {
+            for x in t.x0..t.x1 {
+                j.film[(y * width + x) as usize] = r.pixels[k];
+                k += 1;
+            }
+        }
+        j.done += 1;
+        j.attempt.tiles_by[w] += 1;
+        self.metrics.tile();
+        let _ = j.client.try_send(SchedulerToClient::Progress {
+            job: j.id,
+            tiles_done: j.done,
+            tiles: j.tiles.len() as u32,
+        });
+        if j.done as usize == j.tiles.len() {
+            let a = &mut j.attempt;
+            a.advance(Phase::Collecting);
+            a.t_rendered = Some(Instant::now());
+            for w in a.members.iter().filter_map(|m| self.workers.get(m)) {
+                let _ = w.tx.try_send(SchedulerToWorker::EndJob { job: a.run });
+            }
+        }
+    }
+}

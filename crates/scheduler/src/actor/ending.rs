@@ -1,0 +1,132 @@
+//! How a job ends: failed, with its reason sent to the client and its
+//! workers told to drop it, or finished, with its report and its image,
+//! which is sent to the client in runs and kept for the preview.
+
+use super::{Actor, Running};
+use crate::report::build_report;
+use crate::status::{self, EndedJob};
+use locus_core::image_io::Image;
+use locus_protocol::submit::{JobResult, RESULT_CHUNK_PIXELS, SchedulerToClient};
+use std::sync::Arc;
+use tracing::{info, warn};
+
+impl Actor {
+    /// Ends the running job: its workers are idle again.
+    fn release(&mut self) -> Option<Running> {
+        self.release_members();
+        self.job.take()
+    }
+
+    /// The attempt's workers' peer addresses, in job order.
+    fn member_names(&self, j: &Running) -> Vec<String> {
+        j.attempt
+            .members
+            .iter()
+            .map(|m| {
+                self.workers
+                    .get(m)
+                    .map_or_else(|| format!("worker {m}"), |w| w.reg.listen.clone())
+            })
+            .collect()
+    }
+
+    fn ended(&self, j: &Running, outcome: &str) -> EndedJob {
+        EndedJob {
+            id: j.id,
+            scene: j.req.name.clone(),
+            width: j.req.camera.width,
+            height: j.req.camera.height,
+            spp: j.req.settings.spp,
+            outcome: outcome.to_string(),
+            reason: None,
+            seconds: j.started.elapsed().as_secs_f64(),
+            workers: self.member_names(j),
+            traffic: Vec::new(),
+            forwarded_fraction: None,
+            load_imbalance: None,
+            attempts: j.recovery.attempts,
+            lost: j.recovery.lost.iter().map(|(a, _)| a.clone()).collect(),
+        }
+    }
+
+    pub(super) fn fail(&mut self, reason: String) {
+        self.abort_members(&reason);
+        let Some(j) = self.release() else { return };
+        warn!(job = j.id, %reason, "job failed");
+        self.metrics.job_failed();
+        let ended = EndedJob {
+            reason: Some(reason.clone()),
+            ..self.ended(&j, "failed")
+        };
+        status::push_history(&mut self.history, ended);
+        let _ = j
+            .client
+            .try_send(SchedulerToClient::Failed { job: j.id, reason });
+        self.try_start();
+    }
+
+    pub(super) fn finish(&mut self) {
+        let mut names = Vec::new();
+        if let Some(j) = &self.job {
+            names = self.member_names(j);
+        }
+        let Some(mut j) = self.release() else { return };
+        j.recovery.tiles_kept = j.attempt.done_before;
+        let report = build_report(&j, &names);
+        let ended = EndedJob {
+            traffic: report
+                .workers
+                .iter()
+                .map(|w| w.stats.peers.iter().map(|p| p.bytes_sent).collect())
+                .collect(),
+            forwarded_fraction: Some(report.forwarded_fraction),
+            load_imbalance: Some(report.load_imbalance),
+            ..self.ended(&j, "done")
+        };
+        self.metrics
+            .job_done(&report, ended.seconds, &ended.workers);
+        status::push_history(&mut self.history, ended);
+        info!(
+            job = j.id,
+            render_s = report.phases.render_s,
+            imbalance = report.load_imbalance,
+            forwarded = report.forwarded_fraction,
+            attempts = j.recovery.attempts,
+            "job done"
+        );
+        // One image serves the client and the preview (the last finished
+        // job's, however many jobs): the client's copy is sent from it in
+        // runs, never copied whole.
+        let image = Arc::new(Image {
+            width: j.req.camera.width,
+            height: j.req.camera.height,
+            pixels: std::mem::take(&mut j.film),
+        });
+        self.last_image = Some((j.id, image.clone()));
+        let result = JobResult {
+            job: j.id,
+            width: image.width,
+            height: image.height,
+            pixels: Vec::new(),
+            report,
+        };
+        let client = j.client;
+        // The result can be large: a dedicated task sends it in chunks,
+        // waiting for room, then `Done` without pixels.
+        tokio::spawn(async move {
+            for (k, run) in image.pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
+                let chunk = SchedulerToClient::Pixels {
+                    job: result.job,
+                    offset: (k * RESULT_CHUNK_PIXELS) as u64,
+                    pixels: run.to_vec(),
+                };
+                if client.send(chunk).await.is_err() {
+                    return;
+                }
+            }
+            drop(image);
+            let _ = client.send(SchedulerToClient::Done(Box::new(result))).await;
+        });
+        self.try_start();
+    }
+}

@@ -1,0 +1,496 @@
+//! The scheduler's actor: it alone owns the worker registry, the queue and
+//! the running job, and every connection task talks to it through one
+//! bounded channel, so no state is shared between tasks.
+//!
+//! A job runs in attempts ([`attempt`]): each is prepared for the workers
+//! it runs on, shipped, rendered tile by tile and collected, and it moves
+//! through those phases in one direction only. Events may arrive in any
+//! order (a worker can finish every tile of a tiny job before the last
+//! worker reports ready), and none moves an attempt back. When a member
+//! is lost or an attempt fails, [`recovery`] aborts the attempt, keeps the
+//! finished tiles and starts a new attempt, under a new run id, on the
+//! workers there are; a message of an older run is stale and ignored, so a
+//! worker that comes back late cannot touch the film. [`ending`] fails or
+//! finishes the job.
+
+mod attempt;
+mod ending;
+mod recovery;
+
+use crate::job;
+use crate::metrics::Metrics;
+use crate::status::{EndedJob, Status};
+use crate::tiles::TileQueue;
+use locus_core::image_io::Image;
+use locus_core::scene::Scene;
+use locus_protocol::control::{Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler};
+use locus_protocol::report::{Recovery, WorkerStats};
+use locus_protocol::submit::{JobRequest, SchedulerToClient};
+use std::collections::{BTreeMap, VecDeque};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Instant;
+use tokio::sync::{mpsc, oneshot};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+pub enum Event {
+    Joined {
+        id: u32,
+        reg: Registration,
+        addr: SocketAddr,
+        tx: mpsc::Sender<SchedulerToWorker>,
+    },
+    Left {
+        id: u32,
+        reason: String,
+    },
+    FromWorker {
+        id: u32,
+        msg: WorkerToScheduler,
+    },
+    Submit {
+        req: Box<JobRequest>,
+        client: mpsc::Sender<SchedulerToClient>,
+    },
+    /// An attempt's preparation ended; `run` names the attempt.
+    Prepared {
+        run: u64,
+        prep: Result<Box<job::Prepared>, String>,
+    },
+    /// `/status`: the farm now.
+    Status(oneshot::Sender<Status>),
+    /// `/jobs/{id}/preview.png`: the job's film so far (the running job's
+    /// finished tiles, or the last ended job's image), if it is either.
+    Preview {
+        job: u64,
+        reply: oneshot::Sender<Option<Image>>,
+    },
+}
+
+pub struct WorkerEntry {
+    pub reg: Registration,
+    pub addr: SocketAddr,
+    pub tx: mpsc::Sender<SchedulerToWorker>,
+    pub(crate) busy: bool,
+}
+
+pub(crate) struct Queued {
+    pub(crate) req: Box<JobRequest>,
+    client: mpsc::Sender<SchedulerToClient>,
+    /// On tokio's clock, so that a test can let [`WORKER_WAIT`] pass.
+    since: tokio::time::Instant,
+}
+
+/// How long a job may wait for the workers it asks for to register (a farm
+/// coming up registers its workers over a few seconds), or, after losing
+/// every worker, for one to come back, before it fails, saying how many it
+/// asked for and how many there are.
+pub const WORKER_WAIT: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// The most tiles one request may ask for: a worker asks for a few, and a
+/// request for billions must not keep the actor busy.
+pub const MAX_TILE_REQUEST: u32 = 256;
+
+/// Attempts in a row that may fail without a worker being lost before the
+/// job fails: a failure that repeats on the same workers is the job's.
+pub const MAX_FAILED_ATTEMPTS: u32 = 3;
+
+/// How often the actor looks at what no event announces: a client that
+/// went away, a job waiting too long for workers.
+const TICK: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// An attempt's phase; `Waiting` is a job between attempts, with no
+/// worker to run on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Phase {
+    Waiting,
+    Preparing,
+    Distributing,
+    Rendering,
+    Collecting,
+}
+
+impl Phase {
+    pub fn name(self) -> &'static str {
+        match self {
+            Phase::Waiting => "waiting for workers",
+            Phase::Preparing => "preparing",
+            Phase::Distributing => "distributing",
+            Phase::Rendering => "rendering",
+            Phase::Collecting => "collecting",
+        }
+    }
+}
+
+/// The job the farm is rendering: what outlives its attempts (the scene,
+/// the film and which tiles it holds, the client).
+pub struct Running {
+    /// The id the client knows.
+    pub id: u64,
+    /// The request without its triangles (the scene holds them).
+    pub req: Box<JobRequest>,
+    pub(crate) scene: Arc<Scene>,
+    client: mpsc::Sender<SchedulerToClient>,
+    /// Every tile of the image; `job` is the client's id, replaced by the
+    /// attempt's run id when a tile is handed out.
+    pub(crate) tiles: Vec<TileAssignment>,
+    /// Which tiles are in the film: a tile is counted once, however often
+    /// it arrives, and kept across attempts.
+    received: Vec<bool>,
+    pub(crate) done: u32,
+    film: Vec<[f32; 3]>,
+    pub started: Instant,
+    pub recovery: Recovery,
+    /// Attempts in a row that failed with no worker lost.
+    failures: u32,
+    pub attempt: Attempt,
+}
+
+/// One attempt at the job's unfinished tiles on a set of workers.
+pub struct Attempt {
+    /// The id workers know this attempt by: fresh for every attempt.
+    pub run: u64,
+    /// Registry ids; the position is the attempt's worker id.
+    pub members: Vec<u32>,
+    pub(crate) phase: Phase,
+    pub prep: Option<Box<job::Prepared>>,
+    /// Tiles not yet handed out, by worker (made when prepared).
+    queue: TileQueue,
+    /// Tiles returned in this attempt, by worker.
+    pub(crate) tiles_by: Vec<u32>,
+    /// The job's tiles done when the attempt started.
+    pub(crate) done_before: u32,
+    told_no_more: Vec<bool>,
+    ready: usize,
+    pub reports: Vec<Option<WorkerStats>>,
+    /// On tokio's clock: when a waiting job gives up.
+    waiting_since: tokio::time::Instant,
+    pub started: Instant,
+    pub t_prepared: Option<Instant>,
+    pub t_ready: Option<Instant>,
+    pub t_first_tile: Option<Instant>,
+    pub t_rendered: Option<Instant>,
+}
+
+impl Attempt {
+    /// An attempt that has not started: no members, waiting for workers.
+    fn waiting(done_before: u32) -> Self {
+        Self {
+            run: 0,
+            members: Vec::new(),
+            phase: Phase::Waiting,
+            prep: None,
+            queue: TileQueue::new([], &[], 0),
+            tiles_by: Vec::new(),
+            done_before,
+            told_no_more: Vec::new(),
+            ready: 0,
+            reports: Vec::new(),
+            waiting_since: tokio::time::Instant::now(),
+            started: Instant::now(),
+            t_prepared: None,
+            t_ready: None,
+            t_first_tile: None,
+            t_rendered: None,
+        }
+    }
+
+    /// Moves forward to `p`; never back.
+    fn advance(&mut self, p: Phase) {
+        self.phase = self.phase.max(p);
+    }
+}
+
+pub struct Actor {
+    pub workers: BTreeMap<u32, WorkerEntry>,
+    pub(crate) queue: VecDeque<Queued>,
+    pub(crate) job: Option<Running>,
+    next_job: u64,
+    /// Run ids, one per attempt of any job: never reused, so a message of
+    /// an aborted attempt can never be taken for the current one's.
+    next_run: u64,
+    max_queue: usize,
+    events: mpsc::Sender<Event>,
+    metrics: Arc<Metrics>,
+    pub(crate) started: Instant,
+    /// The last jobs that ended, newest first (at most [`status::HISTORY`]).
+    pub(crate) history: VecDeque<EndedJob>,
+    /// The last finished job's image, for its preview.
+    last_image: Option<(u64, Arc<Image>)>,
+}
+
+impl Actor {
+    pub fn new(max_queue: usize, events: mpsc::Sender<Event>, metrics: Arc<Metrics>) -> Self {
+        Self {
+            workers: BTreeMap::new(),
+            queue: VecDeque::new(),
+            job: None,
+            next_job: 1,
+            next_run: 1,
+            max_queue,
+            events,
+            metrics,
+            started: Instant::now(),
+            history: VecDeque::new(),
+            last_image: None,
+        }
+    }
+
+    /// Publishes the registry's and queue's counts.
+    fn update_load(&self) {
+        let busy = self.workers.values().filter(|w| w.busy).count();
+        self.metrics.set_load(
+            self.workers.len() - busy,
+            busy,
+            self.queue.len(),
+            self.job.is_some(),
+        );
+    }
+
+    fn preview(&self, id: u64) -> Option<Image> {
+        if let Some(j) = self.job.as_ref().filter(|j| j.id == id) {
+            return Some(Image {
+                width: j.req.camera.width,
+                height: j.req.camera.height,
+                pixels: j.film.clone(),
+            });
+        }
+        let (last, img) = self.last_image.as_ref()?;
+        (*last == id).then(|| (**img).clone())
+    }
+
+    pub async fn run(mut self, mut rx: mpsc::Receiver<Event>, shutdown: CancellationToken) {
+        let mut tick = tokio::time::interval(TICK);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            let ev = tokio::select! {
+                _ = shutdown.cancelled() => break,
+                _ = tick.tick() => {
+                    self.watch();
+                    continue;
+                }
+                e = rx.recv() => match e { Some(e) => e, None => break },
+            };
+            match ev {
+                Event::Joined { id, reg, addr, tx } => {
+                    self.metrics.worker_joined(&reg.listen);
+                    self.workers.insert(
+                        id,
+                        WorkerEntry {
+                            reg,
+                            addr,
+                            tx,
+                            busy: false,
+                        },
+                    );
+                    self.restart();
+                    self.try_start();
+                }
+                Event::Left { id, reason } => self.left(id, reason),
+                Event::Submit { req, client } => self.submit(req, client),
+                Event::Prepared { run, prep } => self.on_prepared(run, prep),
+                Event::FromWorker { id, msg } => self.on_worker(id, msg),
+                Event::Status(reply) => {
+                    let _ = reply.send(self.status());
+                }
+                Event::Preview { job, reply } => {
+                    let _ = reply.send(self.preview(job));
+                }
+            }
+            self.update_load();
+        }
+        if self.job.is_some() {
+            self.fail("the scheduler is shutting down".into());
+        }
+    }
+
+    /// A worker's connection ended: it leaves the registry, and the
+    /// running job recovers if it was one of the attempt's members.
+    fn left(&mut self, id: u32, reason: String) {
+        let Some(w) = self.workers.remove(&id) else {
+            return;
+        };
+        info!(worker = id, addr = %w.addr, %reason, "worker left");
+        self.metrics.worker_left(&w.reg.listen);
+        if let Some(m) = self.member(id) {
+            self.metrics.worker_lost();
+            let lost = recovery::Setback::Lost {
+                w: m,
+                addr: w.reg.listen,
+            };
+            self.recover(lost, reason);
+        }
+    }
+
+    /// What no event announces: a running job whose client went away is
+    /// cancelled, queued ones are dropped, a job that has waited
+    /// [`WORKER_WAIT`] for more workers than are registered fails, and so
+    /// does a job that lost every worker and has waited as long for one.
+    fn watch(&mut self) {
+        if self.job.as_ref().is_some_and(|j| j.client.is_closed()) {
+            self.fail("the client disconnected".into());
+        }
+        self.restart();
+        let before = self.queue.len();
+        self.queue.retain(|q| !q.client.is_closed());
+        if self.queue.len() < before {
+            info!(
+                dropped = before - self.queue.len(),
+                "queued jobs whose clients disconnected dropped"
+            );
+        }
+        if self.job.is_none()
+            && let Some(q) = self.queue.front()
+            && q.since.elapsed() >= WORKER_WAIT
+        {
+            let want = (q.req.options.workers as usize).max(1);
+            let have = self.workers.len();
+            let q = self.queue.pop_front().expect("peeked");
+            let reason = format!(
+                "the job asks for {want} workers but {have} registered within {} s: \
+                 start more workers, or submit with --workers {have}",
+                WORKER_WAIT.as_secs()
+            );
+            warn!(scene = %q.req.name, "{reason}");
+            self.metrics.job_failed();
+            let _ = q
+                .client
+                .try_send(SchedulerToClient::Failed { job: 0, reason });
+            self.try_start();
+        }
+        self.update_load();
+    }
+
+    fn submit(&mut self, req: Box<JobRequest>, client: mpsc::Sender<SchedulerToClient>) {
+        let refuse = |reason: String| {
+            let _ = client.try_send(SchedulerToClient::Failed { job: 0, reason });
+        };
+        if self.queue.len() >= self.max_queue {
+            refuse(format!(
+                "the scheduler's queue is full ({} jobs waiting)",
+                self.queue.len()
+            ));
+        } else if let Err(reason) = job::validate(&req) {
+            refuse(format!("invalid job {}: {reason}", req.name));
+        } else {
+            self.queue.push_back(Queued {
+                req,
+                client,
+                since: tokio::time::Instant::now(),
+            });
+            self.try_start();
+        }
+    }
+
+    /// Idle workers, in registry order.
+    fn idle(&self) -> Vec<u32> {
+        self.workers
+            .iter()
+            .filter(|(_, w)| !w.busy)
+            .map(|(&i, _)| i)
+            .collect()
+    }
+
+    /// Starts the next queued job once the workers it asks for are idle.
+    fn try_start(&mut self) {
+        if self.job.is_some() {
+            return;
+        }
+        let Some(q) = self.queue.front() else { return };
+        let idle = self.idle();
+        let want = match q.req.options.workers {
+            0 => idle.len().max(1),
+            n => n as usize,
+        };
+        if idle.len() < want {
+            info!(want, have = idle.len(), "job waiting for workers");
+            return;
+        }
+        let q = self.queue.pop_front().expect("peeked");
+        let id = self.next_job;
+        self.next_job += 1;
+        info!(job = id, scene = %q.req.name, workers = want, "job starting");
+        let _ = q.client.try_send(SchedulerToClient::Accepted {
+            job: id,
+            workers: want as u32,
+        });
+        let cam = q.req.camera.clone();
+        // Tiles in a shuffled order: at any moment the tiles in flight are
+        // spread over the image, so every region sees its share of the work
+        // all along, not only when the tiles that look at it come up (in
+        // scanline order a worker whose region the top of the image sees
+        // little of waited half the job for the others).
+        let tiles: Vec<TileAssignment> = locus_core::render::tiles(
+            cam.width,
+            cam.height,
+            q.req.options.tile_size,
+            locus_core::render::TileOrder::Shuffled(q.req.settings.seed ^ 0x711e),
+        )
+        .into_iter()
+        .enumerate()
+        .map(|(i, t)| TileAssignment {
+            job: id,
+            tile: i as u32,
+            x0: t.x0,
+            y0: t.y0,
+            x1: t.x1,
+            y1: t.y1,
+        })
+        .collect();
+        let mut req = q.req;
+        let scene = job::scene_of(&mut req);
+        self.job = Some(Running {
+            id,
+            film: vec![[0.0; 3]; (cam.width * cam.height) as usize],
+            req,
+            scene,
+            client: q.client,
+            received: vec![false; tiles.len()],
+            tiles,
+            done: 0,
+            started: Instant::now(),
+            recovery: Recovery {
+                attempts: 0,
+                ..Default::default()
+            },
+            failures: 0,
+            attempt: Attempt::waiting(0),
+        });
+        self.start_attempt(idle[..want].to_vec());
+    }
+
+    /// The running attempt's worker id of registry worker `id`.
+    fn member(&self, id: u32) -> Option<usize> {
+        self.job
+            .as_ref()?
+            .attempt
+            .members
+            .iter()
+            .position(|&m| m == id)
+    }
+
+    /// Marks the attempt's members idle (they are told to drop it
+    /// separately).
+    fn release_members(&mut self) {
+        let Some(j) = self.job.as_ref() else { return };
+        for m in &j.attempt.members {
+            if let Some(w) = self.workers.get_mut(m) {
+                w.busy = false;
+            }
+        }
+    }
+
+    /// Tells the attempt's members still registered to drop it.
+    fn abort_members(&self, reason: &str) {
+        let Some(j) = self.job.as_ref() else { return };
+        for m in &j.attempt.members {
+            if let Some(w) = self.workers.get(m) {
+                let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
+                    job: j.attempt.run,
+                    reason: reason.to_string(),
+                });
+            }
+        }
+    }
+}

@@ -1,0 +1,170 @@
+//! One task per connection: the handshake, then the opening message says
+//! whether the peer is a worker or a client. A worker's link carries
+//! heartbeats both ways: the scheduler sends one every interval, and a
+//! worker silent for [`HEARTBEATS_MISSED`] intervals (stopped, crashed
+//! without closing its socket, cut off) is dropped, which the actor sees
+//! as the worker leaving. A client's link carries its job's messages; the
+//! client closing it cancels the job.
+
+use crate::actor::Event;
+use locus_protocol::control::{
+    HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
+};
+use locus_protocol::submit::{JobRequest, SchedulerToClient};
+use locus_protocol::{ConnReader, ConnWriter, Connection, MAX_FRAME_LEN, handshake};
+use std::time::Duration;
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, instrument};
+
+/// What every connection task shares.
+#[derive(Clone)]
+pub(crate) struct Shared {
+    pub token: std::sync::Arc<Vec<u8>>,
+    pub events: mpsc::Sender<Event>,
+    pub shutdown: CancellationToken,
+    /// How long a worker may be silent before it is lost.
+    pub worker_timeout: Duration,
+}
+
+#[instrument(skip_all, fields(conn = id, peer = %stream.peer_addr().map(|a| a.to_string()).unwrap_or_default()))]
+pub(crate) async fn serve(
+    stream: tokio::net::TcpStream,
+    id: u32,
+    sh: Shared,
+) -> anyhow::Result<()> {
+    let mut conn = Connection::new(stream, MAX_FRAME_LEN)?;
+    handshake::server(&mut conn, &sh.token).await?;
+    let opening = tokio::select! {
+        _ = sh.shutdown.cancelled() => return Ok(()),
+        m = tokio::time::timeout(handshake::HANDSHAKE_TIMEOUT, conn.read_msg::<Opening>("opening")) => m
+            .map_err(|_| anyhow::anyhow!("{}: no opening message after the handshake", conn.peer()))??,
+    };
+    match opening {
+        None => Ok(()),
+        Some(Opening::Register(reg)) => worker(conn, id, reg, sh).await,
+        Some(Opening::Submit(req)) => client(conn, req, sh).await,
+    }
+}
+
+/// The heartbeat interval for a worker timeout.
+fn interval(timeout: Duration) -> Duration {
+    (timeout / HEARTBEATS_MISSED).max(Duration::from_millis(10))
+}
+
+async fn worker(
+    mut conn: Connection,
+    id: u32,
+    reg: Registration,
+    sh: Shared,
+) -> anyhow::Result<()> {
+    let every = interval(sh.worker_timeout);
+    conn.write_msg(&SchedulerToWorker::Welcome {
+        worker: id,
+        heartbeat_ms: every.as_millis().min(u32::MAX as u128) as u32,
+    })
+    .await?;
+    let addr = conn.peer();
+    let (r, w) = conn.into_split();
+    let (tx, rx) = mpsc::channel::<SchedulerToWorker>(256);
+    info!(worker = id, listen = %reg.listen, cores = reg.cores, "worker registered");
+    sh.events.send(Event::Joined { id, reg, addr, tx }).await?;
+    let writer = tokio::spawn(write_worker(w, rx, every));
+    let reason = read_worker(r, id, &sh).await;
+    writer.abort();
+    let _ = sh.events.send(Event::Left { id, reason }).await;
+    Ok(())
+}
+
+/// Writes the actor's messages to a worker, and a heartbeat whenever the
+/// link has been quiet for an interval.
+async fn write_worker(
+    mut w: ConnWriter,
+    mut rx: mpsc::Receiver<SchedulerToWorker>,
+    every: Duration,
+) -> Result<(), locus_protocol::ProtocolError> {
+    loop {
+        let m = match tokio::time::timeout(every, rx.recv()).await {
+            Ok(Some(m)) => m,
+            Ok(None) => return Ok(()),
+            Err(_) => SchedulerToWorker::Heartbeat,
+        };
+        w.write_msg(&m).await?;
+    }
+}
+
+/// Reads a worker's messages into the actor until the link ends; returns
+/// why it ended.
+async fn read_worker(mut r: ConnReader, id: u32, sh: &Shared) -> String {
+    loop {
+        let m = tokio::select! {
+            _ = sh.shutdown.cancelled() => return "scheduler shutting down".into(),
+            m = tokio::time::timeout(sh.worker_timeout, r.read_msg::<WorkerToScheduler>("control")) => m,
+        };
+        match m {
+            Err(_) => {
+                return format!(
+                    "no heartbeat for {:.1} s (stopped, crashed or cut off)",
+                    sh.worker_timeout.as_secs_f64()
+                );
+            }
+            Ok(Ok(Some((WorkerToScheduler::Heartbeat, _)))) => {}
+            Ok(Ok(Some((msg, _)))) => {
+                if sh.events.send(Event::FromWorker { id, msg }).await.is_err() {
+                    return "scheduler shutting down".into();
+                }
+            }
+            Ok(Ok(None)) => return "closed the connection".into(),
+            Ok(Err(e)) => return e.to_string(),
+        }
+    }
+}
+
+async fn client(conn: Connection, req: Box<JobRequest>, sh: Shared) -> anyhow::Result<()> {
+    let addr = conn.peer();
+    let (tx, mut rx) = mpsc::channel::<SchedulerToClient>(64);
+    sh.events.send(Event::Submit { req, client: tx }).await?;
+    let (mut r, mut conn) = conn.into_split();
+    loop {
+        let m = tokio::select! {
+            _ = sh.shutdown.cancelled() => return Ok(()),
+            m = rx.recv() => m,
+            // A client says nothing after its request: a read that ends
+            // is the client gone, and dropping `rx` tells the actor to
+            // cancel its job.
+            gone = r.read_msg::<Opening>("submit") => {
+                let why = match gone {
+                    Ok(None) => "closed the connection".to_string(),
+                    Ok(Some(_)) => "sent a second request".to_string(),
+                    Err(e) => e.to_string(),
+                };
+                info!(%addr, "client {why}; its job is cancelled");
+                return Ok(());
+            }
+        };
+        let Some(m) = m else { return Ok(()) };
+        let last = matches!(
+            m,
+            SchedulerToClient::Done(_) | SchedulerToClient::Failed { .. }
+        );
+        conn.write_msg(&m).await?;
+        if last {
+            return Ok(());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::interval;
+    use std::time::Duration;
+
+    #[test]
+    fn heartbeats_come_several_times_within_the_timeout() {
+        assert_eq!(interval(Duration::from_secs(5)), Duration::from_secs(1));
+        assert_eq!(
+            interval(Duration::from_millis(1)),
+            Duration::from_millis(10)
+        );
+    }
+}
