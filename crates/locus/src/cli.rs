@@ -142,6 +142,12 @@ pub(crate) struct SchedulerArgs {
     /// within it.
     #[arg(long, value_parser = parse_timeout)]
     pub(crate) worker_timeout: Option<f64>,
+    /// Directory where queued and running jobs and their finished tiles are
+    /// kept (or `state` under [scheduler]): a scheduler restarted on it
+    /// resumes them, and their clients attach again. None by default: a
+    /// restart loses the jobs.
+    #[arg(long)]
+    pub(crate) state: Option<std::path::PathBuf>,
     #[command(flatten)]
     pub(crate) auth: TokenArgs,
 }

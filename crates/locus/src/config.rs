@@ -27,6 +27,8 @@ pub struct SchedulerSection {
     pub http: Option<String>,
     /// Seconds a worker may be silent before it is lost (default 5).
     pub worker_timeout_s: Option<f64>,
+    /// A directory for the job store: jobs survive a restart.
+    pub state: Option<PathBuf>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -97,6 +97,7 @@ impl LocalFarm {
             max_queued_jobs: 16,
             http: spec.http.clone(),
             worker_timeout: locus_scheduler::WORKER_TIMEOUT,
+            state: None,
         })
         .await?;
         let http = sched.http_addr();

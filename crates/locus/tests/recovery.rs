@@ -12,7 +12,8 @@ use locus_core::sampler::mix64;
 use locus_protocol::submit::{JobOptions, JobResult};
 use std::io::BufRead;
 use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
+use std::sync::{Arc, mpsc};
 use std::time::{Duration, Instant};
 
 const TOKEN: &str = "recovery-test-token";
@@ -83,6 +84,16 @@ fn submit(
     scene: &locus_core::scene::Scene,
     workers: u32,
 ) -> mpsc::Receiver<anyhow::Result<JobResult>> {
+    submit_watched(addr, scene, workers, Arc::new(AtomicU32::new(0)))
+}
+
+/// As [`submit`], counting the tiles done in `done` as progress arrives.
+fn submit_watched(
+    addr: &str,
+    scene: &locus_core::scene::Scene,
+    workers: u32,
+    done: Arc<AtomicU32>,
+) -> mpsc::Receiver<anyhow::Result<JobResult>> {
     let req = locus_scheduler::client::request(
         scene,
         JobOptions {
@@ -95,11 +106,9 @@ fn submit(
     let addr = addr.to_string();
     std::thread::spawn(move || {
         let rt = common::runtime();
+        let progress = move |d: u32, _: u32| done.store(d, Relaxed);
         let r = rt.block_on(locus_scheduler::client::submit(
-            &addr,
-            TOKEN,
-            req,
-            &|_, _| {},
+            &addr, TOKEN, req, &progress,
         ));
         let _ = tx.send(r);
     });
@@ -225,4 +234,78 @@ fn a_stopped_worker_is_fenced_out_and_rejoins_when_resumed() {
             .map(|w| w.stats.tiles)
             .collect::<Vec<_>>()
     );
+}
+
+/// The scheduler killed (`kill -9`) a third of the way into a job and
+/// started again on the same address and state directory: the workers
+/// register again, the client attaches again, and the job resumes with
+/// the tiles the store held, ending with the single-machine bits.
+#[test]
+fn a_scheduler_restarted_on_its_state_resumes_the_job() {
+    let scene = scene();
+    let reference = common::single_machine(&scene);
+    let dir = std::env::temp_dir().join(format!("locus-state-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let state = dir.to_str().expect("a UTF-8 temp dir").to_string();
+    let args = |listen: &str| {
+        [
+            "scheduler",
+            "--listen",
+            listen,
+            "--worker-timeout",
+            "2",
+            "--state",
+            &state,
+        ]
+        .map(String::from)
+    };
+    let spawn = |listen: &str| {
+        let a = args(listen);
+        Daemon::spawn(&a.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let (sched, addr) = spawn("127.0.0.1:0");
+    let _workers: Vec<Daemon> = (0..2).map(|_| Daemon::worker(&addr)).collect();
+    let done = Arc::new(AtomicU32::new(0));
+    let rx = submit_watched(&addr, &scene, 2, done.clone());
+    // 80 tiles of 16x16: kill once a third are in.
+    let t = Instant::now();
+    while done.load(Relaxed) < 27 {
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "the job never got going"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    sched.signal("-KILL");
+    drop(sched);
+    let killed = Instant::now();
+    // The same address again (a restarted daemon behind the same name).
+    let mut again = None;
+    for _ in 0..50 {
+        let (d, a) = spawn(&addr);
+        if a == addr {
+            again = Some(d);
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let _sched = again.expect("the scheduler restarts on its address");
+    let r = wait(&rx);
+    eprintln!(
+        "scheduler restarted: job done {:.2} s after the kill, {} tiles kept from the store, {} attempts",
+        killed.elapsed().as_secs_f64(),
+        r.report.recovery.tiles_kept,
+        r.report.recovery.attempts
+    );
+    assert_eq!(
+        common::bits(&r),
+        reference,
+        "the resumed job's image differs"
+    );
+    assert!(
+        r.report.recovery.tiles_kept >= 20,
+        "the store kept {} tiles of the 27 or more done before the kill",
+        r.report.recovery.tiles_kept
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -20,6 +20,12 @@ use serde::{Deserialize, Serialize};
 pub enum Opening {
     Register(Registration),
     Submit(Box<JobRequest>),
+    /// A client takes up a job it submitted earlier (its link broke, or the
+    /// scheduler restarted): the job's messages come on this link from now
+    /// on, and a job already finished is sent at once.
+    Attach {
+        job: u64,
+    },
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -147,6 +147,12 @@ pub enum SchedulerToClient {
         offset: u64,
         pixels: Vec<[f32; 3]>,
     },
+    /// The job is taken, under this id, and waits behind `ahead` jobs: the
+    /// id to attach to if the link breaks before the job ends.
+    Queued {
+        job: u64,
+        ahead: u32,
+    },
 }
 
 /// Pixels per [`SchedulerToClient::Pixels`] message: 12 MiB, well within

@@ -232,6 +232,7 @@ proptest! {
             load_s: 0.25,
         };
         roundtrip(&Opening::Submit(Box::new(req)));
+        roundtrip(&Opening::Attach { job: seed });
         let report = FarmReport { scene: reason.clone(), seed, load_imbalance: n as f64, ..Default::default() };
         for m in [
             SchedulerToClient::Accepted { job: seed, workers },
@@ -239,6 +240,7 @@ proptest! {
             SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report })),
             SchedulerToClient::Failed { job: seed, reason: reason.clone() },
             SchedulerToClient::Pixels { job: seed, offset: seed, pixels: vec![[f32::MIN_POSITIVE, -1e30, f32::INFINITY]; workers as usize % 5] },
+            SchedulerToClient::Queued { job: seed, ahead: workers },
         ] {
             roundtrip(&m);
         }

@@ -6,6 +6,7 @@ use locus_core::scene::Scene;
 use locus_protocol::control::Opening;
 use locus_protocol::submit::{JobOptions, JobRequest, JobResult, SchedulerToClient};
 use locus_protocol::{MAX_FRAME_LEN, handshake};
+use std::time::Duration;
 
 /// The job for `scene`, moving its triangles rather than copying them.
 pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobRequest {
@@ -30,6 +31,8 @@ pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobR
 pub struct Collector {
     pixels: Vec<[f32; 3]>,
     expected: usize,
+    /// The job's id, once the scheduler has said it.
+    pub job: Option<u64>,
 }
 
 impl Collector {
@@ -38,7 +41,14 @@ impl Collector {
         Self {
             pixels: Vec::new(),
             expected: width as usize * height as usize,
+            job: None,
         }
+    }
+
+    /// Drops a result cut off with its link: an attached link sends the
+    /// whole image again.
+    pub fn reattached(&mut self) {
+        self.pixels = Vec::new();
     }
 
     pub fn take(
@@ -47,8 +57,14 @@ impl Collector {
         progress: &(dyn Fn(u32, u32) + Sync),
     ) -> Option<anyhow::Result<JobResult>> {
         match m {
+            Some(SchedulerToClient::Queued { job, ahead }) => {
+                tracing::info!(job, ahead, "job queued");
+                self.job = Some(job);
+                None
+            }
             Some(SchedulerToClient::Accepted { job, workers }) => {
                 tracing::info!(job, workers, "job accepted");
+                self.job = Some(job);
                 None
             }
             Some(SchedulerToClient::Progress {
@@ -113,8 +129,14 @@ pub fn request(scene: &Scene, options: JobOptions) -> JobRequest {
     }
 }
 
+/// How long a client whose link broke after its job was taken (the
+/// scheduler restarting, a network blip) keeps trying to attach to it.
+pub const REATTACH_WINDOW: Duration = Duration::from_secs(300);
+
 /// Submits `req` and waits for the result; `progress(done, total)` is called
-/// as tiles come in.
+/// as tiles come in. A link that breaks once the job has its id is taken up
+/// again ([`Opening::Attach`]) for up to [`REATTACH_WINDOW`], retrying with
+/// backoff: a scheduler restarted on its state directory resumes the job.
 pub async fn submit(
     scheduler: &str,
     token: &str,
@@ -129,6 +151,31 @@ pub async fn submit(
     conn.write_msg(&Opening::Submit(Box::new(req)))
         .await
         .with_context(|| format!("submit: sending {name}"))?;
+    loop {
+        let broke = match follow(&mut conn, &mut collect, progress).await {
+            Ok(r) => return r,
+            Err(e) => e,
+        };
+        let Some(job) = collect.job else {
+            return Err(broke.context("the link to the scheduler broke before it took the job"));
+        };
+        tracing::warn!(job, "{broke:#}; attaching to the job again");
+        conn = attach(scheduler, token, job).await.with_context(|| {
+            format!(
+                "job {job}: the link to the scheduler broke ({broke:#}) and attaching again failed"
+            )
+        })?;
+        collect.reattached();
+    }
+}
+
+/// Reads the job's messages until its result (or failure); an error is the
+/// link breaking.
+async fn follow(
+    conn: &mut locus_protocol::Connection,
+    collect: &mut Collector,
+    progress: &(dyn Fn(u32, u32) + Sync),
+) -> anyhow::Result<anyhow::Result<JobResult>> {
     let peer = conn.peer();
     loop {
         let m = conn.read_msg::<SchedulerToClient>("submit").await?;
@@ -136,8 +183,38 @@ pub async fn submit(
             bail!("scheduler {peer} closed the connection before the job finished");
         }
         if let Some(r) = collect.take(m, progress) {
-            return r;
+            return Ok(r);
         }
+    }
+}
+
+/// Attaches to `job`, retrying while the scheduler cannot be reached, for
+/// up to [`REATTACH_WINDOW`]; a refused handshake is final.
+async fn attach(
+    scheduler: &str,
+    token: &str,
+    job: u64,
+) -> anyhow::Result<locus_protocol::Connection> {
+    use locus_protocol::ProtocolError as E;
+    let deadline = tokio::time::Instant::now() + REATTACH_WINDOW;
+    let mut wait = Duration::from_millis(100);
+    loop {
+        let e = match handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN).await {
+            Ok(mut c) => match c.write_msg(&Opening::Attach { job }).await {
+                Ok(_) => return Ok(c),
+                Err(e) => e,
+            },
+            Err(e) => e,
+        };
+        if matches!(
+            e,
+            E::Version { .. } | E::WrongToken { .. } | E::Refused { .. }
+        ) || tokio::time::Instant::now() + wait > deadline
+        {
+            return Err(e.into());
+        }
+        tokio::time::sleep(wait).await;
+        wait = (wait * 2).min(Duration::from_secs(5));
     }
 }
 

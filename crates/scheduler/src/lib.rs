@@ -31,6 +31,7 @@ pub mod partition;
 pub mod report;
 mod server;
 pub mod status;
+pub mod store;
 pub mod tiles;
 
 use actor::{Actor, Event};
@@ -56,6 +57,9 @@ pub struct SchedulerConfig {
     /// How long a worker may be silent (no message, no heartbeat) before
     /// it is lost and its job recovers without it.
     pub worker_timeout: Duration,
+    /// Where jobs and their finished tiles are kept ([`store`]), so that a
+    /// restarted scheduler resumes them; None: in memory only.
+    pub state: Option<std::path::PathBuf>,
 }
 
 /// The default of [`SchedulerConfig::worker_timeout`]: heartbeats go every
@@ -64,6 +68,8 @@ pub const WORKER_TIMEOUT: Duration = Duration::from_secs(5);
 
 pub struct Scheduler {
     cfg: SchedulerConfig,
+    /// The opened store, its next job id and the jobs it held.
+    store: Option<(store::Store, u64, Vec<store::Restored>)>,
     listener: TcpListener,
     http: Option<TcpListener>,
     events: (mpsc::Sender<Event>, mpsc::Receiver<Event>),
@@ -107,8 +113,17 @@ impl Scheduler {
             ),
             None => None,
         };
+        let store = match cfg.state.clone() {
+            Some(dir) => Some(
+                tokio::task::spawn_blocking(move || store::Store::open(&dir))
+                    .await
+                    .context("opening the state store")??,
+            ),
+            None => None,
+        };
         Ok(Self {
             cfg,
+            store,
             listener,
             http,
             events: mpsc::channel::<Event>(1024),
@@ -135,10 +150,11 @@ impl Scheduler {
         info!(addr = %self.local_addr()?, "scheduler listening");
         let (ev_tx, ev_rx) = self.events;
         let metrics = Arc::new(metrics::Metrics::new());
-        let actor = tokio::spawn(
-            Actor::new(self.cfg.max_queued_jobs, ev_tx.clone(), metrics.clone())
-                .run(ev_rx, shutdown.clone()),
-        );
+        let mut actor = Actor::new(self.cfg.max_queued_jobs, ev_tx.clone(), metrics.clone());
+        if let Some((store, next, jobs)) = self.store {
+            actor = actor.with_store(store, next, jobs);
+        }
+        let actor = tokio::spawn(actor.run(ev_rx, shutdown.clone()));
         if let Some(l) = self.http {
             info!("status page on http://{}/", l.local_addr()?);
             let (ev, sd) = (ev_tx.clone(), shutdown.clone());

@@ -10,7 +10,7 @@ use crate::actor::Event;
 use locus_protocol::control::{
     HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
 };
-use locus_protocol::submit::{JobRequest, SchedulerToClient};
+use locus_protocol::submit::SchedulerToClient;
 use locus_protocol::{ConnReader, ConnWriter, Connection, MAX_FRAME_LEN, handshake};
 use std::time::Duration;
 use tokio::sync::mpsc;
@@ -43,7 +43,12 @@ pub(crate) async fn serve(
     match opening {
         None => Ok(()),
         Some(Opening::Register(reg)) => worker(conn, id, reg, sh).await,
-        Some(Opening::Submit(req)) => client(conn, req, sh).await,
+        Some(Opening::Submit(req)) => {
+            client(conn, |client| Event::Submit { req, client }, sh).await
+        }
+        Some(Opening::Attach { job }) => {
+            client(conn, |client| Event::Attach { job, client }, sh).await
+        }
     }
 }
 
@@ -120,10 +125,16 @@ async fn read_worker(mut r: ConnReader, id: u32, sh: &Shared) -> String {
     }
 }
 
-async fn client(conn: Connection, req: Box<JobRequest>, sh: Shared) -> anyhow::Result<()> {
+/// A client's link: `opening` is its request (a job, or a job to attach
+/// to) with the channel its job's messages come on.
+async fn client(
+    conn: Connection,
+    opening: impl FnOnce(mpsc::Sender<SchedulerToClient>) -> Event,
+    sh: Shared,
+) -> anyhow::Result<()> {
     let addr = conn.peer();
     let (tx, mut rx) = mpsc::channel::<SchedulerToClient>(64);
-    sh.events.send(Event::Submit { req, client: tx }).await?;
+    sh.events.send(opening(tx)).await?;
     let (mut r, mut conn) = conn.into_split();
     loop {
         let m = tokio::select! {

@@ -98,6 +98,17 @@ async fn recv<T>(rx: &mut mpsc::Receiver<T>) -> T {
         .expect("channel open")
 }
 
+/// Waits for the job to start (after `Queued`); returns its id.
+async fn accepted(client: &mut mpsc::Receiver<SchedulerToClient>) -> u64 {
+    loop {
+        match recv(client).await {
+            SchedulerToClient::Queued { .. } => {}
+            SchedulerToClient::Accepted { job, .. } => return job,
+            other => panic!("expected the job accepted, got {other:?}"),
+        }
+    }
+}
+
 /// One worker and a job for it, up to the worker having its region: the
 /// worker's and the client's channels and the job's id.
 async fn shipped_job(
@@ -109,10 +120,7 @@ async fn shipped_job(
 ) {
     let mut w = farm.worker(1).await;
     let mut client = farm.submit(1).await;
-    assert!(matches!(
-        recv(&mut client).await,
-        SchedulerToClient::Accepted { .. }
-    ));
+    accepted(&mut client).await;
     let job = until_shipped(&mut w).await;
     (w, client, job)
 }
@@ -216,10 +224,7 @@ async fn a_client_that_leaves_cancels_its_job() {
         other => panic!("unexpected {other:?}"),
     }
     let mut next = farm.submit(1).await;
-    assert!(matches!(
-        recv(&mut next).await,
-        SchedulerToClient::Accepted { .. }
-    ));
+    accepted(&mut next).await;
     farm.shutdown.cancel();
 }
 
@@ -232,6 +237,10 @@ async fn a_job_waits_for_workers_within_a_deadline() {
     let _w = farm.worker(1).await;
     let mut client = farm.submit(3).await;
     let t = tokio::time::Instant::now();
+    assert!(matches!(
+        client.recv().await,
+        Some(SchedulerToClient::Queued { ahead: 0, .. })
+    ));
     let reason = match timeout(WORKER_WAIT * 2, client.recv()).await.unwrap() {
         Some(SchedulerToClient::Failed { reason, .. }) => reason,
         other => panic!("expected a failure, got {other:?}"),
@@ -307,10 +316,7 @@ async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
     let mut w1 = farm.worker(1).await;
     let mut w2 = farm.worker(2).await;
     let mut client = farm.submit(2).await;
-    assert!(matches!(
-        recv(&mut client).await,
-        SchedulerToClient::Accepted { .. }
-    ));
+    accepted(&mut client).await;
     let (r1, n) = next_start(&mut w1).await;
     assert_eq!(n, 2);
     assert_eq!(next_start(&mut w2).await.0, r1);
@@ -375,10 +381,7 @@ async fn attempts_that_keep_failing_fail_the_job() {
     let farm = start();
     let mut w = farm.worker(1).await;
     let mut client = farm.submit(1).await;
-    assert!(matches!(
-        recv(&mut client).await,
-        SchedulerToClient::Accepted { .. }
-    ));
+    accepted(&mut client).await;
     let mut runs = Vec::new();
     for _ in 0..MAX_FAILED_ATTEMPTS {
         let (run, _) = next_start(&mut w).await;
@@ -409,7 +412,7 @@ async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
     let mut w1 = farm.worker(1).await;
     let mut w2 = farm.worker(2).await;
     let mut client = farm.submit(2).await;
-    recv(&mut client).await;
+    accepted(&mut client).await;
     let (run, _) = next_start(&mut w1).await;
     next_start(&mut w2).await;
     for id in [1, 2] {

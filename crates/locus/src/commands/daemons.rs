@@ -30,6 +30,7 @@ pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
             max_queued_jobs: cfg.scheduler.max_queued_jobs.unwrap_or(16),
             http: a.http.or(cfg.scheduler.http.clone()),
             worker_timeout,
+            state: a.state.or(cfg.scheduler.state.clone()),
         })
         .await?;
         serve("scheduler", s.local_addr()?, |t| s.run(t)).await

@@ -7,6 +7,7 @@ use super::recovery::Setback;
 use super::{Actor, Attempt, Event, MAX_TILE_REQUEST, Phase};
 use crate::distribute;
 use crate::job::{self, Member};
+use crate::store::Write;
 use crate::tiles::TileQueue;
 use locus_protocol::control::{SchedulerToWorker, TileResult, WorkerToScheduler};
 use locus_protocol::submit::SchedulerToClient;
@@ -208,18 +209,18 @@ impl Actor {
             ignore("duplicate");
             return;
         }
-        let width = j.req.camera.width;
-        let mut k = 0;
-        for y in t.y0..t.y1 {
-            for x in t.x0..t.x1 {
-                j.film[(y * width + x) as usize] = r.pixels[k];
-                k += 1;
-            }
+        super::clients::paste(&mut j.film, j.req.camera.width, &t, &r.pixels);
+        if let Some(s) = &self.store {
+            s.write(Write::Tile {
+                job: j.id,
+                tile: r.tile,
+                pixels: r.pixels,
+            });
         }
         j.done += 1;
         j.attempt.tiles_by[w] += 1;
         self.metrics.tile();
-        let _ = j.client.try_send(SchedulerToClient::Progress {
+        j.client.send(SchedulerToClient::Progress {
             job: j.id,
             tiles_done: j.done,
             tiles: j.tiles.len() as u32,

@@ -1,12 +1,14 @@
 //! How a job ends: failed, with its reason sent to the client and its
 //! workers told to drop it, or finished, with its report and its image,
-//! which is sent to the client in runs and kept for the preview.
+//! which is sent to the client in runs and kept for the preview and for a
+//! client that attaches late. Either way the job leaves the store.
 
+use super::clients::{Finished, send_result};
 use super::{Actor, Running};
 use crate::report::build_report;
 use crate::status::{self, EndedJob};
 use locus_core::image_io::Image;
-use locus_protocol::submit::{JobResult, RESULT_CHUNK_PIXELS, SchedulerToClient};
+use locus_protocol::submit::SchedulerToClient;
 use std::sync::Arc;
 use tracing::{info, warn};
 
@@ -59,9 +61,9 @@ impl Actor {
             ..self.ended(&j, "failed")
         };
         status::push_history(&mut self.history, ended);
-        let _ = j
-            .client
-            .try_send(SchedulerToClient::Failed { job: j.id, reason });
+        self.forget(j.id);
+        j.client
+            .send(SchedulerToClient::Failed { job: j.id, reason });
         self.try_start();
     }
 
@@ -94,38 +96,22 @@ impl Actor {
             attempts = j.recovery.attempts,
             "job done"
         );
-        // One image serves the client and the preview (the last finished
-        // job's, however many jobs): the client's copy is sent from it in
-        // runs, never copied whole.
+        // One image serves the client, the preview and a late client: the
+        // client's copy is sent from it in runs, never copied whole.
         let image = Arc::new(Image {
             width: j.req.camera.width,
             height: j.req.camera.height,
             pixels: std::mem::take(&mut j.film),
         });
-        self.last_image = Some((j.id, image.clone()));
-        let result = JobResult {
-            job: j.id,
-            width: image.width,
-            height: image.height,
-            pixels: Vec::new(),
+        let report = Arc::new(report);
+        self.forget(j.id);
+        if let Some(tx) = j.client.take() {
+            send_result(tx, image.clone(), report.clone(), j.id);
+        }
+        self.keep_finished(Finished {
+            id: j.id,
+            image,
             report,
-        };
-        let client = j.client;
-        // The result can be large: a dedicated task sends it in chunks,
-        // waiting for room, then `Done` without pixels.
-        tokio::spawn(async move {
-            for (k, run) in image.pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
-                let chunk = SchedulerToClient::Pixels {
-                    job: result.job,
-                    offset: (k * RESULT_CHUNK_PIXELS) as u64,
-                    pixels: run.to_vec(),
-                };
-                if client.send(chunk).await.is_err() {
-                    return;
-                }
-            }
-            drop(image);
-            let _ = client.send(SchedulerToClient::Done(Box::new(result))).await;
         });
         self.try_start();
     }

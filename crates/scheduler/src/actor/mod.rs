@@ -11,15 +11,22 @@
 //! finished tiles and starts a new attempt, under a new run id, on the
 //! workers there are; a message of an older run is stale and ignored, so a
 //! worker that comes back late cannot touch the film. [`ending`] fails or
-//! finishes the job.
+//! finishes the job. [`clients`] attaches clients to jobs (a client whose
+//! link broke takes its job up again) and keeps the last results for them.
+//! With a [`Store`], jobs and their tiles are on disk as they arrive, and a
+//! restarted scheduler resumes them.
 
 mod attempt;
+mod clients;
 mod ending;
 mod recovery;
+
+pub(crate) use clients::Client;
 
 use crate::job;
 use crate::metrics::Metrics;
 use crate::status::{EndedJob, Status};
+use crate::store::{Restored, Store, Write};
 use crate::tiles::TileQueue;
 use locus_core::image_io::Image;
 use locus_core::scene::Scene;
@@ -53,6 +60,11 @@ pub enum Event {
         req: Box<JobRequest>,
         client: mpsc::Sender<SchedulerToClient>,
     },
+    /// A client takes up job `job` again.
+    Attach {
+        job: u64,
+        client: mpsc::Sender<SchedulerToClient>,
+    },
     /// An attempt's preparation ended; `run` names the attempt.
     Prepared {
         run: u64,
@@ -76,10 +88,14 @@ pub struct WorkerEntry {
 }
 
 pub(crate) struct Queued {
+    /// Given at submission: the id the client attaches to.
+    id: u64,
     pub(crate) req: Box<JobRequest>,
-    client: mpsc::Sender<SchedulerToClient>,
+    client: Client,
     /// On tokio's clock, so that a test can let [`WORKER_WAIT`] pass.
     since: tokio::time::Instant,
+    /// Tiles already rendered (a job restored from the store).
+    tiles: Vec<(u32, Vec<[f32; 3]>)>,
 }
 
 /// How long a job may wait for the workers it asks for to register (a farm
@@ -131,7 +147,7 @@ pub struct Running {
     /// The request without its triangles (the scene holds them).
     pub req: Box<JobRequest>,
     pub(crate) scene: Arc<Scene>,
-    client: mpsc::Sender<SchedulerToClient>,
+    client: Client,
     /// Every tile of the image; `job` is the client's id, replaced by the
     /// attempt's run id when a tile is handed out.
     pub(crate) tiles: Vec<TileAssignment>,
@@ -216,8 +232,10 @@ pub struct Actor {
     pub(crate) started: Instant,
     /// The last jobs that ended, newest first (at most [`status::HISTORY`]).
     pub(crate) history: VecDeque<EndedJob>,
-    /// The last finished job's image, for its preview.
-    last_image: Option<(u64, Arc<Image>)>,
+    /// The last finished jobs' images and reports, newest first, for their
+    /// previews and for clients that attach late.
+    finished: VecDeque<clients::Finished>,
+    store: Option<Store>,
 }
 
 impl Actor {
@@ -233,8 +251,28 @@ impl Actor {
             metrics,
             started: Instant::now(),
             history: VecDeque::new(),
-            last_image: None,
+            finished: VecDeque::new(),
+            store: None,
         }
+    }
+
+    /// Keeps jobs and tiles in `store` from now on, and queues the jobs it
+    /// held (with their tiles) ahead of any new one; ids continue from
+    /// `next_job`.
+    pub fn with_store(mut self, store: Store, next_job: u64, jobs: Vec<Restored>) -> Self {
+        self.next_job = self.next_job.max(next_job);
+        for r in jobs {
+            self.next_job = self.next_job.max(r.id + 1);
+            self.queue.push_back(Queued {
+                id: r.id,
+                req: r.req,
+                client: Client::none(),
+                since: tokio::time::Instant::now(),
+                tiles: r.tiles,
+            });
+        }
+        self.store = Some(store);
+        self
     }
 
     /// Publishes the registry's and queue's counts.
@@ -256,8 +294,8 @@ impl Actor {
                 pixels: j.film.clone(),
             });
         }
-        let (last, img) = self.last_image.as_ref()?;
-        (*last == id).then(|| (**img).clone())
+        let f = self.finished.iter().find(|f| f.id == id)?;
+        Some((*f.image).clone())
     }
 
     pub async fn run(mut self, mut rx: mpsc::Receiver<Event>, shutdown: CancellationToken) {
@@ -289,6 +327,7 @@ impl Actor {
                 }
                 Event::Left { id, reason } => self.left(id, reason),
                 Event::Submit { req, client } => self.submit(req, client),
+                Event::Attach { job, client } => self.attach(job, client),
                 Event::Prepared { run, prep } => self.on_prepared(run, prep),
                 Event::FromWorker { id, msg } => self.on_worker(id, msg),
                 Event::Status(reply) => {
@@ -300,7 +339,11 @@ impl Actor {
             }
             self.update_load();
         }
-        if self.job.is_some() {
+        if self.store.is_some() {
+            // The store keeps the job for the next start: its workers
+            // drop it, and its client attaches again then.
+            self.abort_members("the scheduler is shutting down");
+        } else if self.job.is_some() {
             self.fail("the scheduler is shutting down".into());
         }
     }
@@ -328,17 +371,22 @@ impl Actor {
     /// [`WORKER_WAIT`] for more workers than are registered fails, and so
     /// does a job that lost every worker and has waited as long for one.
     fn watch(&mut self) {
-        if self.job.as_ref().is_some_and(|j| j.client.is_closed()) {
+        if self.job.as_ref().is_some_and(|j| j.client.left()) {
             self.fail("the client disconnected".into());
         }
         self.restart();
-        let before = self.queue.len();
-        self.queue.retain(|q| !q.client.is_closed());
-        if self.queue.len() < before {
+        let (keep, gone): (VecDeque<Queued>, VecDeque<Queued>) = std::mem::take(&mut self.queue)
+            .into_iter()
+            .partition(|q| !q.client.left());
+        self.queue = keep;
+        if !gone.is_empty() {
             info!(
-                dropped = before - self.queue.len(),
+                dropped = gone.len(),
                 "queued jobs whose clients disconnected dropped"
             );
+            for q in gone {
+                self.forget(q.id);
+            }
         }
         if self.job.is_none()
             && let Some(q) = self.queue.front()
@@ -354,9 +402,9 @@ impl Actor {
             );
             warn!(scene = %q.req.name, "{reason}");
             self.metrics.job_failed();
-            let _ = q
-                .client
-                .try_send(SchedulerToClient::Failed { job: 0, reason });
+            self.forget(q.id);
+            q.client
+                .send(SchedulerToClient::Failed { job: q.id, reason });
             self.try_start();
         }
         self.update_load();
@@ -374,10 +422,24 @@ impl Actor {
         } else if let Err(reason) = job::validate(&req) {
             refuse(format!("invalid job {}: {reason}", req.name));
         } else {
+            let id = self.next_job;
+            self.next_job += 1;
+            let _ = client.try_send(SchedulerToClient::Queued {
+                job: id,
+                ahead: self.queue.len() as u32 + self.job.is_some() as u32,
+            });
+            if let Some(s) = &self.store {
+                s.write(Write::Job {
+                    id,
+                    req: req.clone(),
+                });
+            }
             self.queue.push_back(Queued {
+                id,
                 req,
-                client,
+                client: Client::some(client),
                 since: tokio::time::Instant::now(),
+                tiles: Vec::new(),
             });
             self.try_start();
         }
@@ -408,10 +470,9 @@ impl Actor {
             return;
         }
         let q = self.queue.pop_front().expect("peeked");
-        let id = self.next_job;
-        self.next_job += 1;
+        let id = q.id;
         info!(job = id, scene = %q.req.name, workers = want, "job starting");
-        let _ = q.client.try_send(SchedulerToClient::Accepted {
+        q.client.send(SchedulerToClient::Accepted {
             job: id,
             workers: want as u32,
         });
@@ -440,22 +501,35 @@ impl Actor {
         .collect();
         let mut req = q.req;
         let scene = job::scene_of(&mut req);
+        let mut film = vec![[0.0; 3]; (cam.width * cam.height) as usize];
+        let mut received = vec![false; tiles.len()];
+        let mut done = 0;
+        for (k, pixels) in q.tiles {
+            // A stored tile that does not fit the job is rendered again.
+            if let Some(t) = tiles.get(k as usize)
+                && pixels.len() == t.pixels() as usize
+                && !std::mem::replace(&mut received[k as usize], true)
+            {
+                clients::paste(&mut film, cam.width, t, &pixels);
+                done += 1;
+            }
+        }
         self.job = Some(Running {
             id,
-            film: vec![[0.0; 3]; (cam.width * cam.height) as usize],
+            film,
             req,
             scene,
             client: q.client,
-            received: vec![false; tiles.len()],
+            received,
             tiles,
-            done: 0,
+            done,
             started: Instant::now(),
             recovery: Recovery {
                 attempts: 0,
                 ..Default::default()
             },
             failures: 0,
-            attempt: Attempt::waiting(0),
+            attempt: Attempt::waiting(done),
         });
         self.start_attempt(idle[..want].to_vec());
     }
