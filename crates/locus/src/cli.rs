@@ -44,6 +44,9 @@ pub(crate) enum Cmd {
     Worker(WorkerArgs),
     /// Submit a scene to a running farm and write the result.
     Submit(SubmitArgs),
+    /// Wait for a job submitted earlier (`submit --detach`) and write its
+    /// result.
+    Attach(AttachArgs),
     /// The farm's state (workers, the running job, the queue), from the
     /// scheduler's status address (`locus scheduler --http`).
     Status {
@@ -259,8 +262,28 @@ pub(crate) struct SubmitArgs {
     pub(crate) reference: Option<PathBuf>,
     #[arg(long, default_value_t = 1.0)]
     pub(crate) exposure: f32,
+    /// Return once the scheduler has taken the job, printing its id: the
+    /// job runs on without this client, and `locus attach` fetches its
+    /// image (the scheduler keeps the last 4 results).
+    #[arg(long)]
+    pub(crate) detach: bool,
     #[command(flatten)]
     pub(crate) farm: FarmArgs,
+    #[command(flatten)]
+    pub(crate) auth: TokenArgs,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct AttachArgs {
+    /// The job's id, as `locus submit --detach` printed it.
+    pub(crate) job: u64,
+    /// The scheduler's host:port.
+    #[arg(long)]
+    pub(crate) scheduler: Option<String>,
+    #[arg(short, long, default_value = "out.exr")]
+    pub(crate) output: PathBuf,
+    #[arg(long, default_value_t = 1.0)]
+    pub(crate) exposure: f32,
     #[command(flatten)]
     pub(crate) auth: TokenArgs,
 }
@@ -408,6 +431,7 @@ impl FarmArgs {
             cache: None,
             fetch: self.fetch,
             fetch_budget: self.fetch_budget_mib << 20,
+            detached: false,
         }
     }
 }

@@ -39,6 +39,7 @@ fn main() {
         Cmd::Scheduler(a) => cmd_scheduler(a),
         Cmd::Worker(a) => cmd_worker(a),
         Cmd::Submit(a) => cmd_submit(a),
+        Cmd::Attach(a) => cmd_attach(a),
         Cmd::Status { http, json } => cmd_status(&http, json),
         Cmd::BenchFarm(a) => cmd_bench_farm(a),
     };

@@ -309,3 +309,83 @@ fn a_scheduler_restarted_on_its_state_resumes_the_job() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `locus submit --detach` returns with the job's id while the job runs;
+/// the job is not cancelled by its client leaving, and `locus attach`
+/// fetches its image, bit-identical to `locus render` on one machine.
+#[test]
+fn a_detached_job_runs_on_and_attach_fetches_it() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let out = root.join("target/test-detach");
+    let _ = std::fs::remove_dir_all(&out);
+    std::fs::create_dir_all(&out).unwrap();
+    let scene = root.join("scenes/cornell-box/cornell.toml");
+    let (_sched, addr) = Daemon::scheduler("5");
+    let _worker = Daemon::worker(&addr);
+    let locus = || {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_locus"));
+        c.env("LOCUS_TOKEN", TOKEN).env("RUST_LOG", "warn");
+        c
+    };
+    let sub = locus()
+        .args(["submit", "--detach", "--spp", "12", "--scheduler", &addr])
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(
+        sub.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sub.stderr)
+    );
+    let said = String::from_utf8_lossy(&sub.stdout);
+    let job = said
+        .trim()
+        .strip_prefix("job ")
+        .unwrap_or_else(|| panic!("`job N` on stdout, got {said:?}"));
+    let got = locus()
+        .args(["attach", "--scheduler", &addr, job, "-o"])
+        .arg(out.join("attached.exr"))
+        .output()
+        .unwrap();
+    assert!(
+        got.status.success(),
+        "{}",
+        String::from_utf8_lossy(&got.stderr)
+    );
+    let one = locus()
+        .args(["render", "--spp", "12", "--threads", "2"])
+        .arg(&scene)
+        .arg("-o")
+        .arg(out.join("single.exr"))
+        .output()
+        .unwrap();
+    assert!(
+        one.status.success(),
+        "{}",
+        String::from_utf8_lossy(&one.stderr)
+    );
+    let diff = locus()
+        .args(["diff", "--exact"])
+        .arg(out.join("attached.exr"))
+        .arg(out.join("single.exr"))
+        .output()
+        .unwrap();
+    assert!(
+        diff.status.success(),
+        "{}{}",
+        String::from_utf8_lossy(&diff.stdout),
+        String::from_utf8_lossy(&diff.stderr)
+    );
+    // A job that is not there says so.
+    let none = locus()
+        .args(["attach", "--scheduler", &addr, "999", "-o"])
+        .arg(out.join("none.exr"))
+        .output()
+        .unwrap();
+    assert!(!none.status.success());
+    assert!(
+        String::from_utf8_lossy(&none.stderr).contains("no job 999"),
+        "{}",
+        String::from_utf8_lossy(&none.stderr)
+    );
+}

@@ -90,6 +90,9 @@ pub struct JobOptions {
     pub fetch: FetchPolicy,
     /// Bytes of fetched leaf geometry (triangles plus BVH) a worker keeps.
     pub fetch_budget: u64,
+    /// The job runs on when its client disconnects (`locus submit
+    /// --detach`); its result waits for `locus attach`.
+    pub detached: bool,
 }
 
 impl Default for JobOptions {
@@ -103,6 +106,7 @@ impl Default for JobOptions {
             cache: None,
             fetch: FetchPolicy::default(),
             fetch_budget: 256 << 20,
+            detached: false,
         }
     }
 }

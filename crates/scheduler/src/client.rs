@@ -45,6 +45,17 @@ impl Collector {
         }
     }
 
+    /// For a job attached to by id, whose size the client does not know:
+    /// bounded by the largest image a job may ask for, and checked against
+    /// the size `Done` gives.
+    pub fn any_size() -> Self {
+        Self {
+            pixels: Vec::new(),
+            expected: MAX_IMAGE_PIXELS,
+            job: None,
+        }
+    }
+
     /// Drops a result cut off with its link: an attached link sends the
     /// whole image again.
     pub fn reattached(&mut self) {
@@ -96,6 +107,9 @@ impl Collector {
                 if r.pixels.is_empty() {
                     r.pixels = std::mem::take(&mut self.pixels);
                 }
+                if self.expected == MAX_IMAGE_PIXELS {
+                    self.expected = r.width as usize * r.height as usize;
+                }
                 if r.pixels.len() != self.expected {
                     return Some(Err(anyhow::anyhow!(
                         "job {}: the image has {} pixels, {} were asked for",
@@ -126,6 +140,59 @@ pub fn request(scene: &Scene, options: JobOptions) -> JobRequest {
         tri_material: scene.tri_material.clone(),
         options,
         load_s: 0.0,
+    }
+}
+
+/// The most pixels an image may have (32768 x 32768, the largest a job
+/// may ask for).
+const MAX_IMAGE_PIXELS: usize = 1 << 30;
+
+/// Submits `req` to run detached (it runs on without this client) and
+/// returns its id once the scheduler has taken it.
+pub async fn submit_detached(
+    scheduler: &str,
+    token: &str,
+    mut req: JobRequest,
+) -> anyhow::Result<u64> {
+    req.options.detached = true;
+    let mut conn = handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN)
+        .await
+        .context("submit: connecting to the scheduler")?;
+    let name = req.name.clone();
+    conn.write_msg(&Opening::Submit(Box::new(req)))
+        .await
+        .with_context(|| format!("submit: sending {name}"))?;
+    loop {
+        match conn.read_msg::<SchedulerToClient>("submit").await? {
+            Some(SchedulerToClient::Queued { job, .. }) => return Ok(job),
+            Some(SchedulerToClient::Failed { reason, .. }) => bail!("{name} refused: {reason}"),
+            Some(_) => {}
+            None => bail!("the scheduler closed the connection before taking {name}"),
+        }
+    }
+}
+
+/// Attaches to job `job` (submitted detached, or whose client went away
+/// with the scheduler) and waits for its result, taking the job up again
+/// if the link breaks, as [`submit`] does.
+pub async fn attach_to(
+    scheduler: &str,
+    token: &str,
+    job: u64,
+    progress: &(dyn Fn(u32, u32) + Sync),
+) -> anyhow::Result<JobResult> {
+    let mut collect = Collector::any_size();
+    collect.job = Some(job);
+    let mut conn = attach(scheduler, token, job).await?;
+    loop {
+        match follow(&mut conn, &mut collect, progress).await {
+            Ok(r) => return r,
+            Err(broke) => {
+                tracing::warn!(job, "{broke:#}; attaching to the job again");
+                conn = attach(scheduler, token, job).await?;
+                collect.reattached();
+            }
+        }
     }
 }
 

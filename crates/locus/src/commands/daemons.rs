@@ -83,18 +83,29 @@ pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
     })
 }
 
+/// The scheduler to submit to: the flag, or the config's.
+fn scheduler_of(flag: Option<String>, cfg: &locus::config::Config) -> Result<String> {
+    flag.or(cfg.worker.scheduler.clone())
+        .context("no scheduler address: pass --scheduler or set [worker] scheduler in the config")
+}
+
 pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
     let (cfg, token) = a.auth.load()?;
-    let scheduler = a
-        .scheduler
-        .clone()
-        .or(cfg.worker.scheduler.clone())
-        .context(
-            "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
-        )?;
+    let scheduler = scheduler_of(a.scheduler.clone(), &cfg)?;
     let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
+    if a.detach {
+        let job = runtime()?.block_on(locus_scheduler::client::submit_detached(
+            &scheduler, &token, req,
+        ))?;
+        println!("job {job}");
+        eprintln!(
+            "job {job} runs detached; fetch its image with: locus attach --scheduler {scheduler} {job} -o {}",
+            a.output.display()
+        );
+        return Ok(());
+    }
     let (pb, progress) = tile_progress(0);
     let result = runtime()?.block_on(async {
         let shutdown = CancellationToken::new();
@@ -108,6 +119,25 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
         pb.finish_and_clear();
     }
     write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
+}
+
+pub(crate) fn cmd_attach(a: AttachArgs) -> Result<()> {
+    let (cfg, token) = a.auth.load()?;
+    let scheduler = scheduler_of(a.scheduler.clone(), &cfg)?;
+    let (pb, progress) = tile_progress(0);
+    let result = runtime()?.block_on(async {
+        let shutdown = CancellationToken::new();
+        locus::cancel_on_signals(shutdown.clone());
+        tokio::select! {
+            r = locus_scheduler::client::attach_to(&scheduler, &token, a.job, &progress) => r,
+            _ = shutdown.cancelled() => Err(anyhow::anyhow!("interrupted")),
+        }
+    })?;
+    if let Some(pb) = pb {
+        pb.finish_and_clear();
+    }
+    let scene = std::path::PathBuf::from(&result.report.scene);
+    write_farm_result(&scene, &a.output, a.exposure, &result, None)
 }
 
 pub(crate) fn cmd_status(http: &str, json: bool) -> Result<()> {

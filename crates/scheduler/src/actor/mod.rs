@@ -371,13 +371,17 @@ impl Actor {
     /// [`WORKER_WAIT`] for more workers than are registered fails, and so
     /// does a job that lost every worker and has waited as long for one.
     fn watch(&mut self) {
-        if self.job.as_ref().is_some_and(|j| j.client.left()) {
+        if self
+            .job
+            .as_ref()
+            .is_some_and(|j| j.client.left() && !j.req.options.detached)
+        {
             self.fail("the client disconnected".into());
         }
         self.restart();
         let (keep, gone): (VecDeque<Queued>, VecDeque<Queued>) = std::mem::take(&mut self.queue)
             .into_iter()
-            .partition(|q| !q.client.left());
+            .partition(|q| !q.client.left() || q.req.options.detached);
         self.queue = keep;
         if !gone.is_empty() {
             info!(
