@@ -32,6 +32,7 @@ pub mod geometry;
 pub mod image_io;
 pub mod integrator;
 pub mod light;
+pub mod limits;
 pub mod mesh_io;
 pub mod metrics;
 pub mod octree;

@@ -336,6 +336,12 @@ impl Scene {
                 octree.max_depth = d.min(16);
             }
         }
+        if let Err(why) =
+            crate::limits::check_settings(desc.render.spp.max(1), desc.render.max_depth)
+        {
+            let at = text.find("[render]").unwrap_or(0);
+            return Err(invalid(at..at, why));
+        }
         let settings = RenderSettings {
             spp: desc.render.spp.max(1),
             max_depth: desc.render.max_depth,

@@ -59,6 +59,18 @@ fn each_corpus_file_gets_its_error() {
             |l| matches!(l, Location::Line { line: 1, .. }),
         ),
         (
+            "toml_endless_spp.toml",
+            "toml_endless_spp.toml",
+            "Invalid",
+            |l| matches!(l, Location::Line { line: 7, .. }),
+        ),
+        (
+            "toml_deep_paths.toml",
+            "toml_deep_paths.toml",
+            "Invalid",
+            |l| matches!(l, Location::Line { line: 7, .. }),
+        ),
+        (
             "toml_missing_mesh.toml",
             "toml_missing_mesh.toml",
             "MissingFile",

@@ -123,15 +123,9 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
         return Err("camera has a non-finite value".into());
     }
     let s = &req.settings;
-    if s.spp == 0 || s.spp > 1 << 20 {
-        return Err(format!("spp {} is out of range", s.spp));
-    }
-    if s.max_depth > 1024 {
-        return Err(format!(
-            "max_depth {} is out of range (at most 1024)",
-            s.max_depth
-        ));
-    }
+    locus_core::limits::check_settings(s.spp, s.max_depth)?;
+    // The film, and a copy of it while a preview is encoded.
+    locus_core::limits::check_film(c.width, c.height, 2, "the scheduler")?;
     let o = &req.options;
     if let Some(c) = &o.cache {
         c.check().map_err(|e| format!("cache parameters: {e}"))?;

@@ -74,6 +74,11 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         opts.seed = s;
     }
     opts.threads = a.threads;
+    locus_core::limits::check_settings(opts.spp, opts.max_depth).map_err(anyhow::Error::msg)?;
+    // The film and the image written from it.
+    let cam = &scene.camera;
+    locus_core::limits::check_film(cam.width, cam.height, 2, "this machine")
+        .map_err(anyhow::Error::msg)?;
     // Read the reference before rendering so a bad path fails fast.
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let prep = Prepared::new(scene);
@@ -178,6 +183,12 @@ pub(crate) fn load_for_farm(
     if let Some(s) = seed {
         scene.settings.seed = s;
     }
+    let st = &scene.settings;
+    locus_core::limits::check_settings(st.spp, st.max_depth).map_err(anyhow::Error::msg)?;
+    // The client holds the image it receives.
+    let cam = &scene.camera;
+    locus_core::limits::check_film(cam.width, cam.height, 1, "this client")
+        .map_err(anyhow::Error::msg)?;
     Ok(scene)
 }
 
