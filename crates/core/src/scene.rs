@@ -361,13 +361,8 @@ impl Scene {
                 &format!("material '{name}'"),
                 &vals,
             )?;
-            if m.albedo.iter().any(|&a| !(0.0..=1.0).contains(&a))
-                || m.emission.iter().any(|&e| e < 0.0)
-            {
-                return Err(invalid(
-                    span,
-                    format!("material '{name}': albedo must lie in [0, 1] and emission be >= 0"),
-                ));
+            if let Some(why) = crate::mesh_io::colour_problem(m.albedo, m.emission) {
+                return Err(invalid(span, format!("material '{name}': {why}")));
             }
             b.add_material(
                 Material {

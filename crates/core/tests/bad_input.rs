@@ -253,3 +253,138 @@ fn truncated_files_never_panic() {
     std::fs::remove_dir_all(&dir).ok();
     assert!(cuts > 300);
 }
+
+/// Hostile glTF files, made from a good one by changing one thing each:
+/// every one is refused with an error naming the file and the element,
+/// never a panic, a hang or gigabytes (a node cycle once looped for ever,
+/// a node with many parents multiplied its meshes, a short byteStride and
+/// float indices crashed inside the gltf crate).
+#[test]
+fn hostile_gltf_is_refused_by_element() {
+    let dir = std::env::temp_dir().join(format!("locus-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let good: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(corpus().join("gltf_good.gltf")).unwrap())
+            .unwrap();
+    type Edit = fn(&mut serde_json::Value);
+    let cases: Vec<(&str, Edit, &str)> = vec![
+        (
+            "short stride",
+            |g| g["bufferViews"][0]["byteStride"] = 4.into(),
+            "byteStride 4",
+        ),
+        (
+            "float indices",
+            |g| g["accessors"][1]["componentType"] = 5126.into(),
+            "indices",
+        ),
+        (
+            "vec2 positions",
+            |g| g["accessors"][0]["type"] = "VEC2".into(),
+            "POSITION",
+        ),
+        (
+            "missing accessor",
+            |g| g["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = 7.into(),
+            "document",
+        ),
+        (
+            "count past the view",
+            |g| g["accessors"][0]["count"] = 4000000.into(),
+            "reaches past",
+        ),
+        (
+            "view past the buffer",
+            |g| g["bufferViews"][1]["byteLength"] = 4000.into(),
+            "ends past",
+        ),
+        (
+            "no buffer view",
+            |g| {
+                g["accessors"][0]
+                    .as_object_mut()
+                    .unwrap()
+                    .remove("bufferView");
+            },
+            "bufferView",
+        ),
+        (
+            "node cycle",
+            |g| {
+                g["nodes"] = serde_json::json!([{"mesh": 0, "children": [1]}, {"children": [0]}]);
+            },
+            "nodes[",
+        ),
+        (
+            "node with two parents",
+            |g| {
+                g["nodes"] = serde_json::json!([{"children": [1, 2]}, {"children": [3]}, {"children": [3]}, {"mesh": 0}]);
+            },
+            "nodes[3]",
+        ),
+        (
+            "negative albedo",
+            |g| g["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"][0] = (-0.5).into(),
+            "materials[0]",
+        ),
+        (
+            "huge emission",
+            |g| g["materials"][0]["emissiveFactor"][1] = 1e39.into(),
+            "materials[0]",
+        ),
+    ];
+    let scene = "[camera]\nposition = [0.0, 0.0, 5.0]\nlook_at = [0.0, 0.0, 0.0]\nfov_y = 45.0\nresolution = [8, 8]\n\n[[mesh]]\nfile = \"h.gltf\"\n";
+    std::fs::write(dir.join("s.toml"), scene).unwrap();
+    for (what, edit, says) in cases {
+        let mut g = good.clone();
+        edit(&mut g);
+        std::fs::write(dir.join("h.gltf"), serde_json::to_string(&g).unwrap()).unwrap();
+        let r = std::panic::catch_unwind(|| Scene::load(&dir.join("s.toml")));
+        let e = match r {
+            Ok(Ok(_)) => panic!("{what}: loaded"),
+            Ok(Err(e)) => e,
+            Err(_) => panic!("{what}: panicked"),
+        };
+        assert_eq!(file_name(&e), "h.gltf", "{what}: {e}");
+        let text = format!("{e}");
+        assert!(text.contains(says), "{what}: {text}");
+    }
+    // The good file still loads.
+    std::fs::write(dir.join("h.gltf"), serde_json::to_string(&good).unwrap()).unwrap();
+    assert_eq!(Scene::load(&dir.join("s.toml")).unwrap().tris.len(), 1);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// MTL colours follow the scene file's rule: a negative Kd is refused at
+/// its line.
+#[test]
+fn mtl_colours_outside_the_scene_rules_are_refused() {
+    let dir = std::env::temp_dir().join(format!("locus-mtl-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(
+        dir.join("m.mtl"),
+        "newmtl a\nKd 0.5 0.5 0.5\nnewmtl b\nKd -0.2 0.5 0.5\n",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.join("m.obj"),
+        "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl b\nf 1 2 3\n",
+    )
+    .unwrap();
+    let scene = "[camera]\nposition = [0.0, 0.0, 5.0]\nlook_at = [0.0, 0.0, 0.0]\nfov_y = 45.0\nresolution = [8, 8]\n\n[[mesh]]\nfile = \"m.obj\"\n";
+    std::fs::write(dir.join("s.toml"), scene).unwrap();
+    let e = Scene::load(&dir.join("s.toml")).unwrap_err();
+    assert_eq!(file_name(&e), "m.mtl");
+    assert!(
+        matches!(
+            &e,
+            SceneError::Invalid {
+                location: Location::Line { line: 4, .. },
+                ..
+            }
+        ),
+        "{e:?}"
+    );
+    assert!(format!("{e}").contains("albedo"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -7,9 +7,24 @@
 //! for NaN/inf and indices for range, and reports the line (OBJ, ASCII
 //! PLY) or element (binary PLY, glTF) of the first offence.
 
+mod gltf_mesh;
+
 use crate::error::{Location, SceneError};
 use glam::Vec3;
 use std::path::{Path, PathBuf};
+
+/// The one rule for a material's colours, wherever they are written (scene
+/// file, MTL, glTF): albedo in [0, 1], emission finite and >= 0. None when
+/// they keep it, else why not.
+pub(crate) fn colour_problem(albedo: [f32; 3], emission: [f32; 3]) -> Option<String> {
+    if albedo.iter().any(|a| !(0.0..=1.0).contains(a)) {
+        return Some(format!("albedo {albedo:?} must lie in [0, 1]"));
+    }
+    if emission.iter().any(|e| !(e.is_finite() && *e >= 0.0)) {
+        return Some(format!("emission {emission:?} must be finite and >= 0"));
+    }
+    None
+}
 
 /// A material as a mesh file describes it.
 #[derive(Clone, Debug, PartialEq)]
@@ -37,7 +52,7 @@ pub fn load(path: &Path) -> Result<MeshData, SceneError> {
     match ext.as_str() {
         "obj" => load_obj(path),
         "ply" => load_ply(path),
-        "gltf" | "glb" => load_gltf(path),
+        "gltf" | "glb" => gltf_mesh::load(path),
         _ => Err(SceneError::Invalid {
             file: path.to_path_buf(),
             location: Location::Element("file name".into()),
@@ -246,6 +261,18 @@ fn parse_mtl(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
                         });
                     }
                 }
+                let problem = if k == "Kd" {
+                    colour_problem(rgb, [0.0; 3])
+                } else {
+                    colour_problem([0.0; 3], rgb)
+                };
+                if let Some(why) = problem {
+                    return Err(SceneError::Invalid {
+                        file: file(),
+                        location: Location::line(i + 1),
+                        message: format!("{k}: {why}"),
+                    });
+                }
                 // A colour before any newmtl belongs to no material.
                 if let Some(m) = out.last_mut() {
                     if k == "Kd" {
@@ -374,115 +401,6 @@ fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
             out.triangles
                 .push([idx[0] as u32, idx[j] as u32, idx[j + 1] as u32]);
             out.tri_material.push(None);
-        }
-    }
-    Ok(out)
-}
-
-fn load_gltf(path: &Path) -> Result<MeshData, SceneError> {
-    let file = || path.to_path_buf();
-    let syntax = |e: gltf::Error| SceneError::Syntax {
-        file: file(),
-        location: Location::Element("document".into()),
-        message: e.to_string(),
-    };
-    let doc = gltf::Gltf::open(path).map_err(|e| match e {
-        gltf::Error::Io(source) => SceneError::Io {
-            file: file(),
-            source,
-        },
-        e => syntax(e),
-    })?;
-    let base = path.parent().map(Path::to_path_buf);
-    // Check external buffers up front so a missing .bin is named as such.
-    for b in doc.buffers() {
-        if let gltf::buffer::Source::Uri(uri) = b.source()
-            && !uri.starts_with("data:")
-        {
-            let p: PathBuf = base.clone().unwrap_or_default().join(uri);
-            if !p.is_file() {
-                return Err(SceneError::MissingFile {
-                    file: file(),
-                    location: Location::Element(format!("buffers[{}].uri", b.index())),
-                    missing: p,
-                });
-            }
-        }
-    }
-    let buffers = gltf::import_buffers(&doc, base.as_deref(), doc.blob.clone()).map_err(syntax)?;
-    let mut out = MeshData::default();
-    for m in doc.materials() {
-        let pbr = m.pbr_metallic_roughness();
-        let c = pbr.base_color_factor();
-        let e = m.emissive_factor();
-        out.materials.push(FileMaterial {
-            name: m
-                .name()
-                .map(str::to_string)
-                .unwrap_or_else(|| format!("material{}", m.index().unwrap_or(0))),
-            albedo: Vec3::new(c[0], c[1], c[2]),
-            emission: Vec3::from(e),
-        });
-    }
-    // Meshes are placed by the node hierarchy of the default scene (or of
-    // every node when there is no scene), with each node's world matrix.
-    let mut stack: Vec<(gltf::Node, glam::Mat4)> =
-        match doc.default_scene().or_else(|| doc.scenes().next()) {
-            Some(s) => s.nodes().map(|n| (n, glam::Mat4::IDENTITY)).collect(),
-            None => doc.nodes().map(|n| (n, glam::Mat4::IDENTITY)).collect(),
-        };
-    while let Some((node, parent)) = stack.pop() {
-        let world = parent * glam::Mat4::from_cols_array_2d(&node.transform().matrix());
-        for c in node.children() {
-            stack.push((c, world));
-        }
-        let Some(mesh) = node.mesh() else { continue };
-        for prim in mesh.primitives() {
-            let elem = || format!("meshes[{}].primitives[{}]", mesh.index(), prim.index());
-            if prim.mode() != gltf::mesh::Mode::Triangles {
-                tracing::warn!(file = %path.display(), element = elem(), "skipping non-triangle primitive");
-                continue;
-            }
-            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
-            let pos: Vec<Vec3> = reader
-                .read_positions()
-                .ok_or_else(|| SceneError::Invalid {
-                    file: file(),
-                    location: Location::Element(elem()),
-                    message: "no POSITION attribute".into(),
-                })?
-                .map(|p| world.transform_point3(Vec3::from(p)))
-                .collect();
-            for (i, p) in pos.iter().enumerate() {
-                if !p.is_finite() {
-                    return Err(SceneError::NonFinite {
-                        file: file(),
-                        location: Location::Element(format!("{} POSITION[{i}]", elem())),
-                        what: format!("{p}"),
-                    });
-                }
-            }
-            let idx: Vec<u32> = match reader.read_indices() {
-                Some(r) => r.into_u32().collect(),
-                None => (0..pos.len() as u32).collect(),
-            };
-            let base = out.positions.len() as u32;
-            for (k, t) in idx.chunks_exact(3).enumerate() {
-                for &i in t {
-                    if i as usize >= pos.len() {
-                        return Err(SceneError::IndexOutOfRange {
-                            file: file(),
-                            location: Location::Element(format!("{} indices[{}]", elem(), 3 * k)),
-                            index: i as i64,
-                            count: pos.len(),
-                        });
-                    }
-                }
-                out.triangles.push([base + t[0], base + t[1], base + t[2]]);
-                out.tri_material
-                    .push(prim.material().index().map(|i| i as u32));
-            }
-            out.positions.extend(pos);
         }
     }
     Ok(out)

@@ -1,0 +1,262 @@
+//! glTF 2.0 / GLB meshes, read without trusting the file: every accessor a
+//! primitive uses is checked before the gltf crate's reader touches it
+//! (component type, element shape, byteStride at least the element, every
+//! element within its bufferView and every bufferView within its buffer),
+//! the node graph must be the disjoint trees the format requires (a cycle
+//! or a node with two parents would place meshes without end), material
+//! colours follow the scene file's rules, and a panic inside the crate is
+//! an error naming the file, not a crash.
+
+use super::{FileMaterial, MeshData, colour_problem};
+use crate::error::{Location, SceneError};
+use glam::Vec3;
+use gltf::accessor::{DataType, Dimensions};
+use std::path::{Path, PathBuf};
+
+pub(super) fn load(path: &Path) -> Result<MeshData, SceneError> {
+    // Whatever the checks miss (the crate's own validation once indexed
+    // past its accessors), the crate must not take the process down.
+    std::panic::catch_unwind(|| open(path)).unwrap_or_else(|_| {
+        Err(SceneError::Syntax {
+            file: path.to_path_buf(),
+            location: Location::Element("document".into()),
+            message: "the glTF reader (gltf crate) crashed on this file; check that every \
+                      index it holds (accessors, buffer views, nodes) names an existing element"
+                .into(),
+        })
+    })
+}
+
+fn open(path: &Path) -> Result<MeshData, SceneError> {
+    let file = || path.to_path_buf();
+    let syntax = |e: gltf::Error| SceneError::Syntax {
+        file: file(),
+        location: Location::Element("document".into()),
+        message: e.to_string(),
+    };
+    let doc = gltf::Gltf::open(path).map_err(|e| match e {
+        gltf::Error::Io(source) => SceneError::Io {
+            file: file(),
+            source,
+        },
+        e => syntax(e),
+    })?;
+    let base = path.parent().map(Path::to_path_buf);
+    // Check external buffers up front so a missing .bin is named as such.
+    for b in doc.buffers() {
+        if let gltf::buffer::Source::Uri(uri) = b.source()
+            && !uri.starts_with("data:")
+        {
+            let p: PathBuf = base.clone().unwrap_or_default().join(uri);
+            if !p.is_file() {
+                return Err(SceneError::MissingFile {
+                    file: file(),
+                    location: Location::Element(format!("buffers[{}].uri", b.index())),
+                    missing: p,
+                });
+            }
+        }
+    }
+    let buffers = gltf::import_buffers(&doc, base.as_deref(), doc.blob.clone()).map_err(syntax)?;
+    let data: Vec<&[u8]> = buffers.iter().map(|d| &d.0[..]).collect();
+    read(path, &doc, &data)
+}
+
+fn read(path: &Path, doc: &gltf::Gltf, buffers: &[&[u8]]) -> Result<MeshData, SceneError> {
+    let file = || path.to_path_buf();
+    let invalid = |element: String, message: String| SceneError::Invalid {
+        file: file(),
+        location: Location::Element(element),
+        message,
+    };
+    let mut out = MeshData::default();
+    for m in doc.materials() {
+        let pbr = m.pbr_metallic_roughness();
+        let c = pbr.base_color_factor();
+        let albedo = [c[0], c[1], c[2]];
+        let emission = m.emissive_factor();
+        let element = format!("materials[{}]", m.index().unwrap_or(0));
+        if let Some(why) = colour_problem(albedo, emission) {
+            return Err(invalid(element, why));
+        }
+        out.materials.push(FileMaterial {
+            name: m.name().map_or(element, str::to_string),
+            albedo: Vec3::from(albedo),
+            emission: Vec3::from(emission),
+        });
+    }
+    // Meshes are placed by the node hierarchy of the default scene (or of
+    // every root node when there is no scene), with each node's world
+    // matrix; each node is placed once.
+    let roots: Vec<gltf::Node> = match doc.default_scene().or_else(|| doc.scenes().next()) {
+        Some(s) => s.nodes().collect(),
+        None => {
+            let mut child = vec![false; doc.nodes().len()];
+            for n in doc.nodes() {
+                for c in n.children() {
+                    child[c.index()] = true;
+                }
+            }
+            doc.nodes().filter(|n| !child[n.index()]).collect()
+        }
+    };
+    let mut placed = vec![false; doc.nodes().len()];
+    let mut stack: Vec<(gltf::Node, glam::Mat4)> = roots
+        .into_iter()
+        .map(|n| (n, glam::Mat4::IDENTITY))
+        .collect();
+    while let Some((node, parent)) = stack.pop() {
+        if std::mem::replace(&mut placed[node.index()], true) {
+            return Err(invalid(
+                format!("nodes[{}]", node.index()),
+                "the node is reached twice (a cycle, or a node with two parents); glTF \
+                 requires its nodes to form disjoint trees"
+                    .into(),
+            ));
+        }
+        let world = parent * glam::Mat4::from_cols_array_2d(&node.transform().matrix());
+        for c in node.children() {
+            stack.push((c, world));
+        }
+        let Some(mesh) = node.mesh() else { continue };
+        for prim in mesh.primitives() {
+            add_primitive(path, &prim, mesh.index(), world, buffers, &mut out)?;
+        }
+    }
+    Ok(out)
+}
+
+fn add_primitive(
+    path: &Path,
+    prim: &gltf::Primitive,
+    mesh: usize,
+    world: glam::Mat4,
+    buffers: &[&[u8]],
+    out: &mut MeshData,
+) -> Result<(), SceneError> {
+    let file = || path.to_path_buf();
+    let elem = || format!("meshes[{mesh}].primitives[{}]", prim.index());
+    let invalid = |element: String, message: String| SceneError::Invalid {
+        file: file(),
+        location: Location::Element(element),
+        message,
+    };
+    if prim.mode() != gltf::mesh::Mode::Triangles {
+        tracing::warn!(file = %path.display(), element = elem(), "skipping non-triangle primitive");
+        return Ok(());
+    }
+    let positions = prim
+        .get(&gltf::Semantic::Positions)
+        .ok_or_else(|| invalid(elem(), "no POSITION attribute".into()))?;
+    check_accessor(&positions, &[DataType::F32], Dimensions::Vec3, buffers)
+        .map_err(|why| invalid(format!("{} POSITION", elem()), why))?;
+    let indices = prim.indices();
+    if let Some(a) = &indices {
+        let ints = [DataType::U8, DataType::U16, DataType::U32];
+        check_accessor(a, &ints, Dimensions::Scalar, buffers)
+            .map_err(|why| invalid(format!("{} indices", elem()), why))?;
+    }
+    let reader = prim.reader(|b| buffers.get(b.index()).copied());
+    let pos: Vec<Vec3> = reader
+        .read_positions()
+        .ok_or_else(|| invalid(elem(), "POSITION cannot be read".into()))?
+        .map(|p| world.transform_point3(Vec3::from(p)))
+        .collect();
+    for (i, p) in pos.iter().enumerate() {
+        if !p.is_finite() {
+            return Err(SceneError::NonFinite {
+                file: file(),
+                location: Location::Element(format!("{} POSITION[{i}]", elem())),
+                what: format!("{p}"),
+            });
+        }
+    }
+    let idx: Vec<u32> = match (indices, reader.read_indices()) {
+        (None, _) => (0..pos.len() as u32).collect(),
+        (Some(_), Some(r)) => r.into_u32().collect(),
+        (Some(_), None) => return Err(invalid(elem(), "indices cannot be read".into())),
+    };
+    let base = out.positions.len() as u32;
+    for (k, t) in idx.chunks_exact(3).enumerate() {
+        for &i in t {
+            if i as usize >= pos.len() {
+                return Err(SceneError::IndexOutOfRange {
+                    file: file(),
+                    location: Location::Element(format!("{} indices[{}]", elem(), 3 * k)),
+                    index: i as i64,
+                    count: pos.len(),
+                });
+            }
+        }
+        out.triangles.push([base + t[0], base + t[1], base + t[2]]);
+        out.tri_material
+            .push(prim.material().index().map(|i| i as u32));
+    }
+    out.positions.extend(pos);
+    Ok(())
+}
+
+/// Checks that `a` holds elements of one of `types` shaped `dims`, read
+/// from a bufferView whose stride is at least an element and which holds
+/// every element, inside a buffer that holds the view.
+fn check_accessor(
+    a: &gltf::Accessor,
+    types: &[DataType],
+    dims: Dimensions,
+    buffers: &[&[u8]],
+) -> Result<(), String> {
+    if !types.contains(&a.data_type()) || a.dimensions() != dims {
+        return Err(format!(
+            "accessor {} is {:?} {:?}; expected {dims:?} of {types:?}",
+            a.index(),
+            a.dimensions(),
+            a.data_type()
+        ));
+    }
+    if a.sparse().is_some() {
+        return Err(format!(
+            "accessor {} is sparse, which is not supported",
+            a.index()
+        ));
+    }
+    let Some(view) = a.view() else {
+        return Err(format!("accessor {} has no bufferView", a.index()));
+    };
+    let elem = a.size();
+    let stride = view.stride().unwrap_or(elem);
+    if stride < elem {
+        return Err(format!(
+            "bufferView {} has byteStride {stride}, smaller than its {elem}-byte elements",
+            view.index()
+        ));
+    }
+    let end = match a.count() {
+        0 => Some(a.offset()),
+        n => (n - 1)
+            .checked_mul(stride)
+            .and_then(|s| s.checked_add(a.offset()))
+            .and_then(|s| s.checked_add(elem)),
+    };
+    if end.is_none_or(|e| e > view.length()) {
+        return Err(format!(
+            "accessor {} ({} elements) reaches past the {} bytes of bufferView {}",
+            a.index(),
+            a.count(),
+            view.length(),
+            view.index()
+        ));
+    }
+    let buffer = buffers.get(view.buffer().index()).map_or(0, |b| b.len());
+    if view
+        .offset()
+        .checked_add(view.length())
+        .is_none_or(|e| e > buffer)
+    {
+        return Err(format!(
+            "bufferView {} ends past the {buffer} bytes of buffer {}",
+            view.index(),
+            view.buffer().index()
+        ));
+    }
+    Ok(())
+}
