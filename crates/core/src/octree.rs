@@ -112,7 +112,19 @@ impl Octree {
             };
         }
         use rayon::prelude::*;
-        let children: Vec<Sub> = split_refs(&b, &refs, tris)
+        let subs = split_refs(&b, &refs, tris);
+        if !separates(refs.len(), &subs) {
+            return Sub {
+                nodes: vec![Node::Leaf { leaf: 0 }],
+                node_bounds: vec![b],
+                leaves: vec![Leaf {
+                    bounds: b,
+                    depth,
+                    tris: refs,
+                }],
+            };
+        }
+        let children: Vec<Sub> = subs
             .into_par_iter()
             .enumerate()
             .map(|(i, sub)| Self::build_sub(child_bounds(&b, i), sub, depth + 1, tris, params))
@@ -153,7 +165,10 @@ impl Octree {
         depth: u32,
         tris: &[[Vec3; 3]],
     ) {
-        if refs.len() <= self.params.max_leaf_tris || depth >= self.params.max_depth {
+        let subs = (refs.len() > self.params.max_leaf_tris && depth < self.params.max_depth)
+            .then(|| split_refs(&b, &refs, tris))
+            .filter(|subs| separates(refs.len(), subs));
+        let Some(subs) = subs else {
             let leaf = self.leaves.len() as u32;
             self.leaves.push(Leaf {
                 bounds: b,
@@ -162,7 +177,7 @@ impl Octree {
             });
             self.nodes[node] = Node::Leaf { leaf };
             return;
-        }
+        };
         let first = self.nodes.len() as u32;
         self.nodes[node] = Node::Interior { first_child: first };
         let children: Vec<Bounds> = (0..8).map(|i| child_bounds(&b, i)).collect();
@@ -170,7 +185,6 @@ impl Octree {
             self.nodes.push(Node::Leaf { leaf: u32::MAX });
             self.node_bounds.push(*cb);
         }
-        let subs = split_refs(&b, &refs, tris);
         drop(refs);
         for (i, (cb, sub)) in children.into_iter().zip(subs).enumerate() {
             self.subdivide(first as usize + i, cb, sub, depth + 1, tris);
@@ -625,6 +639,18 @@ fn child_bounds(b: &Bounds, i: usize) -> Bounds {
 /// contains the bounding box accepted, without the exact test. Both
 /// prefilters err towards the exact test by far more than rounding, so
 /// the result is exactly that of testing every child.
+/// Whether splitting a node of `n` references into `subs` separates
+/// anything: not when two or more children each receive every reference
+/// (duplicate or coincident triangles spanning the node), which no depth
+/// would separate, while each level would multiply the references by up to
+/// four (a surface crosses 4 times the cells per level): such a node stays
+/// a leaf. A single child with everything still localises them.
+fn separates(n: usize, subs: &[Vec<u32>; 8]) -> bool {
+    let full = subs.iter().filter(|s| s.len() == n).count();
+    let some = subs.iter().filter(|s| !s.is_empty()).count();
+    !(full >= 2 && full == some)
+}
+
 fn split_refs(b: &Bounds, refs: &[u32], tris: &[[Vec3; 3]]) -> [Vec<u32>; 8] {
     let boxes: [(DVec3, DVec3); 8] = std::array::from_fn(|i| inflate(&child_bounds(b, i)));
     let slack = (b.extent().max_element() as f64 + b.max_abs() as f64) * 1e-9;
@@ -849,6 +875,36 @@ mod tests {
             assert_eq!(par, seq);
             par.check_structure().unwrap();
         }
+    }
+
+    /// Duplicate triangles spanning a node cannot be separated by any
+    /// depth: the build stops there instead of multiplying references by
+    /// four a level down to the maximum depth (3,000 duplicates of one
+    /// large triangle once took minutes and gigabytes), and a cluster in
+    /// one child is still localised.
+    #[test]
+    fn duplicates_do_not_multiply_references() {
+        let t = [
+            Vec3::new(-1.0, -1.0, 0.0),
+            Vec3::new(1.0, -1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.5),
+        ];
+        let mut tris = vec![t; 3000];
+        let params = OctreeParams {
+            max_leaf_tris: 1,
+            max_depth: 16,
+        };
+        let o = Octree::build(&tris, params);
+        assert_eq!(o.leaf_count(), 1, "nothing to separate");
+        assert_eq!(o.reference_count(), 3000);
+        // A few small triangles off in one corner are split away from them.
+        tris.extend((0..8).map(|i| {
+            let c = Vec3::new(0.9, 0.9, -0.9) + Vec3::splat(i as f32 * 0.01);
+            [c, c + Vec3::X * 0.005, c + Vec3::Y * 0.005]
+        }));
+        let o = Octree::build(&tris, params);
+        assert!(o.leaf_count() > 1);
+        assert!(o.reference_count() < 3008 * 8, "{}", o.reference_count());
     }
 
     #[test]
