@@ -157,3 +157,64 @@ fn an_image_larger_than_a_result_chunk_arrives_whole() {
         farm.stop().await.expect("stop");
     });
 }
+
+/// A request sent in parts (here of 7 triangles, so the Cornell box's 32
+/// take 5) renders the same bits as one machine; a part longer than
+/// announced, or with lists of different lengths, is refused with its
+/// reason, and the farm goes on.
+#[test]
+fn a_request_in_parts_matches_and_bad_parts_are_refused() {
+    use locus_protocol::control::Opening;
+    use locus_protocol::submit::{SchedulerToClient, TrianglePart};
+    use locus_protocol::{MAX_FRAME_LEN, handshake};
+    let scene = small_cornell();
+    let reference = single_machine(&scene);
+    let rt = runtime();
+    rt.block_on(async {
+        let farm = locus::farm::LocalFarm::start(2, 1).await.expect("farm");
+        let addr = farm.scheduler.to_string();
+        let req = locus_scheduler::client::request(&scene, JobOptions::default());
+        assert!(req.tris.len() > 4 * 7, "several parts");
+        let r = locus_scheduler::client::submit_in_parts_of(&addr, &farm.token, req, &|_, _| {}, 7)
+            .await
+            .expect("a request in parts renders");
+        assert_eq!(bits(&r), reference);
+        let bad_parts = [
+            TrianglePart {
+                tris: vec![scene.tris[0]; 11],
+                material: vec![0; 11],
+            },
+            TrianglePart {
+                tris: vec![scene.tris[0]; 3],
+                material: vec![0; 2],
+            },
+        ];
+        for part in bad_parts {
+            let mut c = handshake::dial(&addr, farm.token.as_bytes(), MAX_FRAME_LEN)
+                .await
+                .unwrap();
+            let mut req = locus_scheduler::client::request(&scene, JobOptions::default());
+            req.tris.clear();
+            req.tri_material.clear();
+            c.write_msg(&Opening::SubmitInParts {
+                request: Box::new(req),
+                triangles: 10,
+            })
+            .await
+            .unwrap();
+            c.write_msg(&part).await.unwrap();
+            match c.read_msg::<SchedulerToClient>("submit").await.unwrap() {
+                Some(SchedulerToClient::Failed { reason, .. }) => {
+                    assert!(reason.contains("request part"), "{reason}")
+                }
+                other => panic!("expected a refusal, got {other:?}"),
+            }
+        }
+        let again = locus_scheduler::client::request(&scene, JobOptions::default());
+        let r = locus_scheduler::client::submit(&addr, &farm.token, again, &|_, _| {})
+            .await
+            .expect("the farm goes on");
+        assert_eq!(bits(&r), reference);
+        farm.stop().await.expect("clean stop");
+    });
+}

@@ -26,6 +26,15 @@ pub enum Opening {
     Attach {
         job: u64,
     },
+    /// A job whose triangles follow in [`TrianglePart`]s, `triangles` in
+    /// all: a scene of any size, in frames within the limit. `request`
+    /// carries everything else (its triangle lists are empty).
+    ///
+    /// [`TrianglePart`]: crate::submit::TrianglePart
+    SubmitInParts {
+        request: Box<JobRequest>,
+        triangles: u64,
+    },
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

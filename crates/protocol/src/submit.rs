@@ -111,6 +111,17 @@ impl Default for JobOptions {
     }
 }
 
+/// Triangles of a job submitted in parts ([`crate::control::Opening::SubmitInParts`]),
+/// in order: each triangle's corners and material.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrianglePart {
+    pub tris: Vec<[Vec3; 3]>,
+    pub material: Vec<u32>,
+}
+
+/// Triangles per [`TrianglePart`]: 40 MiB, within the frame limit.
+pub const REQUEST_PART_TRIANGLES: usize = 1 << 20;
+
 /// A loaded scene: the client resolves mesh files, so the scheduler needs
 /// no access to the user's disk.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -231,8 +231,11 @@ proptest! {
             options: JobOptions { workers, partitioner: Partitioner::Morton, cost_model: CostModel::Analytic, ..Default::default() },
             load_s: 0.25,
         };
+        let req_again = req.clone();
         roundtrip(&Opening::Submit(Box::new(req)));
         roundtrip(&Opening::Attach { job: seed });
+        roundtrip(&Opening::SubmitInParts { request: Box::new(JobRequest { tris: Vec::new(), tri_material: Vec::new(), ..req_again.clone() }), triangles: seed });
+        roundtrip(&locus_protocol::submit::TrianglePart { tris: req_again.tris.clone(), material: req_again.tri_material.clone() });
         let report = FarmReport { scene: reason.clone(), seed, load_imbalance: n as f64, ..Default::default() };
         for m in [
             SchedulerToClient::Accepted { job: seed, workers },

@@ -4,7 +4,9 @@
 use anyhow::{Context, bail};
 use locus_core::scene::Scene;
 use locus_protocol::control::Opening;
-use locus_protocol::submit::{JobOptions, JobRequest, JobResult, SchedulerToClient};
+use locus_protocol::submit::{
+    JobOptions, JobRequest, JobResult, REQUEST_PART_TRIANGLES, SchedulerToClient, TrianglePart,
+};
 use locus_protocol::{MAX_FRAME_LEN, handshake};
 use std::time::Duration;
 
@@ -155,13 +157,8 @@ pub async fn submit_detached(
     mut req: JobRequest,
 ) -> anyhow::Result<u64> {
     req.options.detached = true;
-    let mut conn = handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN)
-        .await
-        .context("submit: connecting to the scheduler")?;
     let name = req.name.clone();
-    conn.write_msg(&Opening::Submit(Box::new(req)))
-        .await
-        .with_context(|| format!("submit: sending {name}"))?;
+    let mut conn = send_request(scheduler, token, req, REQUEST_PART_TRIANGLES).await?;
     loop {
         match conn.read_msg::<SchedulerToClient>("submit").await? {
             Some(SchedulerToClient::Queued { job, .. }) => return Ok(job),
@@ -210,14 +207,20 @@ pub async fn submit(
     req: JobRequest,
     progress: &(dyn Fn(u32, u32) + Sync),
 ) -> anyhow::Result<JobResult> {
-    let mut conn = handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN)
-        .await
-        .context("submit: connecting to the scheduler")?;
-    let name = req.name.clone();
+    submit_in_parts_of(scheduler, token, req, progress, REQUEST_PART_TRIANGLES).await
+}
+
+/// As [`submit`], sending the triangles in parts of `part` (a request of
+/// at most `part` triangles goes in one frame).
+pub async fn submit_in_parts_of(
+    scheduler: &str,
+    token: &str,
+    req: JobRequest,
+    progress: &(dyn Fn(u32, u32) + Sync),
+    part: usize,
+) -> anyhow::Result<JobResult> {
     let mut collect = Collector::new(req.camera.width, req.camera.height);
-    conn.write_msg(&Opening::Submit(Box::new(req)))
-        .await
-        .with_context(|| format!("submit: sending {name}"))?;
+    let mut conn = send_request(scheduler, token, req, part).await?;
     loop {
         let broke = match follow(&mut conn, &mut collect, progress).await {
             Ok(r) => return r,
@@ -234,6 +237,45 @@ pub async fn submit(
         })?;
         collect.reattached();
     }
+}
+
+/// Connects and sends `req`: in one frame when it has at most `part`
+/// triangles, else its settings first and its triangles in parts of
+/// `part`, so a scene of any size fits the frame limit.
+async fn send_request(
+    scheduler: &str,
+    token: &str,
+    mut req: JobRequest,
+    part: usize,
+) -> anyhow::Result<locus_protocol::Connection> {
+    let mut conn = handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN)
+        .await
+        .context("submit: connecting to the scheduler")?;
+    let name = req.name.clone();
+    let sending = || format!("submit: sending {name}");
+    let part = part.max(1);
+    if req.tris.len() <= part {
+        conn.write_msg(&Opening::Submit(Box::new(req)))
+            .await
+            .with_context(sending)?;
+        return Ok(conn);
+    }
+    let tris = std::mem::take(&mut req.tris);
+    let material = std::mem::take(&mut req.tri_material);
+    conn.write_msg(&Opening::SubmitInParts {
+        request: Box::new(req),
+        triangles: tris.len() as u64,
+    })
+    .await
+    .with_context(sending)?;
+    for (t, m) in tris.chunks(part).zip(material.chunks(part)) {
+        let p = TrianglePart {
+            tris: t.to_vec(),
+            material: m.to_vec(),
+        };
+        conn.write_msg(&p).await.with_context(sending)?;
+    }
+    Ok(conn)
 }
 
 /// Reads the job's messages until its result (or failure); an error is the

@@ -10,7 +10,7 @@ use crate::actor::Event;
 use locus_protocol::control::{
     HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
 };
-use locus_protocol::submit::SchedulerToClient;
+use locus_protocol::submit::{JobRequest, SchedulerToClient, TrianglePart};
 use locus_protocol::{ConnReader, ConnWriter, Connection, MAX_FRAME_LEN, handshake};
 use std::time::Duration;
 use tokio::sync::mpsc;
@@ -45,6 +45,18 @@ pub(crate) async fn serve(
         Some(Opening::Register(reg)) => worker(conn, id, reg, sh).await,
         Some(Opening::Submit(req)) => {
             client(conn, |client| Event::Submit { req, client }, sh).await
+        }
+        Some(Opening::SubmitInParts { request, triangles }) => {
+            match receive_parts(&mut conn, request, triangles).await {
+                Ok(req) => client(conn, |client| Event::Submit { req, client }, sh).await,
+                Err(reason) => {
+                    info!(peer = %conn.peer(), "request refused: {reason}");
+                    let _ = conn
+                        .write_msg(&SchedulerToClient::Failed { job: 0, reason })
+                        .await;
+                    Ok(())
+                }
+            }
         }
         Some(Opening::Attach { job }) => {
             client(conn, |client| Event::Attach { job, client }, sh).await
@@ -124,6 +136,58 @@ async fn read_worker(mut r: ConnReader, id: u32, sh: &Shared) -> String {
         }
     }
 }
+
+/// How long the next part of a request may take to arrive.
+const PART_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// Reads the `triangles` triangles of a request sent in parts; refuses a
+/// request the memory available cannot hold (its triangles twice: the
+/// request, and the store's copy as it is written), a part longer than
+/// announced or whose lists differ in length, and a link that stalls.
+async fn receive_parts(
+    conn: &mut Connection,
+    mut req: Box<JobRequest>,
+    triangles: u64,
+) -> Result<Box<JobRequest>, String> {
+    let bytes = triangles.saturating_mul(2 * TRIANGLE_REQUEST_BYTES);
+    if let Some(have) = locus_core::limits::available_memory()
+        && bytes > have
+    {
+        return Err(format!(
+            "{}: {triangles} triangles need {:.2} GiB on the scheduler, but {:.2} GiB of memory is available",
+            req.name,
+            bytes as f64 / (1u64 << 30) as f64,
+            have as f64 / (1u64 << 30) as f64
+        ));
+    }
+    req.tris.clear();
+    req.tri_material.clear();
+    while (req.tris.len() as u64) < triangles {
+        let part =
+            tokio::time::timeout(PART_TIMEOUT, conn.read_msg::<TrianglePart>("request part"))
+                .await
+                .map_err(|_| format!("no part of the request for {PART_TIMEOUT:?}"))?
+                .map_err(|e| e.to_string())?
+                .ok_or("the client closed the connection within its request")?;
+        let left = triangles - req.tris.len() as u64;
+        if part.tris.len() != part.material.len() || part.tris.len() as u64 > left {
+            return Err(format!(
+                "a request part of {} triangles and {} materials, with {left} triangles left",
+                part.tris.len(),
+                part.material.len()
+            ));
+        }
+        if part.tris.is_empty() {
+            return Err("an empty request part".into());
+        }
+        req.tris.extend_from_slice(&part.tris);
+        req.tri_material.extend_from_slice(&part.material);
+    }
+    Ok(req)
+}
+
+/// Bytes a request holds per triangle: three corners and a material.
+const TRIANGLE_REQUEST_BYTES: u64 = 3 * 12 + 4;
 
 /// A client's link: `opening` is its request (a job, or a job to attach
 /// to) with the channel its job's messages come on.
