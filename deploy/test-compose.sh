@@ -10,6 +10,8 @@
 #      then, with it started again, cut another off the farm network
 #      (`docker network disconnect`); both jobs must complete bit-identical
 #      to one machine, and the cut-off worker, connected again, rejoins;
+#      then kill the scheduler mid-job and start it again: the job resumes
+#      from the scheduler's state volume and ends bit-identical;
 #   5. tear the farm down (also on failure).
 # It never skips: without a Docker engine and Compose it fails, saying so.
 # LOCUS_BIN=path uses that binary for the image (see docker/build-image.sh);
@@ -98,10 +100,11 @@ echo "test-compose: ok: 3 worker containers, $forwarded rays forwarded between t
 
 echo "== 4. a worker lost mid-job: killed, then cut off the network" >&2
 status_json() { curl -fsS "http://127.0.0.1:$LOCUS_HTTP_PORT/status"; }
-# Waits until the running job has tiles in: the loss then lands mid-render.
+# Waits until the running job has tiles in (at least $1, default 1): the
+# loss then lands mid-render.
 wait_rendering() {
     local deadline=$((SECONDS + 120))
-    until status_json | python3 -c 'import json,sys; r=json.load(sys.stdin)["running"]; sys.exit(0 if r and r["tiles_done"] > 0 else 1)' 2>/dev/null; do
+    until status_json | python3 -c 'import json,sys; r=json.load(sys.stdin)["running"]; sys.exit(0 if r and r["tiles_done"] >= int(sys.argv[1]) else 1)' "${1:-1}" 2>/dev/null; do
         ((SECONDS < deadline)) || fail "the job did not start rendering within 120 s"
         sleep 0.2
     done
@@ -144,5 +147,29 @@ until [[ "$(registered)" -ge 3 ]]; do
     sleep 0.5
 done
 echo "test-compose: ok: killed and cut-off workers lost mid-job, both jobs bit-identical, both workers back" >&2
+
+echo "== 4b. the scheduler killed mid-job and started again on its state volume" >&2
+timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
+    "$scene" "${long[@]}" --workers 3 --fetch forward -o "$work/restart.exr" >/dev/null &
+pid=$!
+# Enough tiles in that some are in the store (its writer commits within
+# milliseconds).
+wait_rendering 16
+sleep 0.5
+scheduler="$(dc ps -q scheduler)"
+docker kill "$scheduler" >/dev/null
+docker start "$scheduler" >/dev/null
+echo "   scheduler container ${scheduler:0:12} killed and started again mid-job" >&2
+wait "$pid" || fail "the job did not survive the scheduler's restart"
+"$locus" diff --exact "$work/restart.exr" "$work/single-long.exr" ||
+    fail "the job resumed after the scheduler's restart differs from one machine"
+python3 -c 'import json,sys; r=json.load(open(sys.argv[1]))["farm"]["recovery"]; print("   tiles kept from the store:", r["tiles_kept"]); sys.exit(0 if r["tiles_kept"] > 0 else 1)' \
+    "$work/restart.json" >&2 || fail "the resumed job kept no tiles from the store"
+deadline=$((SECONDS + 60))
+until [[ "$(registered 2>/dev/null)" -ge 3 ]]; do
+    ((SECONDS < deadline)) || fail "the workers did not register again with the restarted scheduler"
+    sleep 0.5
+done
+echo "test-compose: ok: the scheduler restarted mid-job, the job resumed from its store bit-identical" >&2
 
 echo "== 5. down" >&2

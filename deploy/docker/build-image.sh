@@ -20,8 +20,11 @@ if [[ -z "${LOCUS_BIN:-}" ]]; then
 fi
 
 rm -rf "$ctx"
-mkdir -p "$ctx/tmp"
+mkdir -p "$ctx/tmp" "$ctx/var/lib/locus"
 chmod 1777 "$ctx/tmp"
+# The scheduler's --state directory: a named volume mounted there starts
+# as this directory, writable by the image's user (no shell to chown it).
+chmod 1777 "$ctx/var/lib/locus"
 cp "$LOCUS_BIN" "$ctx/locus"
 # Symbols stay (a panic's backtrace names its functions); the line tables
 # the release profile keeps would double the image.
