@@ -110,11 +110,23 @@ wait_rendering() {
     done
 }
 registered() { status_json | python3 -c 'import json,sys; print(len(json.load(sys.stdin)["workers"]))'; }
+# Waits up to 60 s until 3 workers are registered; $1 says who failed to.
+wait_registered() {
+    local deadline=$((SECONDS + 60))
+    until [[ "$(registered 2>/dev/null)" -ge 3 ]]; do
+        ((SECONDS < deadline)) || fail "$1 within 60 s"
+        sleep 0.5
+    done
+}
+# Submits the long job from the host in the background, writing $1.exr.
+submit_long() {
+    timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
+        "$scene" "${long[@]}" --workers 3 --fetch forward -o "$work/$1.exr" >/dev/null &
+}
 long=(--spp 96)
 "$locus" render "$scene" "${long[@]}" -o "$work/single-long.exr" >/dev/null
 lose() { # $1: what is done to the worker container $2 (kill | disconnect)
-    timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
-        "$scene" "${long[@]}" --workers 3 --fetch forward -o "$work/$1.exr" >/dev/null &
+    submit_long "$1"
     local pid=$!
     wait_rendering
     case $1 in
@@ -134,23 +146,14 @@ network="$(docker network ls -q --filter "name=${project}_farm" | head -n 1)"
 [[ -n "$network" ]] || fail "the farm network ${project}_farm is missing"
 lose kill "${workers[1]}"
 docker start "${workers[1]}" >/dev/null
-deadline=$((SECONDS + 60))
-until [[ "$(registered)" -ge 3 ]]; do
-    ((SECONDS < deadline)) || fail "the killed worker, started again, did not rejoin within 60 s"
-    sleep 0.5
-done
+wait_registered "the killed worker, started again, did not rejoin"
 lose disconnect "${workers[2]}"
 docker network connect "$network" "${workers[2]}"
-deadline=$((SECONDS + 60))
-until [[ "$(registered)" -ge 3 ]]; do
-    ((SECONDS < deadline)) || fail "the cut-off worker, connected again, did not rejoin within 60 s"
-    sleep 0.5
-done
+wait_registered "the cut-off worker, connected again, did not rejoin"
 echo "test-compose: ok: killed and cut-off workers lost mid-job, both jobs bit-identical, both workers back" >&2
 
 echo "== 4b. the scheduler killed mid-job and started again on its state volume" >&2
-timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
-    "$scene" "${long[@]}" --workers 3 --fetch forward -o "$work/restart.exr" >/dev/null &
+submit_long restart
 pid=$!
 # Enough tiles in that some are in the store (its writer commits within
 # milliseconds).
@@ -165,11 +168,7 @@ wait "$pid" || fail "the job did not survive the scheduler's restart"
     fail "the job resumed after the scheduler's restart differs from one machine"
 python3 -c 'import json,sys; r=json.load(open(sys.argv[1]))["farm"]["recovery"]; print("   tiles kept from the store:", r["tiles_kept"]); sys.exit(0 if r["tiles_kept"] > 0 else 1)' \
     "$work/restart.json" >&2 || fail "the resumed job kept no tiles from the store"
-deadline=$((SECONDS + 60))
-until [[ "$(registered 2>/dev/null)" -ge 3 ]]; do
-    ((SECONDS < deadline)) || fail "the workers did not register again with the restarted scheduler"
-    sleep 0.5
-done
+wait_registered "the workers did not register again with the restarted scheduler"
 echo "test-compose: ok: the scheduler restarted mid-job, the job resumed from its store bit-identical" >&2
 
 echo "== 5. down" >&2

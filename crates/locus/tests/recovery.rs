@@ -310,6 +310,13 @@ fn a_scheduler_restarted_on_its_state_resumes_the_job() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Runs `c`, which must succeed; its output.
+fn succeeds(c: &mut Command) -> std::process::Output {
+    let o = c.output().expect("locus runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
 /// `locus submit --detach` returns with the job's id while the job runs;
 /// the job is not cancelled by its client leaving, and `locus attach`
 /// fetches its image, bit-identical to `locus render` on one machine.
@@ -327,42 +334,27 @@ fn a_detached_job_runs_on_and_attach_fetches_it() {
         c.env("LOCUS_TOKEN", TOKEN).env("RUST_LOG", "warn");
         c
     };
-    let sub = locus()
-        .args(["submit", "--detach", "--spp", "12", "--scheduler", &addr])
-        .arg(&scene)
-        .output()
-        .unwrap();
-    assert!(
-        sub.status.success(),
-        "{}",
-        String::from_utf8_lossy(&sub.stderr)
+    let sub = succeeds(
+        locus()
+            .args(["submit", "--detach", "--spp", "12", "--scheduler", &addr])
+            .arg(&scene),
     );
     let said = String::from_utf8_lossy(&sub.stdout);
     let job = said
         .trim()
         .strip_prefix("job ")
         .unwrap_or_else(|| panic!("`job N` on stdout, got {said:?}"));
-    let got = locus()
-        .args(["attach", "--scheduler", &addr, job, "-o"])
-        .arg(out.join("attached.exr"))
-        .output()
-        .unwrap();
-    assert!(
-        got.status.success(),
-        "{}",
-        String::from_utf8_lossy(&got.stderr)
+    succeeds(
+        locus()
+            .args(["attach", "--scheduler", &addr, job, "-o"])
+            .arg(out.join("attached.exr")),
     );
-    let one = locus()
-        .args(["render", "--spp", "12", "--threads", "2"])
-        .arg(&scene)
-        .arg("-o")
-        .arg(out.join("single.exr"))
-        .output()
-        .unwrap();
-    assert!(
-        one.status.success(),
-        "{}",
-        String::from_utf8_lossy(&one.stderr)
+    succeeds(
+        locus()
+            .args(["render", "--spp", "12", "--threads", "2"])
+            .arg(&scene)
+            .arg("-o")
+            .arg(out.join("single.exr")),
     );
     let diff = locus()
         .args(["diff", "--exact"])

@@ -2,6 +2,18 @@
 
 use std::net::SocketAddr;
 
+impl ProtocolError {
+    /// Whether the peer refused us (another protocol version, a wrong
+    /// token, a stated refusal): trying again cannot help, unlike a peer
+    /// that cannot be reached or a link that broke.
+    pub fn is_refusal(&self) -> bool {
+        matches!(
+            self,
+            Self::Version { .. } | Self::WrongToken { .. } | Self::Refused { .. }
+        )
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum ProtocolError {
     #[error("{peer}: {source}")]

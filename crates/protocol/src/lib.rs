@@ -11,6 +11,7 @@
 //! counters a job reports. postcard is not self-describing: enum variants
 //! are only ever appended, never reordered or removed.
 
+pub mod backoff;
 pub mod connection;
 pub mod control;
 pub mod error;
@@ -20,6 +21,7 @@ pub mod rays;
 pub mod report;
 pub mod submit;
 
+pub use backoff::Backoff;
 pub use connection::{ConnReader, ConnWriter, Connection};
 pub use error::ProtocolError;
 

@@ -32,7 +32,10 @@ pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobR
 /// the client hold more.
 pub struct Collector {
     pixels: Vec<[f32; 3]>,
-    expected: usize,
+    /// Pixels the job asked for; None when attaching by id, where runs are
+    /// bounded by the largest image a job may ask for and the whole is
+    /// checked against the size `Done` gives.
+    expected: Option<usize>,
     /// The job's id, once the scheduler has said it.
     pub job: Option<u64>,
 }
@@ -42,18 +45,16 @@ impl Collector {
     pub fn new(width: u32, height: u32) -> Self {
         Self {
             pixels: Vec::new(),
-            expected: width as usize * height as usize,
+            expected: Some(width as usize * height as usize),
             job: None,
         }
     }
 
-    /// For a job attached to by id, whose size the client does not know:
-    /// bounded by the largest image a job may ask for, and checked against
-    /// the size `Done` gives.
+    /// For a job attached to by id, whose size the client does not know.
     pub fn any_size() -> Self {
         Self {
             pixels: Vec::new(),
-            expected: MAX_IMAGE_PIXELS,
+            expected: None,
             job: None,
         }
     }
@@ -91,14 +92,12 @@ impl Collector {
                 offset,
                 pixels,
             }) => {
-                if offset != self.pixels.len() as u64
-                    || self.pixels.len() + pixels.len() > self.expected
-                {
+                let bound = self.expected.unwrap_or(MAX_IMAGE_PIXELS);
+                if offset != self.pixels.len() as u64 || self.pixels.len() + pixels.len() > bound {
                     return Some(Err(anyhow::anyhow!(
-                        "job {job}: pixels {offset}..{} arrived after {} of {}",
+                        "job {job}: pixels {offset}..{} arrived after {} of {bound}",
                         offset + pixels.len() as u64,
                         self.pixels.len(),
-                        self.expected
                     )));
                 }
                 self.pixels.extend_from_slice(&pixels);
@@ -109,15 +108,14 @@ impl Collector {
                 if r.pixels.is_empty() {
                     r.pixels = std::mem::take(&mut self.pixels);
                 }
-                if self.expected == MAX_IMAGE_PIXELS {
-                    self.expected = r.width as usize * r.height as usize;
-                }
-                if r.pixels.len() != self.expected {
+                let want = self
+                    .expected
+                    .unwrap_or(r.width as usize * r.height as usize);
+                if r.pixels.len() != want {
                     return Some(Err(anyhow::anyhow!(
-                        "job {}: the image has {} pixels, {} were asked for",
+                        "job {}: the image has {} pixels, {want} were asked for",
                         r.job,
                         r.pixels.len(),
-                        self.expected
                     )));
                 }
                 Some(Ok(r))
@@ -304,9 +302,8 @@ async fn attach(
     token: &str,
     job: u64,
 ) -> anyhow::Result<locus_protocol::Connection> {
-    use locus_protocol::ProtocolError as E;
     let deadline = tokio::time::Instant::now() + REATTACH_WINDOW;
-    let mut wait = Duration::from_millis(100);
+    let mut backoff = locus_protocol::Backoff::default();
     loop {
         let e = match handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN).await {
             Ok(mut c) => match c.write_msg(&Opening::Attach { job }).await {
@@ -315,15 +312,11 @@ async fn attach(
             },
             Err(e) => e,
         };
-        if matches!(
-            e,
-            E::Version { .. } | E::WrongToken { .. } | E::Refused { .. }
-        ) || tokio::time::Instant::now() + wait > deadline
-        {
+        let wait = backoff.next_delay();
+        if e.is_refusal() || tokio::time::Instant::now() + wait > deadline {
             return Err(e.into());
         }
         tokio::time::sleep(wait).await;
-        wait = (wait * 2).min(Duration::from_secs(5));
     }
 }
 

@@ -26,7 +26,7 @@ use job::Building;
 use locus_protocol::control::{
     HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
 };
-use locus_protocol::{ConnWriter, MAX_FRAME_LEN, handshake};
+use locus_protocol::{Backoff, ConnWriter, MAX_FRAME_LEN, handshake};
 use peers::JobLink;
 use std::sync::Arc;
 use std::time::Duration;
@@ -372,36 +372,6 @@ impl Jobs {
     }
 }
 
-/// Delays between attempts to reach the scheduler: doubling from 100 ms to
-/// 5 s, each shortened by up to half at random so that a farm's workers
-/// do not all knock at once when a scheduler comes back.
-#[derive(Default)]
-struct Backoff {
-    failures: u32,
-}
-
-impl Backoff {
-    const FIRST: Duration = Duration::from_millis(100);
-    const MAX: Duration = Duration::from_secs(5);
-
-    fn next(&mut self) -> Duration {
-        let d = Self::FIRST
-            .saturating_mul(1 << self.failures.min(16))
-            .min(Self::MAX);
-        self.failures += 1;
-        let mut b = [0u8; 1];
-        let jitter = match getrandom::fill(&mut b) {
-            Ok(()) => b[0] as f64 / 510.0,
-            Err(_) => 0.0,
-        };
-        d.mul_f64(1.0 - jitter)
-    }
-
-    fn reset(&mut self) {
-        self.failures = 0;
-    }
-}
-
 async fn fail(ctl: &flume::Sender<WorkerToScheduler>, job: u64, e: anyhow::Error) {
     warn!(job, "job setup failed: {e:#}");
     let _ = ctl
@@ -441,7 +411,6 @@ async fn connect(
     shutdown: &CancellationToken,
     backoff: &mut Backoff,
 ) -> anyhow::Result<Option<locus_protocol::Connection>> {
-    use locus_protocol::ProtocolError as E;
     loop {
         let e = tokio::select! {
             _ = shutdown.cancelled() => return Ok(None),
@@ -450,13 +419,10 @@ async fn connect(
                 Err(e) => e,
             },
         };
-        if matches!(
-            e,
-            E::Version { .. } | E::WrongToken { .. } | E::Refused { .. }
-        ) {
+        if e.is_refusal() {
             return Err(anyhow::Error::from(e).context("worker: scheduler handshake"));
         }
-        let wait = backoff.next();
+        let wait = backoff.next_delay();
         warn!("{e}; retrying in {:.1} s", wait.as_secs_f64());
         tokio::select! {
             _ = shutdown.cancelled() => return Ok(None),

@@ -32,7 +32,8 @@ impl Actor {
             .collect()
     }
 
-    fn ended(&self, j: &Running, outcome: &str) -> EndedJob {
+    /// The history entry of job `j`, run last on `workers`.
+    fn ended(j: &Running, outcome: &str, workers: Vec<String>) -> EndedJob {
         EndedJob {
             id: j.id,
             scene: j.req.name.clone(),
@@ -42,7 +43,7 @@ impl Actor {
             outcome: outcome.to_string(),
             reason: None,
             seconds: j.started.elapsed().as_secs_f64(),
-            workers: self.member_names(j),
+            workers,
             traffic: Vec::new(),
             forwarded_fraction: None,
             load_imbalance: None,
@@ -58,7 +59,7 @@ impl Actor {
         self.metrics.job_failed();
         let ended = EndedJob {
             reason: Some(reason.clone()),
-            ..self.ended(&j, "failed")
+            ..Self::ended(&j, "failed", self.member_names(&j))
         };
         status::push_history(&mut self.history, ended);
         self.forget(j.id);
@@ -68,11 +69,8 @@ impl Actor {
     }
 
     pub(super) fn finish(&mut self) {
-        let mut names = Vec::new();
-        if let Some(j) = &self.job {
-            names = self.member_names(j);
-        }
         let Some(mut j) = self.release() else { return };
+        let names = self.member_names(&j);
         j.recovery.tiles_kept = j.attempt.done_before;
         let report = build_report(&j, &names);
         let ended = EndedJob {
@@ -83,7 +81,7 @@ impl Actor {
                 .collect(),
             forwarded_fraction: Some(report.forwarded_fraction),
             load_imbalance: Some(report.load_imbalance),
-            ..self.ended(&j, "done")
+            ..Self::ended(&j, "done", names)
         };
         self.metrics
             .job_done(&report, ended.seconds, &ended.workers);

@@ -41,21 +41,18 @@ impl Actor {
             return;
         }
         warn!(job = j.id, run = j.attempt.run, worker = w, %reason, "attempt aborted");
+        j.failures = if lost { 0 } else { j.failures + 1 };
+        if j.failures >= MAX_FAILED_ATTEMPTS {
+            // `fail` tells the members to drop the attempt.
+            let n = j.failures;
+            self.fail(format!(
+                "{reason} ({n} attempts in a row failed without a worker lost)"
+            ));
+            return;
+        }
         self.abort_members(&reason);
         self.release_members();
         let j = self.job.as_mut().expect("checked above");
-        if lost {
-            j.failures = 0;
-        } else {
-            j.failures += 1;
-            if j.failures >= MAX_FAILED_ATTEMPTS {
-                let n = j.failures;
-                self.fail(format!(
-                    "{reason} ({n} attempts in a row failed without a worker lost)"
-                ));
-                return;
-            }
-        }
         self.metrics.attempt_restarted();
         j.attempt = Attempt::waiting(j.done);
         self.restart();
@@ -77,7 +74,8 @@ impl Actor {
             if j.attempt.waiting_since.elapsed() >= WORKER_WAIT {
                 let lost = j.recovery.lost.len();
                 self.fail(format!(
-                    "the job lost {lost} workers and no worker was free for {} s",
+                    "the job lost {lost} workers and no worker was free for {} s: \
+                     start workers (they register with the scheduler) and submit it again",
                     WORKER_WAIT.as_secs()
                 ));
             }
