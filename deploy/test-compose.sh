@@ -41,7 +41,7 @@ work="$(mktemp -d)"
 project="locus-test-$$"
 tag="locus:test-$$"
 export LOCUS_IMAGE="$tag" LOCUS_WORKER_THREADS=1 LOCUS_WORKER_BUDGET=1G
-export LOCUS_TOKEN_FILE_HOST="$work/secrets/token" LOCUS_OUT="$work/out"
+export LOCUS_TOKEN_FILE_HOST="$work/secrets/token" LOCUS_TLS_DIR_HOST="$work/secrets" LOCUS_OUT="$work/out"
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
 export LOCUS_PORT="$(free_port)" LOCUS_HTTP_PORT="$(free_port)"
 dc() { "${compose[@]}" -p "$project" -f "$here/docker-compose.yml" "$@"; }
@@ -64,7 +64,10 @@ docker image inspect "$tag" --format 'image {{.Id}}: {{.Size}} bytes' >&2
 
 mkdir -p "$work/secrets" "$work/out"
 head -c 24 /dev/urandom | od -An -tx1 | tr -d ' \n' >"$LOCUS_TOKEN_FILE_HOST"
-chmod 644 "$LOCUS_TOKEN_FILE_HOST"
+"$locus" tls-init -o "$LOCUS_TLS_DIR_HOST" >/dev/null
+chmod 644 "$LOCUS_TOKEN_FILE_HOST" "$LOCUS_TLS_DIR_HOST/key.pem"
+# Every host client trusts the farm's certificate.
+tls=(--tls-ca "$LOCUS_TLS_DIR_HOST/cert.pem")
 chmod 777 "$work/out"
 
 echo "== 2. farm: scheduler and 3 workers" >&2
@@ -79,7 +82,12 @@ echo "== 3. render: one machine, then the farm twice" >&2
 scene=scenes/cornell-box/cornell.toml
 opts=(--spp 16)
 "$locus" render "$scene" "${opts[@]}" -o "$work/single.exr" >/dev/null
-timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
+# TLS is on: a client that does not speak it is turned away at once.
+if timeout 60 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
+    "$scene" "${opts[@]}" --workers 3 -o "$work/plain.exr" >/dev/null 2>&1; then
+    fail "a client without TLS was served"
+fi
+timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" "${tls[@]}" \
     "$scene" "${opts[@]}" --workers 3 --fetch forward -o "$work/host.exr" >/dev/null ||
     fail "submit from the host failed"
 forwarded="$(python3 -c 'import json,sys; w=json.load(open(sys.argv[1]))["farm"]["workers"]; print(sum(x["stats"]["forwarded_out"] for x in w))' "$work/host.json")"
@@ -94,17 +102,17 @@ timeout 300 env LOCUS_UID="$(id -u)" LOCUS_GID="$(id -g)" "${compose[@]}" -p "$p
 # The status address, published like the scheduler's: what it counted.
 "$locus" status --http "127.0.0.1:$LOCUS_HTTP_PORT" >&2 || fail "locus status failed"
 curl -fsS "http://127.0.0.1:$LOCUS_HTTP_PORT/metrics" >"$work/metrics" || fail "no /metrics"
-grep -E '^locus_(tiles_total|jobs_total|forwarded_queries_total|worker_up)' "$work/metrics" >&2
+grep -E '^locus_(tile_passes_total|jobs_total|forwarded_queries_total|worker_up)' "$work/metrics" >&2
 grep -q '^locus_jobs_total{outcome="done"} 2$' "$work/metrics" || fail "/metrics does not count 2 jobs done"
-echo "test-compose: ok: 3 worker containers, $forwarded rays forwarded between them, both farm images bit-identical to one machine" >&2
+echo "test-compose: ok: 3 worker containers over TLS (a plain client refused), $forwarded rays forwarded between them, both farm images bit-identical to one machine" >&2
 
 echo "== 4. a worker lost mid-job: killed, then cut off the network" >&2
 status_json() { curl -fsS "http://127.0.0.1:$LOCUS_HTTP_PORT/status"; }
-# Waits until the running job has tiles in (at least $1, default 1): the
+# Waits until the running job has tile passes in (at least $1, default 1): the
 # loss then lands mid-render.
 wait_rendering() {
     local deadline=$((SECONDS + 120))
-    until status_json | python3 -c 'import json,sys; r=json.load(sys.stdin)["running"]; sys.exit(0 if r and r["tiles_done"] >= int(sys.argv[1]) else 1)' "${1:-1}" 2>/dev/null; do
+    until status_json | python3 -c 'import json,sys; r=json.load(sys.stdin)["running"]; sys.exit(0 if r and r["tile_passes_done"] >= int(sys.argv[1]) else 1)' "${1:-1}" 2>/dev/null; do
         ((SECONDS < deadline)) || fail "the job did not start rendering within 120 s"
         sleep 0.2
     done
@@ -120,7 +128,7 @@ wait_registered() {
 }
 # Submits the long job from the host in the background, writing $1.exr.
 submit_long() {
-    timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" \
+    timeout 300 "$locus" submit --scheduler "127.0.0.1:$LOCUS_PORT" --token-file "$LOCUS_TOKEN_FILE_HOST" "${tls[@]}" \
         "$scene" "${long[@]}" --workers 3 --fetch forward -o "$work/$1.exr" >/dev/null &
 }
 long=(--spp 96)
@@ -137,7 +145,7 @@ lose() { # $1: what is done to the worker container $2 (kill | disconnect)
     wait "$pid" || fail "the job with a worker lost ($1) failed"
     "$locus" diff --exact "$work/$1.exr" "$work/single-long.exr" ||
         fail "the job with a worker lost ($1) differs from one machine"
-    python3 -c 'import json,sys; r=json.load(open(sys.argv[1]))["farm"]["recovery"]; print("   attempts:", r["attempts"], "lost:", r["lost"], "tiles kept:", r["tiles_kept"]); sys.exit(0 if r["lost"] else 1)' \
+    python3 -c 'import json,sys; r=json.load(open(sys.argv[1]))["farm"]["recovery"]; print("   attempts:", r["attempts"], "lost:", r["lost"], "tile passes kept:", r["tile_passes_kept"]); sys.exit(0 if r["lost"] else 1)' \
         "$work/$1.json" >&2 || fail "the report of the $1 job names no lost worker"
 }
 mapfile -t workers < <(dc ps -q worker)
@@ -166,7 +174,7 @@ echo "   scheduler container ${scheduler:0:12} killed and started again mid-job"
 wait "$pid" || fail "the job did not survive the scheduler's restart"
 "$locus" diff --exact "$work/restart.exr" "$work/single-long.exr" ||
     fail "the job resumed after the scheduler's restart differs from one machine"
-python3 -c 'import json,sys; r=json.load(open(sys.argv[1]))["farm"]["recovery"]; print("   tiles kept from the store:", r["tiles_kept"]); sys.exit(0 if r["tiles_kept"] > 0 else 1)' \
+python3 -c 'import json,sys; r=json.load(open(sys.argv[1]))["farm"]["recovery"]; print("   tile passes kept from the store:", r["tile_passes_kept"]); sys.exit(0 if r["tile_passes_kept"] > 0 else 1)' \
     "$work/restart.json" >&2 || fail "the resumed job kept no tiles from the store"
 wait_registered "the workers did not register again with the restarted scheduler"
 echo "test-compose: ok: the scheduler restarted mid-job, the job resumed from its store bit-identical" >&2

@@ -99,9 +99,29 @@ def main():
             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         procs.append(client)
 
+        # Tile passes in the preview shown.
         tiles = lambda: driver.execute_script(
             "const i = document.getElementById('preview');"
-            "return i.dataset.job ? Number(i.dataset.tiles) : -1;")
+            "return i.dataset.job ? Number(i.dataset.done) : -1;")
+        # 16x16 blocks of the preview with no lit pixel (null: no preview).
+        dark_blocks = lambda: driver.execute_script(
+            "const i = document.getElementById('preview');"
+            "if (!i.complete || !i.naturalWidth) return null;"
+            "const c = document.createElement('canvas');"
+            "c.width = i.naturalWidth; c.height = i.naturalHeight;"
+            "const g = c.getContext('2d'); g.drawImage(i, 0, 0);"
+            "const d = g.getImageData(0, 0, c.width, c.height).data;"
+            "let dark = 0;"
+            "for (let by = 0; by < c.height; by += 16) for (let bx = 0; bx < c.width; bx += 16) {"
+            "  let lit = false;"
+            "  for (let y = by; y < Math.min(by + 16, c.height) && !lit; y++)"
+            "    for (let x = bx; x < Math.min(bx + 16, c.width); x++) {"
+            "      const k = 4 * (y * c.width + x);"
+            "      if (d[k] + d[k + 1] + d[k + 2] > 0) { lit = true; break; }"
+            "    }"
+            "  if (!lit) dark++;"
+            "}"
+            "return dark;")
         # The preview's pixels, read back through a canvas.
         pixels = lambda: driver.execute_script(
             "const i = document.getElementById('preview');"
@@ -120,8 +140,16 @@ def main():
         if hashlib.sha256(p1.encode()).digest() == hashlib.sha256(p2.encode()).digest():
             fail(f"the preview did not change between {first} and {second} tiles")
         total = driver.execute_script(
-            "return Number(document.querySelector('#job').textContent.match(/\\/ (\\d+) tiles/)[1])")
-        wait("a quarter of the tiles", lambda: tiles() >= total // 4, 60)
+            "return Number(document.querySelector('#job').textContent.match(/\\/ (\\d+) tile passes/)[1])")
+        # Progressive passes: once the first pass is in (every tile at one
+        # sample), the preview covers the whole image, not some tiles.
+        passes = driver.execute_script(
+            "return Number(document.querySelector('#job').textContent.match(/pass \\d+ of (\\d+)/)[1])")
+        wait("the first pass in the preview", lambda: tiles() >= total // passes, 60)
+        dark = wait("the preview's blocks", lambda: (d := dark_blocks()) is not None and (d,), 30)[0]
+        if dark:
+            fail(f"{dark} blocks of 16x16 pixels of the preview are black after the first pass")
+        wait("a quarter of the tile passes", lambda: tiles() >= total // 4, 60)
         driver.save_screenshot(os.path.join(out, "status-page.png"))
         worker_text = driver.find_element("id", "workers").text
         if worker_text.count("busy") != 2:
@@ -134,7 +162,8 @@ def main():
         if not re.search(r"\d+(\.\d)? (KiB|MiB|GiB)", traffic):
             fail(f"no traffic shown between the workers of a `forward` job: {traffic!r}")
         driver.save_screenshot(os.path.join(out, "status-page-done.png"))
-        print(f"status page test: ok: 2 workers listed, preview changed from {first} to {second} tiles; "
+        print(f"status page test: ok: 2 workers listed, preview changed from {first} to {second} tile passes, "
+              f"whole image after the first of {passes} passes; "
               f"screenshots in {out}")
     finally:
         if driver is not None:

@@ -6,8 +6,7 @@
 
 use glam::Vec3;
 use locus_core::accel::Accel;
-use locus_core::bench::incoherent_rays;
-use locus_core::generate::{RoomParams, conference_room, room_materials};
+use locus_core::generate::{RoomParams, conference_room, incoherent_rays, room_materials};
 use locus_core::geometry::Ray;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::scene::{Camera, RenderSettings, Scene};

@@ -1,8 +1,14 @@
 //! Generated test scenes: a conference-like room (walls, a long table, many
 //! chairs, ceiling light panels) with a triangle count chosen by the caller,
 //! written as OBJ + MTL + scene TOML so it goes through the same loaders as
-//! any user scene. Output is a pure function of the parameters.
+//! any user scene; the furnace and mesh builders of the core's tests; and
+//! the incoherent rays the tracing benchmarks shoot. Output is a pure
+//! function of the parameters. It lives in the core, not with the
+//! benchmarks, because the core's own tests use it.
 
+use crate::geometry::Ray;
+use crate::render::Prepared;
+use crate::sampler::SampleKey;
 use glam::Vec3;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -279,6 +285,24 @@ pub fn furnace(rho: f32, le: f32, spp: u32, n: u32) -> crate::scene::Scene {
         mats,
         mb.tagged_triangles(),
     )
+}
+
+/// Rays with origins uniform in the scene bounds (shrunk by 5%) and
+/// uniform directions: the incoherent case of diffuse interreflection.
+pub fn incoherent_rays(prep: &Prepared, n: usize, seed: u64) -> Vec<Ray> {
+    let b = crate::geometry::Bounds::of_triangles(&prep.scene.tris);
+    let c = b.center();
+    let e = b.extent() * 0.45;
+    (0..n)
+        .map(|i| {
+            let k = SampleKey::new(i as u64, 0, seed);
+            let o = c + e * (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0);
+            let z = 1.0 - 2.0 * k.get1d(3);
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = std::f32::consts::TAU * k.get1d(4);
+            Ray::new(o, Vec3::new(r * phi.cos(), r * phi.sin(), z))
+        })
+        .collect()
 }
 
 #[cfg(test)]

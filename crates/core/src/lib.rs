@@ -16,15 +16,16 @@
 //! the per-vertex physics is [`integrator`]'s `shade`. Every random number
 //! comes from [`sampler`] as a pure function of (pixel, sample, dimension,
 //! seed); area lights are sampled from [`light`]. [`render`] runs the
-//! kernel over tiles on a rayon pool and counts work in [`stats`]. Images
+//! kernel over tiles on a rayon pool, each pixel's samples in the progressive
+//! [`passes`] the farm renders too, and counts work in [`stats`]. Images
 //! leave through [`image_io`], are compared with [`metrics`], and reports
-//! are written by [`report`]. [`dircache`] is paper 000's directional
+//! are written by [`report`]. [`dircache`] is Jansen and Reinhard's directional
 //! cache: per octree leaf, the radiance arriving from beyond a locality
-//! radius, by direction. [`generate`] writes the generated scenes.
+//! radius, by direction. [`generate`] writes the generated scenes (the
+//! benchmarks, in the `locus` crate, use them too).
 
 pub mod accel;
 pub mod accel_set;
-pub mod bench;
 pub mod dircache;
 pub mod error;
 pub mod generate;
@@ -36,6 +37,7 @@ pub mod limits;
 pub mod mesh_io;
 pub mod metrics;
 pub mod octree;
+pub mod passes;
 pub mod path;
 pub mod region;
 pub mod render;

@@ -20,7 +20,7 @@
 //! The single machine's tracer ([`WholeScene`]) never says `Next`, so every
 //! item finishes at once; that is the only difference between one machine
 //! and a farm worker, and why their images agree bit for bit by
-//! construction. [`PixelSum`] is the one pixel mean both use.
+//! construction. [`crate::passes`] has the one pixel mean both use.
 
 use crate::accel::{Accel, Surface};
 use crate::dircache::{LeafCaches, Lookup};
@@ -32,7 +32,7 @@ use crate::region::WorkerId;
 use crate::sampler::SampleKey;
 use crate::scene::{Camera, Material};
 use crate::stats::TraceStats;
-use glam::{DVec3, Vec3};
+use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 /// A question about one ray that any worker holding the right geometry
@@ -410,31 +410,5 @@ impl Kernel<'_> {
             }
             pending => (pending, Some((leaf, nq.ray.dir))),
         }
-    }
-}
-
-/// A pixel's samples summed in sample-index order (f64), with non-finite
-/// values dropped and counted: the one pixel mean of one machine and the
-/// farm.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct PixelSum {
-    sum: DVec3,
-}
-
-impl PixelSum {
-    #[inline]
-    pub fn add(&mut self, l: Vec3, st: &mut TraceStats) {
-        st.samples += 1;
-        if l.is_finite() {
-            self.sum += l.as_dvec3();
-        } else {
-            st.invalid_samples += 1;
-        }
-    }
-
-    /// The mean over `spp` samples.
-    pub fn mean(&self, spp: u32) -> [f32; 3] {
-        let m = self.sum / spp.max(1) as f64;
-        [m.x as f32, m.y as f32, m.z as f32]
     }
 }

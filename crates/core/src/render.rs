@@ -1,8 +1,8 @@
 //! Single-machine rendering: prepare a scene (octree, BVH, lights), then
 //! render tiles on a rayon compute pool.
 //!
-//! Each pixel's samples are evaluated and summed in sample-index order by
-//! one task, so the image is bit-identical for any thread count and any
+//! Each pixel's samples are evaluated and summed in the order of
+//! [`crate::passes`] by one task, so the image is bit-identical for any thread count and any
 //! tile order. Non-finite sample values are replaced by zero and counted.
 
 use crate::accel::Accel;
@@ -11,7 +11,8 @@ use crate::geometry::TriangleSet;
 use crate::image_io::Image;
 use crate::light::LightSet;
 use crate::octree::Octree;
-use crate::path::{CacheUse, Kernel, PixelSum, WholeScene};
+use crate::passes::pixel_mean;
+use crate::path::{CacheUse, Kernel, WholeScene};
 use crate::sampler::mix64;
 use crate::scene::Scene;
 use crate::stats::TraceStats;
@@ -134,6 +135,12 @@ pub struct Tile {
     pub y1: u32,
 }
 
+impl Tile {
+    pub fn pixels(&self) -> u32 {
+        (self.x1 - self.x0) * (self.y1 - self.y0)
+    }
+}
+
 pub fn tiles(width: u32, height: u32, size: u32, order: TileOrder) -> Vec<Tile> {
     let size = size.max(1);
     let mut v = Vec::new();
@@ -161,7 +168,8 @@ pub fn tiles(width: u32, height: u32, size: u32, order: TileOrder) -> Vec<Tile> 
     v
 }
 
-/// The value of one pixel: its samples in index order, averaged.
+/// The value of one pixel: its samples in passes, averaged
+/// ([`crate::passes`]).
 pub fn render_pixel(
     kernel: &Kernel,
     tracer: &WholeScene,
@@ -170,13 +178,10 @@ pub fn render_pixel(
     spp: u32,
     stats: &mut TraceStats,
 ) -> [f32; 3] {
-    let mut sum = PixelSum::default();
     let mut chain = Vec::new();
-    for s in 0..spp {
-        let l = kernel.sample(tracer, x, y, s, &mut chain, stats);
-        sum.add(l, stats);
-    }
-    sum.mean(spp)
+    pixel_mean(spp, stats, |s, st| {
+        kernel.sample(tracer, x, y, s, &mut chain, st)
+    })
 }
 
 pub struct RenderOutput {

@@ -286,7 +286,17 @@ fn hostile_gltf_is_refused_by_element() {
         (
             "missing accessor",
             |g| g["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = 7.into(),
-            "document",
+            "attributes.POSITION",
+        ),
+        (
+            "empty accessor",
+            |g| g["accessors"][0]["count"] = 0.into(),
+            "no elements",
+        ),
+        (
+            "a child past the nodes",
+            |g| g["nodes"][0]["children"] = serde_json::json!([5]),
+            "nodes[0].children",
         ),
         (
             "count past the view",
@@ -386,5 +396,55 @@ fn mtl_colours_outside_the_scene_rules_are_refused() {
         "{e:?}"
     );
     assert!(format!("{e}").contains("albedo"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A PLY header may declare any number of elements: one that declares
+/// more than the file can hold is refused before the parser makes them
+/// (a fuzzed header of 85 bytes once took 21 GB and ran on), naming the
+/// element; one that the file holds loads.
+#[test]
+fn ply_counts_beyond_the_file_are_refused() {
+    let dir = std::env::temp_dir().join(format!("locus-ply-count-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene = "[camera]\nposition = [0.0, 0.0, 5.0]\nlook_at = [0.0, 0.0, 0.0]\nfov_y = 45.0\nresolution = [8, 8]\n[[mesh]]\nfile = \"m.ply\"\n";
+    std::fs::write(dir.join("s.toml"), scene).unwrap();
+    let header = |format: &str, n: &str| {
+        format!(
+            "ply\nformat {format} 1.0\nelement vertex {n}\nproperty float x\nproperty float y\nproperty float z\n\
+             element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        )
+    };
+    for format in ["binary_little_endian", "ascii"] {
+        // An element with no properties takes no bytes to the parser.
+        let mut bytes =
+            format!("ply\nformat {format} 1.0\nelement vertex 5555555555555555\nend_header\n")
+                .into_bytes();
+        bytes.extend_from_slice(&[b'\n'; 64]);
+        std::fs::write(dir.join("m.ply"), &bytes).unwrap();
+        let t = std::time::Instant::now();
+        let e = Scene::load(&dir.join("s.toml")).unwrap_err().to_string();
+        assert!(
+            e.contains("element vertex") && e.contains("can hold"),
+            "{format}: {e}"
+        );
+        assert!(
+            t.elapsed().as_secs() < 5,
+            "{format}: refused only after {:?}",
+            t.elapsed()
+        );
+    }
+    let mut good = header("binary_little_endian", "3").into_bytes();
+    for v in [[0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]] {
+        for c in v {
+            good.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    good.push(3);
+    for i in [0i32, 1, 2] {
+        good.extend_from_slice(&i.to_le_bytes());
+    }
+    std::fs::write(dir.join("m.ply"), &good).unwrap();
+    assert_eq!(Scene::load(&dir.join("s.toml")).unwrap().tris.len(), 1);
     let _ = std::fs::remove_dir_all(&dir);
 }

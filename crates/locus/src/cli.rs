@@ -6,6 +6,7 @@ use clap::{Parser, Subcommand};
 use locus::config::Config;
 use locus_protocol::control::Tuning;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, Partitioner};
+use locus_protocol::tls::{Tls, TlsFiles};
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -60,6 +61,17 @@ pub(crate) enum Cmd {
     /// The farm benchmark: overhead against one machine, speedup, and
     /// region growing against the Morton baseline for 2, 4 and 8 workers.
     BenchFarm(BenchFarmArgs),
+    /// Write a farm's TLS certificate and key (self-signed, for the name
+    /// "locus"): give both to every node with --tls-cert and --tls-key, or
+    /// the certificate alone (--tls-ca) to clients.
+    TlsInit {
+        /// Directory for cert.pem and key.pem.
+        #[arg(short, long, default_value = ".")]
+        out_dir: PathBuf,
+        /// Replace files that exist.
+        #[arg(long)]
+        force: bool,
+    },
 }
 
 #[derive(clap::Args)]
@@ -114,19 +126,41 @@ pub(crate) struct TokenArgs {
     /// A TOML config file (see configs/).
     #[arg(long)]
     pub(crate) config: Option<PathBuf>,
+    /// TLS: this node's certificate (PEM), or LOCUS_TLS_CERT, or `cert`
+    /// under `[tls]`. Any TLS setting turns TLS on for every link.
+    #[arg(long, env = "LOCUS_TLS_CERT")]
+    pub(crate) tls_cert: Option<PathBuf>,
+    /// TLS: its private key (PEM), or LOCUS_TLS_KEY, or `key` under `[tls]`.
+    #[arg(long, env = "LOCUS_TLS_KEY")]
+    pub(crate) tls_key: Option<PathBuf>,
+    /// TLS: the farm's certificate authority (PEM), or LOCUS_TLS_CA, or
+    /// `ca` under `[tls]`; the node's own certificate when not given.
+    #[arg(long, env = "LOCUS_TLS_CA")]
+    pub(crate) tls_ca: Option<PathBuf>,
+    /// TLS: the name certificates are checked for (default "locus").
+    #[arg(long, env = "LOCUS_TLS_SERVER_NAME")]
+    pub(crate) tls_server_name: Option<String>,
 }
 
 impl TokenArgs {
-    /// The config file (empty without --config) and the cluster token from
-    /// the flags, the environment or that file.
-    pub(crate) fn load(&self) -> Result<(Config, String)> {
+    /// The config file (empty without --config), the cluster token and the
+    /// TLS settings from the flags, the environment or that file. A node
+    /// that `accepts` connections needs a certificate and key for TLS.
+    pub(crate) fn load(&self, accepts: bool) -> Result<(Config, String, Option<Tls>)> {
         let cfg = Config::load(self.config.as_deref())?;
         let token = cfg.token(
             self.token.clone(),
             self.token_file.as_deref(),
             self.config.as_ref(),
         )?;
-        Ok((cfg, token))
+        let flags = TlsFiles {
+            cert: self.tls_cert.clone(),
+            key: self.tls_key.clone(),
+            ca: self.tls_ca.clone(),
+            server_name: self.tls_server_name.clone(),
+        };
+        let tls = Tls::load(&cfg.tls.overridden_by(&flags), accepts)?;
+        Ok((cfg, token, tls))
     }
 }
 

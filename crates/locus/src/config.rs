@@ -16,6 +16,9 @@ pub struct Config {
     pub scheduler: SchedulerSection,
     #[serde(default)]
     pub worker: WorkerSection,
+    /// TLS on every link (`cert`, `key`, `ca`, `server_name`).
+    #[serde(default)]
+    pub tls: locus_protocol::tls::TlsFiles,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -270,6 +273,39 @@ mod tests {
         assert!(s.scheduler.listen.is_some() && s.token.is_some());
         let w = Config::load(Some(&dir.join("worker.toml"))).unwrap();
         assert!(w.worker.scheduler.is_some() && w.worker.listen.is_some());
+    }
+
+    /// The example configs' `[tls]` section, uncommented, parses; flags
+    /// override it setting by setting; a misspelt key is refused.
+    #[test]
+    fn tls_section_and_flags() {
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/worker.toml"),
+        )
+        .unwrap()
+        .replace("# [tls]", "[tls]")
+        .replace("# cert", "cert")
+        .replace("# key", "key")
+        .replace("# ca", "ca");
+        let c: Config = toml::from_str(&text).unwrap();
+        assert_eq!(
+            c.tls.cert.as_deref(),
+            Some(Path::new("/etc/locus/cert.pem"))
+        );
+        let flags = locus_protocol::tls::TlsFiles {
+            ca: Some("/flag/ca.pem".into()),
+            ..Default::default()
+        };
+        let merged = c.tls.overridden_by(&flags);
+        assert_eq!(merged.ca.as_deref(), Some(Path::new("/flag/ca.pem")));
+        assert_eq!(merged.key.as_deref(), Some(Path::new("/etc/locus/key.pem")));
+        assert!(
+            toml::from_str::<Config>(
+                "[tls]
+certificate = \"x\"\n"
+            )
+            .is_err()
+        );
     }
 
     #[test]

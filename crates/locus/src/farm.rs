@@ -8,7 +8,9 @@
 //! its way in.
 
 use anyhow::Context;
+use locus_protocol::handshake::Credentials;
 use locus_protocol::submit::{JobRequest, JobResult};
+use locus_protocol::tls::{Tls, TlsFiles};
 use locus_scheduler::{Scheduler, SchedulerConfig, SchedulerHandle, client};
 use locus_worker::{Worker, WorkerConfig};
 use std::net::SocketAddr;
@@ -21,6 +23,8 @@ pub struct LocalFarm {
     /// The status page's address, when the spec asked for one.
     pub http: Option<SocketAddr>,
     pub token: String,
+    /// The farm's TLS, when its spec turned it on.
+    pub tls: Option<Tls>,
     handle: SchedulerHandle,
     workers: usize,
     shutdown: CancellationToken,
@@ -39,6 +43,8 @@ pub struct FarmSpec {
     pub processes: Option<PathBuf>,
     /// Where the scheduler serves its status page and metrics, if at all.
     pub http: Option<String>,
+    /// TLS on every link of the farm (None: plain TCP on loopback).
+    pub tls: Option<TlsFiles>,
 }
 
 impl FarmSpec {
@@ -50,8 +56,28 @@ impl FarmSpec {
             memory_budget: 0,
             processes: None,
             http: None,
+            tls: None,
         }
     }
+}
+
+/// The flags that give a worker process the TLS files `f`.
+fn tls_args(f: &TlsFiles) -> Vec<std::ffi::OsString> {
+    let mut v = Vec::new();
+    let mut flag = |name: &str, value: Option<&std::ffi::OsStr>| {
+        if let Some(x) = value {
+            v.push(name.into());
+            v.push(x.to_os_string());
+        }
+    };
+    flag("--tls-cert", f.cert.as_deref().map(|p| p.as_os_str()));
+    flag("--tls-key", f.key.as_deref().map(|p| p.as_os_str()));
+    flag("--tls-ca", f.ca.as_deref().map(|p| p.as_os_str()));
+    flag(
+        "--tls-server-name",
+        f.server_name.as_deref().map(std::ffi::OsStr::new),
+    );
+    v
 }
 
 /// A worker child process, killed when dropped.
@@ -90,10 +116,15 @@ impl LocalFarm {
     pub async fn launch(spec: &FarmSpec) -> anyhow::Result<Self> {
         let (workers, threads_per_worker) = (spec.workers, spec.threads_per_worker);
         let token = fresh_token();
+        let tls = match &spec.tls {
+            Some(f) => Tls::load(f, true)?,
+            None => None,
+        };
         let shutdown = CancellationToken::new();
         let sched = Scheduler::bind(SchedulerConfig {
             listen: "127.0.0.1:0".into(),
             token: token.clone(),
+            tls: tls.clone(),
             max_queued_jobs: 16,
             http: spec.http.clone(),
             worker_timeout: locus_scheduler::WORKER_TIMEOUT,
@@ -124,6 +155,9 @@ impl LocalFarm {
                 if spec.memory_budget > 0 {
                     c.args(["--memory-budget", &spec.memory_budget.to_string()]);
                 }
+                if let Some(f) = &spec.tls {
+                    c.args(tls_args(f));
+                }
                 if std::env::var_os("RUST_LOG").is_none() {
                     c.env("RUST_LOG", "warn");
                 }
@@ -136,6 +170,7 @@ impl LocalFarm {
                 scheduler: addr,
                 http,
                 token,
+                tls,
                 handle,
                 workers,
                 shutdown,
@@ -149,6 +184,7 @@ impl LocalFarm {
                 listen: "127.0.0.1:0".into(),
                 advertise: None,
                 token: token.clone(),
+                tls: tls.clone(),
                 threads: threads_per_worker.max(1),
                 memory_budget: spec.memory_budget,
                 name: format!("embedded-{i}"),
@@ -161,12 +197,18 @@ impl LocalFarm {
             scheduler: addr,
             http,
             token,
+            tls,
             handle,
             workers,
             shutdown,
             tasks,
             children,
         })
+    }
+
+    /// What a client of this farm connects with.
+    pub fn credentials(&self) -> Credentials {
+        Credentials::new(&self.token, self.tls.clone())
     }
 
     pub fn shutdown_token(&self) -> CancellationToken {
@@ -179,7 +221,7 @@ impl LocalFarm {
     pub async fn render(
         &self,
         mut req: JobRequest,
-        progress: &(dyn Fn(u32, u32) + Sync),
+        progress: &(dyn Fn(u64, u64) + Sync),
     ) -> anyhow::Result<JobResult> {
         if req.options.workers == 0 {
             req.options.workers = self.workers as u32;
@@ -208,7 +250,7 @@ impl LocalFarm {
 pub fn render_embedded(
     req: JobRequest,
     spec: &FarmSpec,
-    progress: &(dyn Fn(u32, u32) + Sync),
+    progress: &(dyn Fn(u64, u64) + Sync),
 ) -> anyhow::Result<JobResult> {
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)

@@ -1,13 +1,12 @@
 //! The library half of the `locus` command: the local farm of in-process or
 //! child-process workers ([`farm`]), daemon configuration and presets
-//! ([`config`]), the farm benchmark ([`bench_farm`]), the data-locality
-//! benchmark ([`locality`]), the `locus status` client ([`status`]) and
-//! signal handling, shared by the binary and the integration tests.
+//! ([`config`]), the `locus status` client ([`status`]) and signal
+//! handling, shared by the binary and the integration tests; and apart
+//! from them, the benchmarks ([`bench`]).
 
-pub mod bench_farm;
+pub mod bench;
 pub mod config;
 pub mod farm;
-pub mod locality;
 pub mod status;
 
 use tokio_util::sync::CancellationToken;

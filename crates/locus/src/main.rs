@@ -17,7 +17,7 @@ mod output;
 use anyhow::Result;
 use clap::Parser;
 use cli::{Cli, Cmd};
-use commands::{daemons::*, render::*, tools::*};
+use commands::{bench::*, daemons::*, render::*, tools::*};
 
 fn main() {
     tracing_subscriber::fmt()
@@ -42,6 +42,7 @@ fn main() {
         Cmd::Attach(a) => cmd_attach(a),
         Cmd::Status { http, json } => cmd_status(&http, json),
         Cmd::BenchFarm(a) => cmd_bench_farm(a),
+        Cmd::TlsInit { out_dir, force } => cmd_tls_init(&out_dir, force),
     };
     if let Err(e) = r {
         let msg = error_chain(&e);

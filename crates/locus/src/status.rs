@@ -82,7 +82,7 @@ pub fn format(s: &Status) -> String {
                 .map_or(String::new(), |e| format!(", about {e:.0} s left"));
             let _ = writeln!(
                 o,
-                "job {}: {} {}x{} {} spp ({}), {}: {}/{} tiles after {:.1} s{eta}",
+                "job {}: {} {}x{} {} spp ({}), {}: pass {} of {}, {:.1}% of samples after {:.1} s{eta}",
                 j.id,
                 j.scene,
                 j.width,
@@ -90,8 +90,9 @@ pub fn format(s: &Status) -> String {
                 j.spp,
                 j.policy,
                 j.phase,
-                j.tiles_done,
-                j.tiles,
+                (j.pass + 1).min(j.passes),
+                j.passes,
+                100.0 * j.samples_done as f64 / j.samples.max(1) as f64,
                 j.elapsed_s
             );
         }

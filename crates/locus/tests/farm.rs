@@ -70,7 +70,7 @@ fn bad_clients_are_dropped_while_the_job_completes() {
         let job = farm.render(req, &|_, _| {});
         let attacks = async {
             // Wrong token: refused, and told why.
-            let e = handshake::dial(&addr, b"not-the-token", MAX_FRAME_LEN)
+            let e = handshake::dial(&addr, &"not-the-token".into(), MAX_FRAME_LEN)
                 .await
                 .err()
                 .expect("wrong token refused");
@@ -100,7 +100,7 @@ fn bad_clients_are_dropped_while_the_job_completes() {
                 drop(s);
             }
             // A client that passes the handshake, then sends garbage.
-            let mut c = handshake::dial(&addr, farm.token.as_bytes(), MAX_FRAME_LEN)
+            let mut c = handshake::dial(&addr, &farm.credentials(), MAX_FRAME_LEN)
                 .await
                 .unwrap();
             c.write_msg(&vec![0xffu8; 40]).await.unwrap();
@@ -190,7 +190,7 @@ fn a_request_in_parts_matches_and_bad_parts_are_refused() {
             },
         ];
         for part in bad_parts {
-            let mut c = handshake::dial(&addr, farm.token.as_bytes(), MAX_FRAME_LEN)
+            let mut c = handshake::dial(&addr, &farm.credentials(), MAX_FRAME_LEN)
                 .await
                 .unwrap();
             let mut req = locus_scheduler::client::request(&scene, JobOptions::default());

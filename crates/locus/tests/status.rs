@@ -105,8 +105,9 @@ fn status_metrics_and_preview_report_the_job() {
         let (code, text) = get(http, "/metrics").await;
         assert_eq!(code, 200);
         let text = String::from_utf8(text).unwrap();
-        let tiles = (32u64 / 8) * (24u64 / 8);
-        assert_eq!(metric(&text, "locus_tiles_total"), tiles);
+        // 12 tiles in the passes of 3 samples per pixel.
+        let tiles = (32u64 / 8) * (24u64 / 8) * locus_core::passes::passes(3).len() as u64;
+        assert_eq!(metric(&text, "locus_tile_passes_total"), tiles);
         assert_eq!(metric(&text, "locus_jobs_total{outcome=\"done\"}"), 1);
         let t = &r.report.totals;
         assert_eq!(

@@ -1,4 +1,4 @@
-//! A framed TCP connection carrying postcard messages.
+//! A framed TCP (or TLS) connection carrying postcard messages.
 //!
 //! [`Connection`] is used whole for request/response exchanges (the
 //! handshake, registration); [`Connection::into_split`] gives a reader and a
@@ -6,20 +6,19 @@
 //! task run side by side.
 
 use crate::error::ProtocolError;
+use crate::stream::{ReadSide, Stream, WriteSide};
 use bytes::BytesMut;
 use futures_util::{SinkExt, StreamExt};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use std::net::SocketAddr;
-use tokio::net::TcpStream;
-use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio_util::codec::{Framed, FramedParts, FramedWrite, LengthDelimitedCodec};
 
 /// Bytes a frame occupies on the wire besides its payload.
 pub const FRAME_HEADER_LEN: usize = 4;
 
 pub struct Connection {
-    framed: Framed<TcpStream, LengthDelimitedCodec>,
+    framed: Framed<Stream, LengthDelimitedCodec>,
     peer: SocketAddr,
     max_frame: usize,
 }
@@ -30,13 +29,13 @@ pub struct ConnReader {
     /// reads the socket again (a `FramedRead` with a pre-filled buffer
     /// waits for new bytes first, which strands a frame that arrived
     /// together with the one read before the split).
-    framed: Framed<OwnedReadHalf, LengthDelimitedCodec>,
+    framed: Framed<ReadSide, LengthDelimitedCodec>,
     peer: SocketAddr,
     max_frame: usize,
 }
 
 pub struct ConnWriter {
-    framed: FramedWrite<OwnedWriteHalf, LengthDelimitedCodec>,
+    framed: FramedWrite<WriteSide, LengthDelimitedCodec>,
     peer: SocketAddr,
     max_frame: usize,
 }
@@ -54,8 +53,13 @@ fn decode<T: DeserializeOwned>(
     max: usize,
     what: &'static str,
 ) -> Result<Option<(T, usize)>, ProtocolError> {
-    let Some(frame) = frame else {
-        return Ok(None);
+    let frame = match frame {
+        None => return Ok(None),
+        // A TLS peer that closed without close_notify, between frames: a
+        // close, as a plain TCP peer's FIN is (a frame cut short is still
+        // an error of the codec's).
+        Some(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+        Some(f) => f,
     };
     let frame = frame.map_err(|e| {
         // The codec reports an oversized length prefix as InvalidData.
@@ -112,9 +116,11 @@ where
 }
 
 impl Connection {
-    pub fn new(stream: TcpStream, max_frame: usize) -> std::io::Result<Self> {
-        let peer = stream.peer_addr()?;
-        stream.set_nodelay(true)?;
+    /// A connection over a TCP stream, or TLS over one.
+    pub fn new(stream: impl Into<Stream>, max_frame: usize) -> std::io::Result<Self> {
+        let stream = stream.into();
+        let peer = stream.tcp().peer_addr()?;
+        stream.tcp().set_nodelay(true)?;
         Ok(Self {
             framed: Framed::new(stream, codec(max_frame)),
             peer,
@@ -140,7 +146,7 @@ impl Connection {
 
     /// This end's address: the interface the peer is reached through.
     pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
-        self.framed.get_ref().local_addr()
+        self.framed.get_ref().tcp().local_addr()
     }
 
     /// The next message, or `None` when the peer closed the connection

@@ -193,10 +193,20 @@ pub struct MemoryPlan {
     pub cache_nodes: u64,
 }
 
+/// The most samples one tile's pass may hold: a worker keeps each
+/// sample's radiance until the pass is in (12 bytes each, 384 MiB here),
+/// so that it can sum them in index order.
+pub const MAX_TILE_PASS_SAMPLES: u64 = 1 << 25;
+
+/// A tile in one of the job's progressive passes (`locus_core::passes`):
+/// the worker renders samples `samples[0]..samples[1]` of every pixel of
+/// `x0..x1` by `y0..y1`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TileAssignment {
     pub job: u64,
     pub tile: u32,
+    pub pass: u32,
+    pub samples: [u32; 2],
     pub x0: u32,
     pub y0: u32,
     pub x1: u32,
@@ -204,15 +214,49 @@ pub struct TileAssignment {
 }
 
 impl TileAssignment {
+    /// Pixels of the tile (0 if its bounds are reversed).
     pub fn pixels(&self) -> u32 {
-        (self.x1 - self.x0) * (self.y1 - self.y0)
+        self.x1.saturating_sub(self.x0) * self.y1.saturating_sub(self.y0)
+    }
+
+    /// Samples per pixel in this pass (0 if the range is reversed).
+    pub fn pass_samples(&self) -> u32 {
+        self.samples[1].saturating_sub(self.samples[0])
+    }
+
+    /// Why a worker cannot render this tile of a `width` by `height` image
+    /// of `spp` samples per pixel, if it cannot.
+    pub fn problem(&self, width: u32, height: u32, spp: u32) -> Option<String> {
+        let n = self.pixels() as u64 * self.pass_samples() as u64;
+        if n > MAX_TILE_PASS_SAMPLES {
+            return Some(format!(
+                "tile {} holds {n} samples in pass {}, more than {MAX_TILE_PASS_SAMPLES}",
+                self.tile, self.pass
+            ));
+        }
+        let t = self.tile;
+        if self.x0 >= self.x1 || self.y0 >= self.y1 || self.x1 > width || self.y1 > height {
+            return Some(format!(
+                "tile {t} ({}..{} x {}..{}) is empty or outside the {width}x{height} image",
+                self.x0, self.x1, self.y0, self.y1
+            ));
+        }
+        if self.samples[0] >= self.samples[1] || self.samples[1] > spp {
+            return Some(format!(
+                "tile {t} asks for samples {}..{} of {spp}",
+                self.samples[0], self.samples[1]
+            ));
+        }
+        None
     }
 }
 
+/// A tile's pass, rendered: per pixel (row-major), the sum of the pass's
+/// samples in index order, which the scheduler's film adds in pass order.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileResult {
     pub job: u64,
     pub tile: u32,
-    /// Row-major pixel means over the tile.
-    pub pixels: Vec<[f32; 3]>,
+    pub pass: u32,
+    pub sums: Vec<[f64; 3]>,
 }

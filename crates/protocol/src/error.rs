@@ -9,7 +9,10 @@ impl ProtocolError {
     pub fn is_refusal(&self) -> bool {
         matches!(
             self,
-            Self::Version { .. } | Self::WrongToken { .. } | Self::Refused { .. }
+            Self::Version { .. }
+                | Self::WrongToken { .. }
+                | Self::Refused { .. }
+                | Self::Tls { fatal: true, .. }
         )
     }
 }
@@ -61,6 +64,13 @@ pub enum ProtocolError {
     Timeout {
         peer: SocketAddr,
         what: &'static str,
+    },
+    #[error("{peer}: {message}")]
+    Tls {
+        peer: SocketAddr,
+        message: String,
+        /// TLS refused (see `tls`), rather than the link failing.
+        fatal: bool,
     },
     #[error("cannot connect to {addr}: {source}")]
     Connect {

@@ -15,6 +15,8 @@
 use crate::PROTOCOL_VERSION;
 use crate::connection::Connection;
 use crate::error::ProtocolError;
+use crate::stream::Stream;
+use crate::tls::Tls;
 use hmac::{Hmac, KeyInit, Mac};
 use serde::{Deserialize, Serialize};
 use sha2::Sha256;
@@ -227,9 +229,43 @@ async fn server_exchange(conn: &mut Connection, token: &[u8]) -> Result<(), Prot
     .await
 }
 
-/// Connects to `addr` and runs the client side of the handshake with the
-/// current protocol version.
-pub async fn dial(addr: &str, token: &[u8], max_frame: usize) -> Result<Connection, ProtocolError> {
+/// What a node needs to open a link: the cluster token, and the farm's
+/// TLS when it is on.
+#[derive(Clone, Debug)]
+pub struct Credentials {
+    pub token: Vec<u8>,
+    pub tls: Option<Tls>,
+}
+
+impl Credentials {
+    pub fn new(token: &str, tls: Option<Tls>) -> Self {
+        Self {
+            token: token.as_bytes().to_vec(),
+            tls,
+        }
+    }
+}
+
+/// A token alone: plain TCP.
+impl From<&str> for Credentials {
+    fn from(token: &str) -> Self {
+        Self::new(token, None)
+    }
+}
+
+impl From<&String> for Credentials {
+    fn from(token: &String) -> Self {
+        Self::new(token, None)
+    }
+}
+
+/// Connects to `addr`, with TLS when `creds` has it, and runs the client
+/// side of the handshake with the current protocol version.
+pub async fn dial(
+    addr: &str,
+    creds: &Credentials,
+    max_frame: usize,
+) -> Result<Connection, ProtocolError> {
     let connect_err = |source| ProtocolError::Connect {
         addr: addr.to_string(),
         source,
@@ -240,7 +276,45 @@ pub async fn dial(addr: &str, token: &[u8], max_frame: usize) -> Result<Connecti
         .await
         .map_err(|_| connect_err(std::io::ErrorKind::TimedOut.into()))?
         .map_err(connect_err)?;
+    let stream = match &creds.tls {
+        None => Stream::from(stream),
+        Some(tls) => {
+            let peer = stream.peer_addr().map_err(connect_err)?;
+            tokio::time::timeout(HANDSHAKE_TIMEOUT, tls.connect(stream, peer))
+                .await
+                .map_err(|_| ProtocolError::Timeout {
+                    peer,
+                    what: "TLS handshake",
+                })??
+        }
+    };
     let mut conn = Connection::new(stream, max_frame).map_err(connect_err)?;
-    client(&mut conn, token, PROTOCOL_VERSION).await?;
+    client(&mut conn, &creds.token, PROTOCOL_VERSION).await?;
+    Ok(conn)
+}
+
+/// Serves an accepted connection: TLS first when `creds` has it, then the
+/// server side of the handshake; both under [`HANDSHAKE_TIMEOUT`].
+pub async fn accept(
+    stream: tokio::net::TcpStream,
+    creds: &Credentials,
+    max_frame: usize,
+) -> Result<Connection, ProtocolError> {
+    let peer = stream.peer_addr().map_err(|e| ProtocolError::Connect {
+        addr: "an accepted peer".into(),
+        source: e,
+    })?;
+    let stream = match &creds.tls {
+        None => Stream::from(stream),
+        Some(tls) => tokio::time::timeout(HANDSHAKE_TIMEOUT, tls.accept(stream, peer))
+            .await
+            .map_err(|_| ProtocolError::Timeout {
+                peer,
+                what: "TLS handshake",
+            })??,
+    };
+    let mut conn =
+        Connection::new(stream, max_frame).map_err(|source| ProtocolError::Io { peer, source })?;
+    server(&mut conn, &creds.token).await?;
     Ok(conn)
 }

@@ -4,7 +4,8 @@
 //! an explicit maximum length ([`connection::Connection`], after
 //! mini-redis). Every connection opens with the [`handshake`]: protocol
 //! version plus mutual proof of the shared cluster token by HMAC-SHA256 over
-//! fresh nonces, so the token never crosses the wire. Then one message
+//! fresh nonces, so the token never crosses the wire; with [`tls`] on, the
+//! link is TLS first ([`stream`] is either). Then one message
 //! family per kind of link: [`control`] (scheduler and workers), [`submit`]
 //! (client and scheduler), [`rays`] (worker to worker, its ray items in
 //! the compact encoding of [`packet`]); [`report`] holds the
@@ -19,14 +20,16 @@ pub mod handshake;
 pub mod packet;
 pub mod rays;
 pub mod report;
+pub mod stream;
 pub mod submit;
+pub mod tls;
 
 pub use backoff::Backoff;
 pub use connection::{ConnReader, ConnWriter, Connection};
 pub use error::ProtocolError;
 
 /// Bumped on any incompatible change of any message family.
-pub const PROTOCOL_VERSION: u32 = 8;
+pub const PROTOCOL_VERSION: u32 = 10;
 
 /// Default maximum frame length: large enough for a geometry shipment of a
 /// big octree leaf, small enough that a bad length prefix cannot make a peer

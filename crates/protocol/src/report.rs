@@ -205,6 +205,13 @@ pub struct Recovery {
     pub attempts: u32,
     /// Each worker lost during the job: its address and why.
     pub lost: Vec<(String, String)>,
-    /// Tiles finished in earlier attempts and kept.
-    pub tiles_kept: u32,
+    /// Tile passes finished in earlier attempts (or before a scheduler
+    /// restart) and kept.
+    pub tile_passes_kept: u64,
+    /// The work of aborted attempts, as their workers reported it when
+    /// they stopped (a lost worker reports nothing): the report's totals
+    /// are the last attempt's.
+    pub aborted: locus_core::stats::TraceStats,
+    /// Reports of aborted attempts received.
+    pub aborted_reports: u32,
 }

@@ -143,10 +143,14 @@ pub enum SchedulerToClient {
         job: u64,
         workers: u32,
     },
+    /// Pixel samples in the film so far, of `samples` in all; `pass`
+    /// (from 0) is the earliest pass not yet complete, of `passes`.
     Progress {
         job: u64,
-        tiles_done: u32,
-        tiles: u32,
+        samples_done: u64,
+        samples: u64,
+        pass: u32,
+        passes: u32,
     },
     Done(Box<JobResult>),
     Failed {

@@ -191,7 +191,7 @@ proptest! {
         let s = setup(n, seed, workers);
         let t = tris(n, seed);
         let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n] };
-        let tile = TileAssignment { job: seed, tile: count, x0: 0, y0: 0, x1: 4, y1: 3 };
+        let tile = TileAssignment { job: seed, tile: count, pass: workers as u32 % 8, samples: [count / 2, count], x0: 0, y0: 0, x1: 4, y1: 3 };
         for m in [
             SchedulerToWorker::Welcome { worker: count, heartbeat_ms: count / 3 },
             SchedulerToWorker::StartJob(Box::new(s)),
@@ -208,7 +208,7 @@ proptest! {
         for m in [
             WorkerToScheduler::Ready { job: seed },
             WorkerToScheduler::NeedTiles { job: seed, count },
-            WorkerToScheduler::TileDone(TileResult { job: seed, tile: count, pixels: vec![[n as f32, 0.5, -1.0]; 12] }),
+            WorkerToScheduler::TileDone(TileResult { job: seed, tile: count, pass: workers as u32, sums: vec![[n as f64, 0.5, -1e300]; 12] }),
             WorkerToScheduler::Report { job: seed, stats: Box::new(stats) },
             WorkerToScheduler::Failed { job: seed, reason: reason.clone() },
             WorkerToScheduler::Heartbeat,
@@ -239,7 +239,7 @@ proptest! {
         let report = FarmReport { scene: reason.clone(), seed, load_imbalance: n as f64, ..Default::default() };
         for m in [
             SchedulerToClient::Accepted { job: seed, workers },
-            SchedulerToClient::Progress { job: seed, tiles_done: workers / 2, tiles: workers },
+            SchedulerToClient::Progress { job: seed, samples_done: seed / 2, samples: seed, pass: workers / 3, passes: workers },
             SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report })),
             SchedulerToClient::Failed { job: seed, reason: reason.clone() },
             SchedulerToClient::Pixels { job: seed, offset: seed, pixels: vec![[f32::MIN_POSITIVE, -1e30, f32::INFINITY]; workers as usize % 5] },
@@ -261,5 +261,39 @@ proptest! {
         let wire = postcard::to_stdvec(&bytes).unwrap();
         let p: Packet = postcard::from_bytes(&wire).unwrap();
         prop_assert!(p.items(1).count() <= bytes.len());
+    }
+}
+
+#[test]
+fn tile_problems_are_named() {
+    let t = TileAssignment {
+        job: 1,
+        tile: 7,
+        pass: 0,
+        samples: [0, 4],
+        x0: 0,
+        y0: 0,
+        x1: 4,
+        y1: 3,
+    };
+    assert_eq!(t.problem(4, 3, 4), None);
+    assert_eq!(t.pixels() * t.pass_samples(), 48);
+    let bad = [
+        TileAssignment { x1: 5, ..t },
+        TileAssignment { y0: 3, ..t },
+        TileAssignment { x0: 9, ..t },
+        TileAssignment {
+            samples: [4, 4],
+            ..t
+        },
+        TileAssignment {
+            samples: [3, 5],
+            ..t
+        },
+    ];
+    for b in bad {
+        let p = b.problem(4, 3, 4).expect("refused");
+        assert!(p.contains("tile 7"), "{p}");
+        let _ = (b.pixels(), b.pass_samples());
     }
 }

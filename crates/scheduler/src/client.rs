@@ -4,6 +4,7 @@
 use anyhow::{Context, bail};
 use locus_core::scene::Scene;
 use locus_protocol::control::Opening;
+use locus_protocol::handshake::Credentials;
 use locus_protocol::submit::{
     JobOptions, JobRequest, JobResult, REQUEST_PART_TRIANGLES, SchedulerToClient, TrianglePart,
 };
@@ -26,10 +27,11 @@ pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobR
 
 /// Gathers one job's messages into its result: `take` gives `Some` with
 /// the result (or why the job failed) once it has come, `None` while it
-/// goes on; `progress(done, total)` is called as tiles come in. The image
-/// arrives in [`SchedulerToClient::Pixels`] runs, in order, which are
-/// checked against the size the job asked for, so a scheduler cannot make
-/// the client hold more.
+/// goes on; `progress(done, total)` is called with the pixel samples in
+/// the film as tiles come in. The image arrives in
+/// [`SchedulerToClient::Pixels`] runs, in order, which are checked against
+/// the size the job asked for, so a scheduler cannot make the client hold
+/// more.
 pub struct Collector {
     pixels: Vec<[f32; 3]>,
     /// Pixels the job asked for; None when attaching by id, where runs are
@@ -68,7 +70,7 @@ impl Collector {
     pub fn take(
         &mut self,
         m: Option<SchedulerToClient>,
-        progress: &(dyn Fn(u32, u32) + Sync),
+        progress: &(dyn Fn(u64, u64) + Sync),
     ) -> Option<anyhow::Result<JobResult>> {
         match m {
             Some(SchedulerToClient::Queued { job, ahead }) => {
@@ -82,9 +84,11 @@ impl Collector {
                 None
             }
             Some(SchedulerToClient::Progress {
-                tiles_done, tiles, ..
+                samples_done,
+                samples,
+                ..
             }) => {
-                progress(tiles_done, tiles);
+                progress(samples_done, samples);
                 None
             }
             Some(SchedulerToClient::Pixels {
@@ -151,12 +155,12 @@ const MAX_IMAGE_PIXELS: usize = 1 << 30;
 /// returns its id once the scheduler has taken it.
 pub async fn submit_detached(
     scheduler: &str,
-    token: &str,
+    creds: impl Into<Credentials>,
     mut req: JobRequest,
 ) -> anyhow::Result<u64> {
     req.options.detached = true;
     let name = req.name.clone();
-    let mut conn = send_request(scheduler, token, req, REQUEST_PART_TRIANGLES).await?;
+    let mut conn = send_request(scheduler, &creds.into(), req, REQUEST_PART_TRIANGLES).await?;
     loop {
         match conn.read_msg::<SchedulerToClient>("submit").await? {
             Some(SchedulerToClient::Queued { job, .. }) => return Ok(job),
@@ -172,19 +176,20 @@ pub async fn submit_detached(
 /// if the link breaks, as [`submit`] does.
 pub async fn attach_to(
     scheduler: &str,
-    token: &str,
+    creds: impl Into<Credentials>,
     job: u64,
-    progress: &(dyn Fn(u32, u32) + Sync),
+    progress: &(dyn Fn(u64, u64) + Sync),
 ) -> anyhow::Result<JobResult> {
+    let creds = &creds.into();
     let mut collect = Collector::any_size();
     collect.job = Some(job);
-    let mut conn = attach(scheduler, token, job).await?;
+    let mut conn = attach(scheduler, creds, job).await?;
     loop {
         match follow(&mut conn, &mut collect, progress).await {
             Ok(r) => return r,
             Err(broke) => {
                 tracing::warn!(job, "{broke:#}; attaching to the job again");
-                conn = attach(scheduler, token, job).await?;
+                conn = attach(scheduler, creds, job).await?;
                 collect.reattached();
             }
         }
@@ -196,29 +201,32 @@ pub async fn attach_to(
 pub const REATTACH_WINDOW: Duration = Duration::from_secs(300);
 
 /// Submits `req` and waits for the result; `progress(done, total)` is called
-/// as tiles come in. A link that breaks once the job has its id is taken up
-/// again ([`Opening::Attach`]) for up to [`REATTACH_WINDOW`], retrying with
-/// backoff: a scheduler restarted on its state directory resumes the job.
+/// with the pixel samples in as tiles come in. A link that breaks once the
+/// job has its id is taken up again ([`Opening::Attach`]) for up to
+/// [`REATTACH_WINDOW`], retrying with backoff: a scheduler restarted on
+/// its state directory resumes the job. `creds` is the token (plain TCP)
+/// or [`Credentials`] with TLS.
 pub async fn submit(
     scheduler: &str,
-    token: &str,
+    creds: impl Into<Credentials>,
     req: JobRequest,
-    progress: &(dyn Fn(u32, u32) + Sync),
+    progress: &(dyn Fn(u64, u64) + Sync),
 ) -> anyhow::Result<JobResult> {
-    submit_in_parts_of(scheduler, token, req, progress, REQUEST_PART_TRIANGLES).await
+    submit_in_parts_of(scheduler, creds, req, progress, REQUEST_PART_TRIANGLES).await
 }
 
 /// As [`submit`], sending the triangles in parts of `part` (a request of
 /// at most `part` triangles goes in one frame).
 pub async fn submit_in_parts_of(
     scheduler: &str,
-    token: &str,
+    creds: impl Into<Credentials>,
     req: JobRequest,
-    progress: &(dyn Fn(u32, u32) + Sync),
+    progress: &(dyn Fn(u64, u64) + Sync),
     part: usize,
 ) -> anyhow::Result<JobResult> {
+    let creds = &creds.into();
     let mut collect = Collector::new(req.camera.width, req.camera.height);
-    let mut conn = send_request(scheduler, token, req, part).await?;
+    let mut conn = send_request(scheduler, creds, req, part).await?;
     loop {
         let broke = match follow(&mut conn, &mut collect, progress).await {
             Ok(r) => return r,
@@ -228,7 +236,7 @@ pub async fn submit_in_parts_of(
             return Err(broke.context("the link to the scheduler broke before it took the job"));
         };
         tracing::warn!(job, "{broke:#}; attaching to the job again");
-        conn = attach(scheduler, token, job).await.with_context(|| {
+        conn = attach(scheduler, creds, job).await.with_context(|| {
             format!(
                 "job {job}: the link to the scheduler broke ({broke:#}) and attaching again failed"
             )
@@ -242,11 +250,11 @@ pub async fn submit_in_parts_of(
 /// `part`, so a scene of any size fits the frame limit.
 async fn send_request(
     scheduler: &str,
-    token: &str,
+    creds: &Credentials,
     mut req: JobRequest,
     part: usize,
 ) -> anyhow::Result<locus_protocol::Connection> {
-    let mut conn = handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN)
+    let mut conn = handshake::dial(scheduler, creds, MAX_FRAME_LEN)
         .await
         .context("submit: connecting to the scheduler")?;
     let name = req.name.clone();
@@ -281,7 +289,7 @@ async fn send_request(
 async fn follow(
     conn: &mut locus_protocol::Connection,
     collect: &mut Collector,
-    progress: &(dyn Fn(u32, u32) + Sync),
+    progress: &(dyn Fn(u64, u64) + Sync),
 ) -> anyhow::Result<anyhow::Result<JobResult>> {
     let peer = conn.peer();
     loop {
@@ -299,13 +307,13 @@ async fn follow(
 /// up to [`REATTACH_WINDOW`]; a refused handshake is final.
 async fn attach(
     scheduler: &str,
-    token: &str,
+    creds: &Credentials,
     job: u64,
 ) -> anyhow::Result<locus_protocol::Connection> {
     let deadline = tokio::time::Instant::now() + REATTACH_WINDOW;
     let mut backoff = locus_protocol::Backoff::default();
     loop {
-        let e = match handshake::dial(scheduler, token.as_bytes(), MAX_FRAME_LEN).await {
+        let e = match handshake::dial(scheduler, creds, MAX_FRAME_LEN).await {
             Ok(mut c) => match c.write_msg(&Opening::Attach { job }).await {
                 Ok(_) => return Ok(c),
                 Err(e) => e,

@@ -10,7 +10,7 @@ use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
 use locus_core::region::WorkerId;
 use locus_core::scene::{LoadStats, Scene};
-use locus_protocol::control::{MemoryPlan, TileAssignment};
+use locus_protocol::control::MemoryPlan;
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobRequest, Partitioner};
@@ -124,8 +124,9 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     }
     let s = &req.settings;
     locus_core::limits::check_settings(s.spp, s.max_depth)?;
-    // The film, and a copy of it while a preview is encoded.
-    locus_core::limits::check_film(c.width, c.height, 2, "the scheduler")?;
+    // The film's f64 sums (two f32 films' worth), and an image made from
+    // them (a preview being encoded, or the result).
+    locus_core::limits::check_film(c.width, c.height, 3, "the scheduler")?;
     let o = &req.options;
     if let Some(c) = &o.cache {
         c.check().map_err(|e| format!("cache parameters: {e}"))?;
@@ -192,7 +193,7 @@ pub fn prepare(
     scene: Arc<Scene>,
     options: &JobOptions,
     members: &[Member],
-    tiles: &[TileAssignment],
+    tiles: &[locus_core::render::Tile],
 ) -> Result<Prepared, String> {
     let t = Instant::now();
     let workers = members.len().max(1);

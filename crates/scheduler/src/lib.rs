@@ -12,7 +12,8 @@
 //! [`job::prepare`] (octree, [`cost`] prediction, [`partition`]
 //! within the workers' [`memory`] budgets) on a blocking thread, then
 //! [`distribute`] (processor map plus each region's geometry, part by
-//! part), then demand-driven tiles, then the workers' reports, which
+//! part), then demand-driven tiles in progressive passes into the [`film`], then
+//! the workers' reports, which
 //! become the [`report`]. [`client`] is the submitting side used by `locus
 //! submit`; [`SchedulerHandle`] submits from the same process (the
 //! embedded farm) without copying or re-parsing the scene. [`http`] serves
@@ -23,6 +24,7 @@ pub mod actor;
 pub mod client;
 pub mod cost;
 pub mod distribute;
+pub mod film;
 pub mod http;
 pub mod job;
 pub mod memory;
@@ -49,6 +51,8 @@ use tracing::{info, warn};
 pub struct SchedulerConfig {
     pub listen: String,
     pub token: String,
+    /// TLS for every connection (None: plain TCP).
+    pub tls: Option<locus_protocol::tls::Tls>,
     /// Jobs that may wait behind the running one.
     pub max_queued_jobs: usize,
     /// Where to serve the read-only status page, `/status`, `/metrics` and
@@ -69,7 +73,7 @@ pub const WORKER_TIMEOUT: Duration = Duration::from_secs(5);
 pub struct Scheduler {
     cfg: SchedulerConfig,
     /// The opened store, its next job id and the jobs it held.
-    store: Option<(store::Store, u64, Vec<store::Restored>)>,
+    store: Option<(store::Store, u64, Vec<store::Restored>, Vec<store::Kept>)>,
     listener: TcpListener,
     http: Option<TcpListener>,
     events: (mpsc::Sender<Event>, mpsc::Receiver<Event>),
@@ -93,6 +97,7 @@ impl SchedulerHandle {
             .send(Event::Submit {
                 req: Box::new(req),
                 client: tx,
+                encoded: None,
             })
             .await
             .map_err(|_| anyhow::anyhow!("the scheduler has stopped"))?;
@@ -151,8 +156,9 @@ impl Scheduler {
         let (ev_tx, ev_rx) = self.events;
         let metrics = Arc::new(metrics::Metrics::new());
         let mut actor = Actor::new(self.cfg.max_queued_jobs, ev_tx.clone(), metrics.clone());
-        if let Some((store, next, jobs)) = self.store {
-            actor = actor.with_store(store, next, jobs);
+        let stored = self.store.is_some();
+        if let Some((store, next, jobs, kept)) = self.store {
+            actor = actor.with_store(store, next, jobs, kept);
         }
         let actor = tokio::spawn(actor.run(ev_rx, shutdown.clone()));
         if let Some(l) = self.http {
@@ -165,10 +171,14 @@ impl Scheduler {
             });
         }
         let shared = server::Shared {
-            token: Arc::new(self.cfg.token.into_bytes()),
+            creds: Arc::new(locus_protocol::handshake::Credentials::new(
+                &self.cfg.token,
+                self.cfg.tls.clone(),
+            )),
             events: ev_tx.clone(),
             shutdown: shutdown.clone(),
             worker_timeout: self.cfg.worker_timeout,
+            store: stored,
         };
         let mut next_id = 0u32;
         let permits = Arc::new(tokio::sync::Semaphore::new(locus_protocol::MAX_CONNECTIONS));

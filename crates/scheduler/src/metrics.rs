@@ -112,7 +112,11 @@ impl Metrics {
             "Wall time of finished jobs, from start to image",
             m.job_seconds.clone(),
         );
-        r.register("tiles", "Tiles received from workers", m.tiles.clone());
+        r.register(
+            "tile_passes",
+            "Tile passes (a tile in one progressive pass) received from workers",
+            m.tiles.clone(),
+        );
         r.register(
             "tiles_ignored",
             "Tile results ignored, by why (duplicate, unknown)",
@@ -288,7 +292,7 @@ mod tests {
         m.tile();
         m.set_load(1, 0, 2, false);
         let text = m.encode();
-        assert!(text.contains("locus_tiles_total 2"), "{text}");
+        assert!(text.contains("locus_tile_passes_total 2"), "{text}");
         assert!(text.contains("locus_worker_up{worker=\"w-a\"} 1"), "{text}");
         assert!(text.contains("locus_jobs_queued 2"), "{text}");
         m.worker_left("w-a");

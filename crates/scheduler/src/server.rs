@@ -20,11 +20,29 @@ use tracing::{info, instrument};
 /// What every connection task shares.
 #[derive(Clone)]
 pub(crate) struct Shared {
-    pub token: std::sync::Arc<Vec<u8>>,
+    pub creds: std::sync::Arc<handshake::Credentials>,
     pub events: mpsc::Sender<Event>,
     pub shutdown: CancellationToken,
     /// How long a worker may be silent before it is lost.
     pub worker_timeout: Duration,
+    /// Whether jobs are kept in a store: then requests are encoded here.
+    pub store: bool,
+}
+
+impl Shared {
+    /// `req` and, with a store, its encoding for it, made on a blocking
+    /// thread (a scene of millions of triangles takes a while).
+    async fn encoded(&self, req: Box<JobRequest>) -> (Box<JobRequest>, Option<Vec<u8>>) {
+        if !self.store {
+            return (req, None);
+        }
+        tokio::task::spawn_blocking(move || {
+            let bytes = postcard::to_allocvec(&*req).ok();
+            (req, bytes)
+        })
+        .await
+        .expect("encoding a request does not panic")
+    }
 }
 
 #[instrument(skip_all, fields(conn = id, peer = %stream.peer_addr().map(|a| a.to_string()).unwrap_or_default()))]
@@ -33,8 +51,7 @@ pub(crate) async fn serve(
     id: u32,
     sh: Shared,
 ) -> anyhow::Result<()> {
-    let mut conn = Connection::new(stream, MAX_FRAME_LEN)?;
-    handshake::server(&mut conn, &sh.token).await?;
+    let mut conn = handshake::accept(stream, &sh.creds, MAX_FRAME_LEN).await?;
     let opening = tokio::select! {
         _ = sh.shutdown.cancelled() => return Ok(()),
         m = tokio::time::timeout(handshake::HANDSHAKE_TIMEOUT, conn.read_msg::<Opening>("opening")) => m
@@ -43,12 +60,10 @@ pub(crate) async fn serve(
     match opening {
         None => Ok(()),
         Some(Opening::Register(reg)) => worker(conn, id, reg, sh).await,
-        Some(Opening::Submit(req)) => {
-            client(conn, |client| Event::Submit { req, client }, sh).await
-        }
+        Some(Opening::Submit(req)) => submitted(conn, req, sh).await,
         Some(Opening::SubmitInParts { request, triangles }) => {
             match receive_parts(&mut conn, request, triangles).await {
-                Ok(req) => client(conn, |client| Event::Submit { req, client }, sh).await,
+                Ok(req) => submitted(conn, req, sh).await,
                 Err(reason) => {
                     info!(peer = %conn.peer(), "request refused: {reason}");
                     let _ = conn
@@ -62,6 +77,18 @@ pub(crate) async fn serve(
             client(conn, |client| Event::Attach { job, client }, sh).await
         }
     }
+}
+
+/// A request received whole: encoded for the store, handed to the actor,
+/// and its job's messages served to the client.
+async fn submitted(conn: Connection, req: Box<JobRequest>, sh: Shared) -> anyhow::Result<()> {
+    let (req, encoded) = sh.encoded(req).await;
+    let submit = |client| Event::Submit {
+        req,
+        client,
+        encoded,
+    };
+    client(conn, submit, sh).await
 }
 
 /// The heartbeat interval for a worker timeout.

@@ -62,21 +62,32 @@ pub struct RunningJob {
     /// Peer addresses of the workers the job lost.
     pub lost: Vec<String>,
     pub elapsed_s: f64,
+    /// The image's tiles, rendered in `passes` progressive passes; `pass`
+    /// (from 0) is the earliest pass not complete.
     pub tiles: u32,
-    pub tiles_done: u32,
-    /// From the rate of tiles since the first one; None before it.
+    pub passes: u32,
+    pub pass: u32,
+    /// Tiles times passes, and how many of them are in the film.
+    pub tile_passes: u64,
+    pub tile_passes_done: u64,
+    /// Pixel samples, and how many of them are in the film.
+    pub samples: u64,
+    pub samples_done: u64,
+    /// From the rate of samples since the attempt's first tile; None
+    /// before it.
     pub eta_s: Option<f64>,
     pub members: Vec<Member>,
 }
 
 /// A worker of the running job: its registry id, the share of the
-/// predicted cost its region holds, and the tiles it has returned.
+/// predicted cost its region holds, and the tile passes it has returned in
+/// this attempt.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Member {
     pub worker: u32,
     pub listen: String,
     pub predicted_share: Option<f64>,
-    pub tiles_done: u32,
+    pub tile_passes_done: u32,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -102,17 +113,17 @@ pub struct EndedJob {
 }
 
 impl Running {
-    /// Seconds left at the rate tiles have come in since the attempt's
-    /// first one.
+    /// Seconds left at the rate samples have come in since the attempt's
+    /// first tile (samples, not tiles: later passes are larger).
     fn eta(&self, now: Instant) -> Option<f64> {
-        let a = &self.attempt;
-        let first = a.t_first_tile?;
-        let done = self.done - a.done_before;
-        if done == 0 {
+        let first = self.attempt.t_first_tile?;
+        let (done, all) = self.film.samples();
+        let since = done - self.attempt.before.1;
+        if since == 0 {
             return None;
         }
-        let rate = done as f64 / now.duration_since(first).as_secs_f64().max(1e-3);
-        Some((self.tiles.len() as u32 - self.done) as f64 / rate)
+        let rate = since as f64 / now.duration_since(first).as_secs_f64().max(1e-3);
+        Some((all - done) as f64 / rate)
     }
 }
 
@@ -158,8 +169,13 @@ impl Actor {
             attempt: j.recovery.attempts,
             lost: j.recovery.lost.iter().map(|(a, _)| a.clone()).collect(),
             elapsed_s: now.duration_since(j.started).as_secs_f64(),
-            tiles: j.tiles.len() as u32,
-            tiles_done: j.done,
+            tiles: j.film.tiles().len() as u32,
+            passes: j.film.passes().len() as u32,
+            pass: j.film.pass(),
+            tile_passes: j.film.units().1,
+            tile_passes_done: j.film.units().0,
+            samples: j.film.samples().1,
+            samples_done: j.film.samples().0,
             eta_s: j.eta(now),
             members: j
                 .attempt
@@ -179,7 +195,7 @@ impl Actor {
                             CostModel::Sampled => p.sampled_share[w],
                         }
                     }),
-                    tiles_done: j.attempt.tiles_by[w],
+                    tile_passes_done: j.attempt.tiles_by[w],
                 })
                 .collect(),
         });

@@ -14,15 +14,16 @@
 //! Within each queue tiles keep the job's shuffled order, so that the
 //! tiles in flight at any moment are spread over the image.
 
+use crate::film::Unit;
 use locus_core::region::{ProcessorMap, WorkerId};
+use locus_core::render::Tile;
 use locus_core::scene::Camera;
-use locus_protocol::control::TileAssignment;
 use std::collections::VecDeque;
 
 /// The owner of the first leaf along most of a tile's camera rays (its
 /// centre and its four corners; the centre's wins a tie), or None when
 /// most of them miss the scene.
-pub fn affinity(camera: &Camera, map: &ProcessorMap, t: &TileAssignment) -> Option<WorkerId> {
+pub fn affinity(camera: &Camera, map: &ProcessorMap, t: &Tile) -> Option<WorkerId> {
     let (x1, y1) = (t.x1.saturating_sub(1), t.y1.saturating_sub(1));
     let points = [
         ((t.x0 + x1) / 2, (t.y0 + y1) / 2),
@@ -80,41 +81,46 @@ pub fn inflight(affinity: &[Option<WorkerId>], workers: usize, max_inflight: u32
         .collect()
 }
 
-/// Tiles waiting to be handed out: one queue per worker and one for tiles
-/// of no worker in particular.
+/// Tile passes waiting to be handed out: one queue per worker and one for
+/// tiles of no worker in particular.
 pub struct TileQueue {
-    own: Vec<VecDeque<u32>>,
-    shared: VecDeque<u32>,
+    own: Vec<VecDeque<Unit>>,
+    shared: VecDeque<Unit>,
 }
 
 impl TileQueue {
-    /// `order` lists tile indices in handout order; `affinity[t]` is tile
-    /// `t`'s worker, if any.
+    /// `order` lists units in handout order (pass by pass); `affinity[t]`
+    /// is tile `t`'s worker, if any.
     pub fn new(
-        order: impl IntoIterator<Item = u32>,
+        order: impl IntoIterator<Item = Unit>,
         affinity: &[Option<WorkerId>],
         workers: usize,
     ) -> Self {
         let mut own = vec![VecDeque::new(); workers.max(1)];
         let mut shared = VecDeque::new();
-        for t in order {
-            match affinity.get(t as usize).copied().flatten() {
-                Some(w) if (w as usize) < own.len() => own[w as usize].push_back(t),
-                _ => shared.push_back(t),
+        for u in order {
+            match affinity.get(u.tile as usize).copied().flatten() {
+                Some(w) if (w as usize) < own.len() => own[w as usize].push_back(u),
+                _ => shared.push_back(u),
             }
         }
         Self { own, shared }
     }
 
-    /// The next tile for worker `w`: its own, then a shared one.
-    pub fn next_for(&mut self, w: usize) -> Option<u32> {
-        self.own
-            .get_mut(w)
-            .and_then(VecDeque::pop_front)
-            .or_else(|| self.shared.pop_front())
+    /// The next tile pass for worker `w`: its own or a shared one,
+    /// whichever is of the earlier pass (its own on a tie), so that no
+    /// worker runs passes ahead of the image.
+    pub fn next_for(&mut self, w: usize) -> Option<Unit> {
+        let shared_pass = self.shared.front().map(|u| u.pass);
+        let own = self.own.get_mut(w);
+        match (own, shared_pass) {
+            (Some(q), Some(sp)) if q.front().is_some_and(|u| u.pass <= sp) => q.pop_front(),
+            (Some(q), None) => q.pop_front(),
+            _ => self.shared.pop_front(),
+        }
     }
 
-    /// Tiles not yet handed out.
+    /// Tile passes not yet handed out.
     pub fn len(&self) -> usize {
         self.own.iter().map(VecDeque::len).sum::<usize>() + self.shared.len()
     }
@@ -128,23 +134,39 @@ impl TileQueue {
 mod tests {
     use super::*;
 
+    fn tiles(q: &mut TileQueue, w: usize, n: usize) -> Vec<(u32, u32)> {
+        (0..n)
+            .map_while(|_| q.next_for(w))
+            .map(|u| (u.tile, u.pass))
+            .collect()
+    }
+
     #[test]
     fn workers_get_their_own_tiles_then_shared_ones_then_none() {
         let aff = [Some(1), None, Some(0), Some(1), None, Some(7)];
-        let mut q = TileQueue::new([5, 4, 3, 2, 1, 0], &aff, 2);
+        let order = [5, 4, 3, 2, 1, 0].map(|tile| Unit { tile, pass: 0 });
+        let mut q = TileQueue::new(order, &aff, 2);
         assert_eq!(q.len(), 6);
         // Worker 0: its tile 2, then shared tiles in order (tile 5's
         // worker does not exist, so it is shared).
-        assert_eq!(q.next_for(0), Some(2));
-        assert_eq!(q.next_for(0), Some(5));
+        assert_eq!(tiles(&mut q, 0, 2), [(2, 0), (5, 0)]);
         // Worker 1: its own, in order.
-        assert_eq!(q.next_for(1), Some(3));
-        assert_eq!(q.next_for(1), Some(0));
-        assert_eq!(q.next_for(1), Some(4));
-        assert_eq!(q.next_for(0), Some(1));
-        assert_eq!(q.next_for(0), None);
+        assert_eq!(tiles(&mut q, 1, 3), [(3, 0), (0, 0), (4, 0)]);
+        assert_eq!(tiles(&mut q, 0, 9), [(1, 0)]);
         assert_eq!(q.next_for(9), None);
         assert!(q.is_empty());
+    }
+
+    #[test]
+    fn no_worker_runs_a_pass_ahead_of_the_shared_tiles() {
+        // Tile 0 is worker 0's, tiles 1 and 2 nobody's; two passes.
+        let aff = [Some(0), None, None];
+        let order = (0..2).flat_map(|pass| (0..3).map(move |tile| Unit { tile, pass }));
+        let mut q = TileQueue::new(order, &aff, 2);
+        assert_eq!(
+            tiles(&mut q, 0, 9),
+            [(0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (2, 1)]
+        );
     }
 
     #[test]
@@ -196,9 +218,7 @@ mod tests {
             width: 32,
             height: 32,
         };
-        let tile = |x0, y0| TileAssignment {
-            job: 1,
-            tile: 0,
+        let tile = |x0, y0| Tile {
             x0,
             y0,
             x1: x0 + 8,

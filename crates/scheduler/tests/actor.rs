@@ -71,6 +71,7 @@ impl Farm {
             .send(Event::Submit {
                 req: Box::new(req),
                 client: tx,
+                encoded: None,
             })
             .await
             .unwrap();
@@ -84,10 +85,10 @@ impl Farm {
             .unwrap();
     }
 
-    async fn tiles_done(&self) -> u32 {
+    async fn tiles_done(&self) -> u64 {
         let (tx, rx) = oneshot::channel();
         self.events.send(Event::Status(tx)).await.unwrap();
-        rx.await.unwrap().running.map_or(0, |j| j.tiles_done)
+        rx.await.unwrap().running.map_or(0, |j| j.tile_passes_done)
     }
 }
 
@@ -141,7 +142,8 @@ fn result(t: &TileAssignment, value: f32) -> WorkerToScheduler {
     WorkerToScheduler::TileDone(TileResult {
         job: t.job,
         tile: t.tile,
-        pixels: vec![[value; 3]; t.pixels() as usize],
+        pass: t.pass,
+        sums: vec![[value as f64 * t.pass_samples() as f64; 3]; t.pixels() as usize],
     })
 }
 
@@ -339,6 +341,16 @@ async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
     let (r2, n) = next_start(&mut w1).await;
     assert_ne!(r2, r1, "a new attempt needs a new run id");
     assert_eq!(n, 1, "the survivor alone");
+    // The survivor's report of the aborted run goes to the recovery.
+    let stats = Box::new(WorkerStats {
+        trace: locus_core::stats::TraceStats {
+            samples: 7,
+            ..Default::default()
+        },
+        ..Default::default()
+    });
+    farm.from(1, WorkerToScheduler::Report { job: r1, stats })
+        .await;
     // The lost worker's tile, arriving late under the old run, is fenced.
     farm.from(1, result(&held[0], 9.0)).await;
     assert_eq!(farm.tiles_done().await, 1);
@@ -368,7 +380,12 @@ async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
     assert_eq!(done.pixels[(h.y0 * 32 + h.x0) as usize], [0.5; 3]);
     let rec = &done.report.recovery;
     assert_eq!(rec.attempts, 2);
-    assert_eq!(rec.tiles_kept, 1);
+    assert_eq!(rec.tile_passes_kept, 1);
+    assert_eq!((rec.aborted.samples, rec.aborted_reports), (7, 1));
+    assert_eq!(
+        done.report.totals.trace.samples, 0,
+        "the last attempt's own"
+    );
     assert_eq!(rec.lost.len(), 1);
     assert!(rec.lost[0].0.contains("w2") && rec.lost[0].1.contains("heartbeat"));
     farm.shutdown.cancel();

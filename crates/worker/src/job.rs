@@ -2,13 +2,14 @@
 //! building the region's BVH part by part as the parts arrive, linking to
 //! every peer, and starting the [`crate::engine`] on its own thread.
 
-use crate::engine::{self, EngineJob, Event, Links};
+use crate::engine::{self, EngineError, EngineJob, Event, Links};
 use crate::peers::{self, JobLink, Traffic};
 use crate::sys;
 use anyhow::{Context, bail};
 use locus_core::accel::Accel;
 use locus_core::accel_set::Part;
 use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
+use locus_protocol::handshake::Credentials;
 use locus_protocol::report::WorkerStats;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -129,7 +130,7 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
 
 /// What starting a job needs from the daemon.
 pub struct Env {
-    pub token: Arc<[u8]>,
+    pub creds: Arc<Credentials>,
     pub pool: Option<Arc<rayon::ThreadPool>>,
     pub control: flume::Sender<WorkerToScheduler>,
     pub links: Arc<watch::Sender<Option<Arc<JobLink>>>>,
@@ -187,7 +188,7 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         let (tx, rx) = flume::bounded(PEER_OUT);
         let dial = peers::dial(
             addr,
-            &env.token,
+            &env.creds,
             job,
             me,
             w as u16,
@@ -239,6 +240,13 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
                     job,
                     stats: Box::new(stats),
                 }
+            }
+            // Aborted by the scheduler (or the worker shutting down):
+            // what was done goes in a report of the aborted run, which
+            // the scheduler adds to the job's recovery.
+            Ok(Err(EngineError::Cancelled(mut stats))) => {
+                add_traffic(&mut stats, &traffic);
+                WorkerToScheduler::Report { job, stats }
             }
             Ok(Err(e)) => {
                 warn!(job, "job failed: {e}");

@@ -26,6 +26,8 @@ use job::Building;
 use locus_protocol::control::{
     HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
 };
+use locus_protocol::handshake::Credentials;
+use locus_protocol::tls::Tls;
 use locus_protocol::{Backoff, ConnWriter, MAX_FRAME_LEN, handshake};
 use peers::JobLink;
 use std::sync::Arc;
@@ -45,6 +47,8 @@ pub struct WorkerConfig {
     /// containers); defaults to the bound address.
     pub advertise: Option<String>,
     pub token: String,
+    /// TLS on the links to the scheduler and the peers (None: plain TCP).
+    pub tls: Option<Tls>,
     /// Tracing threads; 0 means all cores.
     pub threads: usize,
     /// Bytes the worker's process may use (0: no limit).
@@ -104,18 +108,18 @@ impl Worker {
     /// for as long as it takes; only a fatal error (a wrong token, another
     /// protocol version) ends it with an error.
     pub async fn run(self, shutdown: CancellationToken) -> anyhow::Result<()> {
-        let token: Arc<[u8]> = self.cfg.token.as_bytes().into();
+        let creds = Arc::new(Credentials::new(&self.cfg.token, self.cfg.tls.clone()));
         let bound = self.local_addr()?;
         let (job_tx, job_rx) = watch::channel::<Option<Arc<JobLink>>>(None);
         let accept = tokio::spawn(peers::accept_loop(
             self.listener,
-            token.to_vec(),
+            creds.clone(),
             job_rx,
             shutdown.clone(),
         ));
         let ctx = Session {
             cfg: &self.cfg,
-            token: token.clone(),
+            creds: creds.clone(),
             bound,
             pool: &self.pool,
             threads: self.threads,
@@ -124,7 +128,7 @@ impl Worker {
         };
         let mut backoff = Backoff::default();
         let result = loop {
-            let conn = match connect(&self.cfg.scheduler, &token, &shutdown, &mut backoff).await {
+            let conn = match connect(&self.cfg.scheduler, &creds, &shutdown, &mut backoff).await {
                 Ok(Some(c)) => c,
                 Ok(None) => break Ok(()),
                 Err(e) => break Err(e),
@@ -144,7 +148,7 @@ impl Worker {
 /// What one registration with the scheduler needs from the worker.
 struct Session<'a> {
     cfg: &'a WorkerConfig,
-    token: Arc<[u8]>,
+    creds: Arc<Credentials>,
     bound: std::net::SocketAddr,
     pool: &'a Option<Arc<rayon::ThreadPool>>,
     threads: usize,
@@ -270,7 +274,7 @@ impl Session<'_> {
                     let b = jobs.building.take().expect("checked above");
                     let cancel = CancellationToken::new();
                     let env = job::Env {
-                        token: self.token.clone(),
+                        creds: self.creds.clone(),
                         pool: self.pool.clone(),
                         control: ctl_tx.clone(),
                         links: self.links.clone(),
@@ -407,14 +411,14 @@ fn advertised(
 /// wrong token, another protocol version) is fatal: retrying cannot help.
 async fn connect(
     addr: &str,
-    token: &[u8],
+    creds: &Credentials,
     shutdown: &CancellationToken,
     backoff: &mut Backoff,
 ) -> anyhow::Result<Option<locus_protocol::Connection>> {
     loop {
         let e = tokio::select! {
             _ = shutdown.cancelled() => return Ok(None),
-            r = handshake::dial(addr, token, MAX_FRAME_LEN) => match r {
+            r = handshake::dial(addr, creds, MAX_FRAME_LEN) => match r {
                 Ok(c) => return Ok(Some(c)),
                 Err(e) => e,
             },

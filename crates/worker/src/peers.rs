@@ -4,9 +4,10 @@
 //! Frames and bytes are counted per peer as they cross the socket.
 
 use crate::engine::{Event, Input};
+use locus_protocol::handshake::Credentials;
 use locus_protocol::rays::PeerMsg;
 use locus_protocol::report::PeerTraffic;
-use locus_protocol::{Connection, MAX_FRAME_LEN, ProtocolError, handshake};
+use locus_protocol::{MAX_FRAME_LEN, ProtocolError, handshake};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
@@ -57,7 +58,7 @@ impl Traffic {
 #[allow(clippy::too_many_arguments)]
 pub async fn dial(
     addr: &str,
-    token: &[u8],
+    creds: &Credentials,
     job: u64,
     me: u16,
     to: u16,
@@ -65,7 +66,7 @@ pub async fn dial(
     traffic: Arc<Traffic>,
     cancel: CancellationToken,
 ) -> Result<tokio::task::JoinHandle<()>, ProtocolError> {
-    let mut conn = handshake::dial(addr, token, MAX_FRAME_LEN).await?;
+    let mut conn = handshake::dial(addr, creds, MAX_FRAME_LEN).await?;
     conn.write_msg(&PeerMsg::Hello { job, from: me }).await?;
     let (_r, mut w) = conn.into_split();
     Ok(tokio::spawn(async move {
@@ -99,11 +100,10 @@ pub async fn dial(
 
 pub async fn accept_loop(
     listener: TcpListener,
-    token: Vec<u8>,
+    creds: Arc<Credentials>,
     job: watch::Receiver<Option<Arc<JobLink>>>,
     shutdown: CancellationToken,
 ) {
-    let token = Arc::new(token);
     let permits = Arc::new(tokio::sync::Semaphore::new(locus_protocol::MAX_CONNECTIONS));
     loop {
         let permit = tokio::select! {
@@ -121,10 +121,10 @@ pub async fn accept_loop(
                 }
             },
         };
-        let (token, job, shutdown) = (token.clone(), job.clone(), shutdown.clone());
+        let (creds, job, shutdown) = (creds.clone(), job.clone(), shutdown.clone());
         tokio::spawn(async move {
             let _permit = permit;
-            if let Err(e) = serve_peer(stream, &token, job, shutdown).await {
+            if let Err(e) = serve_peer(stream, &creds, job, shutdown).await {
                 warn!(%addr, "peer link dropped: {e}");
             }
         });
@@ -133,12 +133,11 @@ pub async fn accept_loop(
 
 async fn serve_peer(
     stream: tokio::net::TcpStream,
-    token: &[u8],
+    creds: &Credentials,
     mut job: watch::Receiver<Option<Arc<JobLink>>>,
     shutdown: CancellationToken,
 ) -> anyhow::Result<()> {
-    let mut conn = Connection::new(stream, MAX_FRAME_LEN)?;
-    handshake::server(&mut conn, token).await?;
+    let mut conn = handshake::accept(stream, creds, MAX_FRAME_LEN).await?;
     let hello = tokio::time::timeout(
         handshake::HANDSHAKE_TIMEOUT,
         conn.read_msg::<PeerMsg>("peer"),

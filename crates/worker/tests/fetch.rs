@@ -49,7 +49,7 @@ fn room() -> (locus_core::render::Prepared, Octree) {
 /// one of the root's splitting planes, where leaves share faces.
 fn rays(prep: &locus_core::render::Prepared, tree: &Octree, n: usize) -> Vec<Ray> {
     let centre = tree.bounds.center();
-    locus_core::bench::incoherent_rays(prep, n, 9)
+    locus_core::generate::incoherent_rays(prep, n, 9)
         .into_iter()
         .enumerate()
         .map(|(i, r)| {

@@ -5,9 +5,10 @@
 //! the node graph must be the disjoint trees the format requires (a cycle
 //! or a node with two parents would place meshes without end), material
 //! colours follow the scene file's rules, and a panic inside the crate is
-//! an error naming the file, not a crash.
+//! an error naming the file, not a crash. Before the crate parses the
+//! document, [`gltf_check`] checks the GLB container and every index in it.
 
-use super::{FileMaterial, MeshData, colour_problem};
+use super::{FileMaterial, MeshData, colour_problem, gltf_check};
 use crate::error::{Location, SceneError};
 use glam::Vec3;
 use gltf::accessor::{DataType, Dimensions};
@@ -34,13 +35,28 @@ fn open(path: &Path) -> Result<MeshData, SceneError> {
         location: Location::Element("document".into()),
         message: e.to_string(),
     };
-    let doc = gltf::Gltf::open(path).map_err(|e| match e {
-        gltf::Error::Io(source) => SceneError::Io {
-            file: file(),
-            source,
-        },
-        e => syntax(e),
+    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+        file: file(),
+        source,
     })?;
+    let invalid = |(element, message): (String, String)| SceneError::Invalid {
+        file: file(),
+        location: Location::Element(element),
+        message,
+    };
+    let json = gltf_check::json_of(&bytes).map_err(invalid)?;
+    // The crate skips what it does not read (invalid UTF-8 in a string it
+    // ignores, say); the whole document must be JSON.
+    let value: serde_json::Value =
+        serde_json::from_slice(json).map_err(|e| SceneError::Syntax {
+            file: file(),
+            location: Location::Element("document".into()),
+            message: format!("not valid JSON: {e}"),
+        })?;
+    gltf_check::check_indices(&value).map_err(invalid)?;
+    drop(value);
+    let doc = gltf::Gltf::from_slice(&bytes).map_err(syntax)?;
+    drop(bytes);
     let base = path.parent().map(Path::to_path_buf);
     // Check external buffers up front so a missing .bin is named as such.
     for b in doc.buffers() {
@@ -231,7 +247,8 @@ fn check_accessor(
         ));
     }
     let end = match a.count() {
-        0 => Some(a.offset()),
+        // The crate's reader takes `count - 1`.
+        0 => return Err(format!("accessor {} has no elements", a.index())),
         n => (n - 1)
             .checked_mul(stride)
             .and_then(|s| s.checked_add(a.offset()))

@@ -7,6 +7,7 @@
 //! for NaN/inf and indices for range, and reports the line (OBJ, ASCII
 //! PLY) or element (binary PLY, glTF) of the first offence.
 
+mod gltf_check;
 mod gltf_mesh;
 
 use crate::error::{Location, SceneError};
@@ -76,13 +77,39 @@ fn read_text(path: &Path) -> Result<String, SceneError> {
     })
 }
 
-/// tobj reports what went wrong but not where, so the text is first checked
-/// line by line for the errors a user can make: unparsable or non-finite
-/// positions, face indices that are malformed or out of range, and missing
-/// material libraries.
+/// One vertex of a face, line or point statement (`v`, `v/vt`, `v//vn`,
+/// `v/vt/vn`): each index given must name an element defined before it
+/// (1-based, or negative from the last). Err((Some(index), count)) for one
+/// out of range, Err((None, 0)) for one that is not a number.
+fn check_refs(v: &str, counts: [i64; 3]) -> Result<(), (Option<i64>, usize)> {
+    let parts: Vec<&str> = v.split('/').collect();
+    if parts.len() > 3 || parts[0].is_empty() {
+        return Err((None, 0));
+    }
+    for (k, idx) in parts.iter().enumerate() {
+        if idx.is_empty() {
+            continue;
+        }
+        let n = counts[k];
+        let i: i64 = idx.parse().map_err(|_| (None, 0))?;
+        let resolved = if i < 0 { n.saturating_add(i) } else { i - 1 };
+        if i == 0 || resolved < 0 || resolved >= n {
+            return Err((Some(i), n as usize));
+        }
+    }
+    Ok(())
+}
+
+/// tobj reports what went wrong but not where, and panics or overflows on
+/// some indices, so the text is first checked line by line for the errors
+/// a user can make: unparsable or non-finite positions, face (line, point)
+/// indices of positions, texture coordinates or normals that are malformed
+/// or out of range, and missing material libraries.
 fn validate_obj(path: &Path, text: &str) -> Result<(), SceneError> {
     let file = || path.to_path_buf();
-    let mut nv: i64 = 0;
+    // Positions, texture coordinates and normals so far: what a face may
+    // refer to.
+    let mut counts = [0i64; 3];
     for (i, raw) in text.lines().enumerate() {
         let loc = || Location::line(i + 1);
         let line = raw.split('#').next().unwrap_or("").trim();
@@ -111,35 +138,42 @@ fn validate_obj(path: &Path, text: &str) -> Result<(), SceneError> {
                         });
                     }
                 }
-                nv += 1;
+                counts[0] += 1;
             }
-            Some("f") => {
+            Some(kind @ ("f" | "l" | "p")) => {
                 let mut count = 0;
                 for v in it {
-                    let idx = v.split('/').next().unwrap_or("");
-                    let k: i64 = idx.parse().map_err(|_| SceneError::Syntax {
-                        file: file(),
-                        location: loc(),
-                        message: format!("face vertex '{v}' is not an index"),
-                    })?;
-                    let resolved = if k < 0 { nv + k } else { k - 1 };
-                    if k == 0 || resolved < 0 || resolved >= nv {
-                        return Err(SceneError::IndexOutOfRange {
+                    check_refs(v, counts).map_err(|(index, count)| match index {
+                        Some(index) => SceneError::IndexOutOfRange {
                             file: file(),
                             location: loc(),
-                            index: k,
-                            count: nv as usize,
-                        });
-                    }
+                            index,
+                            count,
+                        },
+                        None => SceneError::Syntax {
+                            file: file(),
+                            location: loc(),
+                            message: format!("{kind} vertex '{v}' is not an index"),
+                        },
+                    })?;
                     count += 1;
                 }
-                if count < 3 {
+                // Points and lines are skipped, but tobj reads them.
+                let least = match kind {
+                    "f" => 3,
+                    "l" => 2,
+                    _ => 1,
+                };
+                if count < least {
                     return Err(SceneError::Syntax {
                         file: file(),
                         location: loc(),
-                        message: format!("face needs at least 3 vertices, found {count}"),
+                        message: format!("'{kind}' needs at least {least} vertices, found {count}"),
                     });
                 }
+            }
+            Some(kind @ ("vt" | "vn")) => {
+                counts[if kind == "vt" { 1 } else { 2 }] += 1;
             }
             Some("mtllib") => {
                 let name = line["mtllib".len()..].trim();
@@ -308,6 +342,54 @@ fn obj_materials(path: &Path, text: &str) -> Result<Vec<(PathBuf, Vec<FileMateri
     Ok(libs)
 }
 
+/// Refuses a PLY header whose element counts the file cannot hold (every
+/// element takes at least a byte, and in a binary file at least its
+/// scalars and list lengths): the parser would otherwise make elements
+/// for as long as the count says, which a header of a few bytes can set
+/// to trillions.
+fn check_ply_counts(
+    path: &Path,
+    header: &ply_rs_bw::ply::Header,
+    len: u64,
+) -> Result<(), SceneError> {
+    use ply_rs_bw::ply::{Encoding, PropertyType, ScalarType};
+    let size = |t: &ScalarType| -> u64 {
+        match t {
+            ScalarType::Char | ScalarType::UChar => 1,
+            ScalarType::Short | ScalarType::UShort => 2,
+            ScalarType::Int | ScalarType::UInt | ScalarType::Float => 4,
+            ScalarType::Double => 8,
+        }
+    };
+    let mut need = 0u64;
+    for (name, e) in header.elements.iter() {
+        let each = match header.encoding {
+            // A value and its separator.
+            Encoding::Ascii => 2 * e.properties.len() as u64,
+            _ => e
+                .properties
+                .values()
+                .map(|p| match &p.data_type {
+                    PropertyType::Scalar(t) => size(t),
+                    PropertyType::List(n, _) => size(n),
+                })
+                .sum(),
+        };
+        need = need.saturating_add((e.count as u64).saturating_mul(each.max(1)));
+        if need > len {
+            return Err(SceneError::Invalid {
+                file: path.to_path_buf(),
+                location: Location::Element(format!("element {name}")),
+                message: format!(
+                    "the header declares {} '{name}' elements, more than the file's {len} bytes can hold",
+                    e.count
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
 fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
     use ply_rs_bw::parser::Parser;
     use ply_rs_bw::ply::{DefaultElement, Property};
@@ -316,25 +398,28 @@ fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
         file: file(),
         source,
     })?;
-    let mut r = std::io::BufReader::new(f);
-    let ply = Parser::<DefaultElement>::new()
-        .read_ply(&mut r)
-        .map_err(|e| {
-            let msg = e.to_string();
-            // ply-rs-bw prefixes ASCII errors with "Line N: ".
-            let (location, message) =
-                match msg.strip_prefix("Line ").and_then(|s| s.split_once(": ")) {
-                    Some((n, rest)) if n.parse::<usize>().is_ok() => {
-                        (Location::line(n.parse().unwrap_or(0)), rest.to_string())
-                    }
-                    _ => (Location::Element("file".into()), msg),
-                };
-            SceneError::Syntax {
-                file: file(),
-                location,
-                message,
+    let len = f.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
+    let parser = Parser::<DefaultElement>::new();
+    let mut r = ply_rs_bw::parser::Reader::new(std::io::BufReader::new(f));
+    let ply_error = |e: ply_rs_bw::parser::ParseError| {
+        let msg = e.to_string();
+        // ply-rs-bw prefixes ASCII errors with "Line N: ".
+        let (location, message) = match msg.strip_prefix("Line ").and_then(|s| s.split_once(": ")) {
+            Some((n, rest)) if n.parse::<usize>().is_ok() => {
+                (Location::line(n.parse().unwrap_or(0)), rest.to_string())
             }
-        })?;
+            _ => (Location::Element("file".into()), msg),
+        };
+        SceneError::Syntax {
+            file: file(),
+            location,
+            message,
+        }
+    };
+    let header = parser.read_header(&mut r).map_err(ply_error)?;
+    check_ply_counts(path, &header, len)?;
+    let payload = parser.read_payload(&mut r, &header).map_err(ply_error)?;
+    let ply = ply_rs_bw::ply::Ply::<DefaultElement> { header, payload };
     let empty = Vec::new();
     let verts = ply.payload.get("vertex").unwrap_or(&empty);
     let faces = ply.payload.get("face").unwrap_or(&empty);

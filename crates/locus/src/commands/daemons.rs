@@ -7,12 +7,13 @@ use crate::output::*;
 use crate::runtime;
 use anyhow::{Context, Result};
 use locus_core::image_io::Image;
+use locus_protocol::handshake::Credentials;
 use locus_scheduler::{Scheduler, SchedulerConfig};
 use locus_worker::{Worker, WorkerConfig};
 use tokio_util::sync::CancellationToken;
 
 pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
-    let (cfg, token) = a.auth.load()?;
+    let (cfg, token, tls) = a.auth.load(true)?;
     let listen = a
         .listen
         .or(cfg.scheduler.listen.clone())
@@ -27,6 +28,7 @@ pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
         let s = Scheduler::bind(SchedulerConfig {
             listen,
             token,
+            tls,
             max_queued_jobs: cfg.scheduler.max_queued_jobs.unwrap_or(16),
             http: a.http.or(cfg.scheduler.http.clone()),
             worker_timeout,
@@ -51,7 +53,7 @@ pub(crate) async fn serve<F: std::future::Future<Output = Result<()>>>(
 }
 
 pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
-    let (cfg, token) = a.auth.load()?;
+    let (cfg, token, tls) = a.auth.load(true)?;
     let w = &cfg.worker;
     let scheduler = a.scheduler.or(w.scheduler.clone()).context(
         "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
@@ -65,6 +67,7 @@ pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
         listen,
         advertise: a.advertise.or(w.advertise.clone()),
         token,
+        tls,
         threads: a.threads.or(w.threads).unwrap_or(0),
         memory_budget: a.memory_budget.or(w.memory_budget).map_or(0, |b| b.0),
         name: a
@@ -90,14 +93,15 @@ fn scheduler_of(flag: Option<String>, cfg: &locus::config::Config) -> Result<Str
 }
 
 pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
-    let (cfg, token) = a.auth.load()?;
+    let (cfg, token, tls) = a.auth.load(false)?;
+    let creds = Credentials::new(&token, tls);
     let scheduler = scheduler_of(a.scheduler.clone(), &cfg)?;
     let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
     if a.detach {
         let job = runtime()?.block_on(locus_scheduler::client::submit_detached(
-            &scheduler, &token, req,
+            &scheduler, creds, req,
         ))?;
         println!("job {job}");
         eprintln!(
@@ -111,7 +115,7 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
         let shutdown = CancellationToken::new();
         locus::cancel_on_signals(shutdown.clone());
         tokio::select! {
-            r = locus_scheduler::client::submit(&scheduler, &token, req, &progress) => r,
+            r = locus_scheduler::client::submit(&scheduler, creds, req, &progress) => r,
             _ = shutdown.cancelled() => Err(anyhow::anyhow!("interrupted")),
         }
     })?;
@@ -122,14 +126,15 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
 }
 
 pub(crate) fn cmd_attach(a: AttachArgs) -> Result<()> {
-    let (cfg, token) = a.auth.load()?;
+    let (cfg, token, tls) = a.auth.load(false)?;
+    let creds = Credentials::new(&token, tls);
     let scheduler = scheduler_of(a.scheduler.clone(), &cfg)?;
     let (pb, progress) = tile_progress(0);
     let result = runtime()?.block_on(async {
         let shutdown = CancellationToken::new();
         locus::cancel_on_signals(shutdown.clone());
         tokio::select! {
-            r = locus_scheduler::client::attach_to(&scheduler, &token, a.job, &progress) => r,
+            r = locus_scheduler::client::attach_to(&scheduler, creds, a.job, &progress) => r,
             _ = shutdown.cancelled() => Err(anyhow::anyhow!("interrupted")),
         }
     })?;

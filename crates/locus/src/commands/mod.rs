@@ -1,5 +1,6 @@
 //! One module per family of subcommands; `main` dispatches to them.
 
+pub(crate) mod bench;
 pub(crate) mod daemons;
 pub(crate) mod render;
 pub(crate) mod tools;

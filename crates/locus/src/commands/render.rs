@@ -21,7 +21,7 @@ pub(crate) fn progress_bar(total: u64, what: &str) -> Option<indicatif::Progress
     let pb = indicatif::ProgressBar::new(total);
     pb.set_style(
         indicatif::ProgressStyle::with_template(
-            "{msg} [{bar:40}] {pos}/{len} tiles {elapsed_precise} eta {eta}",
+            "{msg} [{bar:40}] {percent:>3}% {elapsed_precise} eta {eta}",
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
@@ -192,15 +192,16 @@ pub(crate) fn load_for_farm(
     Ok(scene)
 }
 
+/// A bar fed by the farm's progress: pixel samples in the film, of all.
 pub(crate) fn tile_progress(
     total_hint: u64,
-) -> (Option<indicatif::ProgressBar>, impl Fn(u32, u32) + Sync) {
+) -> (Option<indicatif::ProgressBar>, impl Fn(u64, u64) + Sync) {
     let pb = progress_bar(total_hint, "farm");
     let pb2 = pb.clone();
-    (pb, move |done: u32, total: u32| {
+    (pb, move |done: u64, total: u64| {
         if let Some(pb) = &pb2 {
-            pb.set_length(total as u64);
-            pb.set_position(done as u64);
+            pb.set_length(total);
+            pb.set_position(done);
         }
     })
 }

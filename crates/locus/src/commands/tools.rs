@@ -1,15 +1,12 @@
-//! The tools beside rendering: `diff`, `gen`, and the benchmarks (`bench`,
-//! `bench locality`, `bench-farm`).
+//! The tools beside rendering: `diff`, `gen` and `tls-init` (the
+//! benchmarks are in [`super::bench`]).
 
 use crate::cli::*;
 use anyhow::{Context, Result, bail};
-use locus_core::bench;
 use locus_core::generate::{RoomParams, write_room};
 use locus_core::image_io::Image;
 use locus_core::metrics::compare;
-use locus_core::render::Prepared;
-use locus_core::scene::Scene;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 pub(crate) fn cmd_diff(a: &Path, b: &Path, exact: bool) -> Result<()> {
     let ia = Image::read_exr(a)?;
@@ -58,154 +55,32 @@ pub(crate) fn cmd_gen(what: GenWhat) -> Result<()> {
     Ok(())
 }
 
-pub(crate) fn default_room() -> Result<PathBuf> {
-    let path = Path::new("scenes/generated/room.toml");
-    if !path.is_file() {
-        let (p, n) = write_room(
-            Path::new("scenes/generated"),
-            "room",
-            &RoomParams::default(),
-        )?;
-        tracing::info!(triangles = n, path = %p.display(), "generated the benchmark room");
-    }
-    Ok(path.to_path_buf())
-}
-
-pub(crate) fn cmd_bench_locality(a: LocalityArgs) -> Result<()> {
-    if a.scene == Path::new("scenes/generated/room.toml") {
-        default_room()?;
-    }
-    let stem = a
-        .scene
-        .file_stem()
-        .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
-    let presets = a.presets;
-    let workers = a.workers.max(1);
-    let threads = if a.threads_per_worker > 0 {
-        a.threads_per_worker
-    } else {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        (cores / workers).max(1)
-    };
-    let plan = locus::locality::Plan {
-        out_dir: a
-            .out_dir
-            .unwrap_or_else(|| PathBuf::from(format!("bench-out/locality-{stem}"))),
-        scene: a.scene,
-        width: a.width,
-        height: a.height,
-        workers,
-        threads_per_worker: threads,
-        reference_spp: a.reference_spp.max(1),
-        presets,
-        policies: a.policies,
-        fetch_budget: a.fetch_budget_mib << 20,
-    };
-    locus::locality::run(&plan)?;
-    let md = plan.out_dir.join("locality.md");
-    print!(
-        "{}",
-        std::fs::read_to_string(&md).with_context(|| format!("reading {}", md.display()))?
-    );
-    println!("\nwrote {}, locality.csv and locality.svg", md.display());
-    Ok(())
-}
-
-pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
-    if let Some(BenchWhat::Locality(l)) = a.what {
-        return cmd_bench_locality(l);
-    }
-    let path = match a.scene {
-        Some(p) => p,
-        None => default_room()?,
-    };
-    let scene = Scene::load(&path)?;
-    if scene.tris.is_empty() {
-        bail!("{}: scene has no triangles", path.display());
-    }
-    let prep = Prepared::new(scene);
-    let r = bench::run(&prep, a.rays, a.rounds, a.spp, a.threads);
-    println!("scene {} ({} triangles)", path.display(), r.triangles);
-    println!("BVH build (obvhs CWBVH, medium): {:.3} s", r.bvh_build_s);
-    println!(
-        "incoherent rays, 1 thread: locus {:.2} Mrays/s, raw obvhs {:.2} Mrays/s, overhead {:+.1}% ({} of {} closest hits agree)",
-        r.locus_mrays_per_s,
-        r.obvhs_mrays_per_s,
-        r.overhead * 100.0,
-        r.hits_agree,
-        r.rays
-    );
-    println!(
-        "path tracing: {:.0} samples/s ({} spp, {} threads)",
-        r.samples_per_s, r.spp, r.threads
-    );
-    if let Some(j) = a.json {
-        std::fs::write(&j, serde_json::to_string_pretty(&r)?)
-            .with_context(|| format!("writing {}", j.display()))?;
-    }
-    Ok(())
-}
-
-pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
-    let mut scenes = if a.large_only {
-        Vec::new()
-    } else if a.scenes.is_empty() {
-        let mut v = vec![default_room()?];
-        // The conference room's mesh lives beside a checkout (see its
-        // scene file); it is measured where it is there.
-        let conf = Path::new("scenes/conference/conference.toml");
-        if Path::new("../shared/scenes/conference/conference.obj").is_file() && conf.is_file() {
-            v.push(conf.to_path_buf());
-        }
-        v
-    } else {
-        a.scenes.clone()
-    };
-    for s in &mut scenes {
-        if s == Path::new("scenes/generated/room.toml") {
-            *s = default_room()?;
+/// Writes a self-signed certificate and its key into `dir` (the key
+/// readable by its owner only), refusing to replace either unless `force`.
+pub(crate) fn cmd_tls_init(dir: &Path, force: bool) -> Result<()> {
+    let (cert, key) = locus_protocol::tls::generate().map_err(anyhow::Error::msg)?;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let (c, k) = (dir.join("cert.pem"), dir.join("key.pem"));
+    for p in [&c, &k] {
+        if p.exists() && !force {
+            bail!("{} exists: pass --force to replace it", p.display());
         }
     }
-    let cores = if a.cores > 0 {
-        a.cores
-    } else {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    };
-    let large = if a.no_large {
-        None
-    } else {
-        Some(locus::bench_farm::Large {
-            path: locus::bench_farm::large_scene(Path::new("scenes/generated"))?,
-            workers: 4,
-            budget: a.large_budget.0,
-        })
-    };
-    let plan = locus::bench_farm::Plan {
-        scenes,
-        width: a.width,
-        height: a.height,
-        spp: a.spp,
-        repeat: a.repeat.max(1),
-        workers: a.workers.clone(),
-        policies: a.policies.clone(),
-        cores,
-        large,
-        exe: std::env::current_exe().context("finding the locus executable")?,
-    };
-    let (rows, predictions) = locus::bench_farm::run(&plan)?;
-    let md = format!(
-        "{}\n{}",
-        locus::bench_farm::markdown(&rows),
-        locus::bench_farm::prediction_markdown(&predictions)
+    std::fs::write(&c, cert).with_context(|| format!("writing {}", c.display()))?;
+    let mut o = std::fs::OpenOptions::new();
+    o.write(true).create(true).truncate(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut o, 0o600);
+    let mut f = o
+        .open(&k)
+        .with_context(|| format!("writing {}", k.display()))?;
+    std::io::Write::write_all(&mut f, key.as_bytes())
+        .with_context(|| format!("writing {}", k.display()))?;
+    println!(
+        "wrote {} and {}: give both to every scheduler and worker (--tls-cert, --tls-key), \
+         the certificate to clients (--tls-ca)",
+        c.display(),
+        k.display()
     );
-    print!("{md}");
-    if let Some(j) = &a.json {
-        let out = serde_json::json!({ "rows": rows, "prediction": predictions });
-        std::fs::write(j, serde_json::to_string_pretty(&out)?)
-            .with_context(|| format!("writing {}", j.display()))?;
-    }
-    if let Some(m) = &a.markdown {
-        std::fs::write(m, &md).with_context(|| format!("writing {}", m.display()))?;
-    }
-    locus::bench_farm::check(&rows)
+    Ok(())
 }

@@ -6,11 +6,11 @@
 use super::recovery::Setback;
 use super::{Actor, Attempt, Event, MAX_TILE_REQUEST, Phase};
 use crate::distribute;
+use crate::film::{Refused, Unit};
 use crate::job::{self, Member};
 use crate::store::Write;
 use crate::tiles::TileQueue;
 use locus_protocol::control::{SchedulerToWorker, TileResult, WorkerToScheduler};
-use locus_protocol::submit::SchedulerToClient;
 use std::time::Instant;
 use tracing::{info, warn};
 
@@ -43,20 +43,20 @@ impl Actor {
             reports: vec![None; n],
             told_no_more: vec![false; n],
             tiles_by: vec![0; n],
-            ..Attempt::waiting(j.done)
+            ..Attempt::waiting(j.film.done())
         };
         if j.recovery.attempts > 1 {
             info!(
                 job = j.id,
                 run,
                 workers = n,
-                tiles_left = j.tiles.len() as u32 - j.done,
+                tile_passes_left = j.film.units().1 - j.film.units().0,
                 "job restarting on the workers left"
             );
         }
         let (events, scene, options) =
             (self.events.clone(), j.scene.clone(), j.req.options.clone());
-        let rects = j.tiles.clone();
+        let rects = j.film.tiles().to_vec();
         tokio::spawn(async move {
             let prep =
                 tokio::task::spawn_blocking(move || job::prepare(scene, &options, &info, &rects))
@@ -85,8 +85,7 @@ impl Actor {
         let a = &mut j.attempt;
         a.t_prepared = Some(Instant::now());
         a.advance(Phase::Distributing);
-        let left = (0..j.tiles.len() as u32).filter(|&t| !j.received[t as usize]);
-        a.queue = TileQueue::new(left, &prep.tile_affinity, a.members.len());
+        a.queue = TileQueue::new(j.film.missing(), &prep.tile_affinity, a.members.len());
         info!(
             job = j.id,
             run,
@@ -107,6 +106,16 @@ impl Actor {
     }
 
     pub(super) fn on_worker(&mut self, id: u32, msg: WorkerToScheduler) {
+        // A report of an aborted attempt of this job: its work is counted
+        // in the job's recovery, not in the last attempt's totals.
+        if let WorkerToScheduler::Report { job: run, stats } = &msg
+            && let Some(j) = self.job.as_mut()
+            && j.past_runs.contains(run)
+        {
+            j.recovery.aborted += stats.trace;
+            j.recovery.aborted_reports += 1;
+            return;
+        }
         let run_of = match &msg {
             WorkerToScheduler::Ready { job }
             | WorkerToScheduler::NeedTiles { job, .. }
@@ -136,9 +145,8 @@ impl Actor {
             WorkerToScheduler::NeedTiles { count, .. } => {
                 let tx = &self.workers[&id].tx;
                 for _ in 0..count.min(MAX_TILE_REQUEST) {
-                    if let Some(k) = a.queue.next_for(w) {
-                        let mut t = j.tiles[k as usize];
-                        t.job = a.run;
+                    if let Some(u) = a.queue.next_for(w) {
+                        let t = j.film.assignment(u, a.run);
                         if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
                             // The worker asked for it, so its queue has
                             // room unless it is gone, which the attempt
@@ -187,45 +195,47 @@ impl Actor {
 
     fn on_tile(&mut self, id: u32, w: usize, r: TileResult) {
         let j = self.job.as_mut().expect("member of a job");
-        let ignore = |why: &str| {
-            warn!(worker = id, tile = r.tile, why, "tile result ignored");
-            self.metrics.tile_ignored(why);
+        let u = Unit {
+            tile: r.tile,
+            pass: r.pass,
         };
-        let Some(t) = j.tiles.get(r.tile as usize).copied() else {
-            ignore("unknown");
-            return;
+        let changed = match j.film.add(u, r.sums) {
+            Ok(changed) => changed,
+            Err(Refused::Size { got, want }) => {
+                let reason = format!(
+                    "worker {id} sent pass {} of tile {} with {got} pixels, expected {want}",
+                    r.pass, r.tile
+                );
+                self.fail(reason);
+                return;
+            }
+            Err(e) => {
+                let why = match e {
+                    Refused::Duplicate => "duplicate",
+                    _ => "unknown",
+                };
+                warn!(
+                    worker = id,
+                    tile = r.tile,
+                    pass = r.pass,
+                    why,
+                    "tile result ignored"
+                );
+                self.metrics.tile_ignored(why);
+                return;
+            }
         };
-        if r.pixels.len() != t.pixels() as usize {
-            let reason = format!(
-                "worker {id} sent tile {} with {} pixels, expected {}",
-                r.tile,
-                r.pixels.len(),
-                t.pixels()
-            );
-            self.fail(reason);
-            return;
-        }
-        if std::mem::replace(&mut j.received[r.tile as usize], true) {
-            ignore("duplicate");
-            return;
-        }
-        super::clients::paste(&mut j.film, j.req.camera.width, &t, &r.pixels);
-        if let Some(s) = &self.store {
+        if changed && let Some(s) = &self.store {
             s.write(Write::Tile {
                 job: j.id,
                 tile: r.tile,
-                pixels: r.pixels,
+                sums: j.film.tile_sums(r.tile),
             });
         }
-        j.done += 1;
         j.attempt.tiles_by[w] += 1;
         self.metrics.tile();
-        j.client.send(SchedulerToClient::Progress {
-            job: j.id,
-            tiles_done: j.done,
-            tiles: j.tiles.len() as u32,
-        });
-        if j.done as usize == j.tiles.len() {
+        j.client.send(j.progress());
+        if j.film.is_complete() {
             let a = &mut j.attempt;
             a.advance(Phase::Collecting);
             a.t_rendered = Some(Instant::now());

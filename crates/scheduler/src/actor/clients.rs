@@ -6,16 +6,21 @@
 use super::Actor;
 use crate::store::Write;
 use locus_core::image_io::Image;
-use locus_protocol::control::TileAssignment;
 use locus_protocol::report::FarmReport;
 use locus_protocol::submit::{JobResult, RESULT_CHUNK_PIXELS, SchedulerToClient};
 use std::sync::Arc;
-use tokio::sync::mpsc;
-use tracing::info;
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot};
+use tokio::time::timeout;
+use tracing::{info, warn};
 
 /// Finished results kept for late clients and previews (each holds its
 /// image).
 pub const FINISHED_KEPT: usize = 4;
+
+/// How long a result waits for the state store to commit it before it is
+/// sent anyway (a disk that stalls must not hold a client forever).
+const STORE_WAIT: Duration = Duration::from_secs(30);
 
 /// The client of a job, if one is attached.
 pub(crate) struct Client(Option<mpsc::Sender<SchedulerToClient>>);
@@ -55,22 +60,15 @@ pub(crate) struct Finished {
     pub report: Arc<FarmReport>,
 }
 
-/// Copies a tile's row-major pixels into the film.
-pub(crate) fn paste(film: &mut [[f32; 3]], width: u32, t: &TileAssignment, pixels: &[[f32; 3]]) {
-    let w = (t.x1 - t.x0) as usize;
-    for (row, y) in (t.y0..t.y1).enumerate() {
-        let at = (y * width + t.x0) as usize;
-        film[at..at + w].copy_from_slice(&pixels[row * w..(row + 1) * w]);
-    }
-}
-
 /// Sends a finished image in runs, then `Done` without pixels, waiting for
-/// room: a dedicated task, since the image can be large.
+/// room: a dedicated task, since the image can be large. `Done` waits for
+/// `stored` too, where the result goes to the state store.
 pub(crate) fn send_result(
     client: mpsc::Sender<SchedulerToClient>,
     image: Arc<Image>,
     report: Arc<FarmReport>,
     job: u64,
+    stored: Option<oneshot::Receiver<()>>,
 ) {
     tokio::spawn(async move {
         for (k, run) in image.pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
@@ -91,6 +89,16 @@ pub(crate) fn send_result(
             report: (*report).clone(),
         };
         drop(image);
+        // `Done` tells the client the job is over: not before the result
+        // is on disk, so that a scheduler killed after it still has it.
+        if let Some(stored) = stored
+            && !matches!(timeout(STORE_WAIT, stored).await, Ok(Ok(())))
+        {
+            warn!(
+                job,
+                "the result is sent before the state store committed it"
+            );
+        }
         let _ = client.send(SchedulerToClient::Done(Box::new(result))).await;
     });
 }
@@ -105,11 +113,7 @@ impl Actor {
                 job,
                 workers: j.attempt.members.len() as u32,
             });
-            let _ = tx.try_send(SchedulerToClient::Progress {
-                job,
-                tiles_done: j.done,
-                tiles: j.tiles.len() as u32,
-            });
+            let _ = tx.try_send(j.progress());
             j.client = Client::some(tx);
         } else if let Some((ahead, q)) =
             self.queue.iter_mut().enumerate().find(|(_, q)| q.id == job)
@@ -120,7 +124,7 @@ impl Actor {
             q.client = Client::some(tx);
         } else if let Some(f) = self.finished.iter().find(|f| f.id == job) {
             info!(job, "client attached to a finished job");
-            send_result(tx, f.image.clone(), f.report.clone(), job);
+            send_result(tx, f.image.clone(), f.report.clone(), job, None);
         } else {
             let reason = format!(
                 "no job {job} here: it failed, or finished more than {FINISHED_KEPT} jobs ago, \
@@ -130,10 +134,21 @@ impl Actor {
         }
     }
 
-    /// Keeps a finished result for late clients, dropping the oldest.
-    pub(super) fn keep_finished(&mut self, f: Finished) {
+    /// Keeps a finished result for late clients (in the store too, so it
+    /// outlives a restart), dropping the oldest. Returns what resolves
+    /// once the store has committed it, where there is a store.
+    pub(super) fn keep_finished(&mut self, f: Finished) -> Option<oneshot::Receiver<()>> {
+        let stored = self.store.as_ref().and_then(|s| {
+            let queued = s.write(Write::Finished {
+                job: f.id,
+                image: f.image.clone(),
+                report: f.report.clone(),
+            });
+            queued.then(|| s.synced())
+        });
         self.finished.push_front(f);
         self.finished.truncate(FINISHED_KEPT);
+        stored
     }
 
     /// The job ended: its record and tiles leave the store.

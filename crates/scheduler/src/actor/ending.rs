@@ -7,7 +7,6 @@ use super::clients::{Finished, send_result};
 use super::{Actor, Running};
 use crate::report::build_report;
 use crate::status::{self, EndedJob};
-use locus_core::image_io::Image;
 use locus_protocol::submit::SchedulerToClient;
 use std::sync::Arc;
 use tracing::{info, warn};
@@ -71,7 +70,7 @@ impl Actor {
     pub(super) fn finish(&mut self) {
         let Some(mut j) = self.release() else { return };
         let names = self.member_names(&j);
-        j.recovery.tiles_kept = j.attempt.done_before;
+        j.recovery.tile_passes_kept = j.attempt.before.0;
         let report = build_report(&j, &names);
         let ended = EndedJob {
             traffic: report
@@ -96,21 +95,17 @@ impl Actor {
         );
         // One image serves the client, the preview and a late client: the
         // client's copy is sent from it in runs, never copied whole.
-        let image = Arc::new(Image {
-            width: j.req.camera.width,
-            height: j.req.camera.height,
-            pixels: std::mem::take(&mut j.film),
-        });
+        let image = Arc::new(j.film.image());
         let report = Arc::new(report);
         self.forget(j.id);
-        if let Some(tx) = j.client.take() {
-            send_result(tx, image.clone(), report.clone(), j.id);
-        }
-        self.keep_finished(Finished {
+        let stored = self.keep_finished(Finished {
             id: j.id,
-            image,
-            report,
+            image: image.clone(),
+            report: report.clone(),
         });
+        if let Some(tx) = j.client.take() {
+            send_result(tx, image, report, j.id, stored);
+        }
         self.try_start();
     }
 }

@@ -18,19 +18,22 @@
 
 mod attempt;
 mod clients;
+
+pub use clients::FINISHED_KEPT;
 mod ending;
 mod recovery;
 
 pub(crate) use clients::Client;
 
+use crate::film::{Film, TileSums};
 use crate::job;
 use crate::metrics::Metrics;
 use crate::status::{EndedJob, Status};
-use crate::store::{Restored, Store, Write};
+use crate::store::{Kept, Restored, Store, Write};
 use crate::tiles::TileQueue;
 use locus_core::image_io::Image;
 use locus_core::scene::Scene;
-use locus_protocol::control::{Registration, SchedulerToWorker, TileAssignment, WorkerToScheduler};
+use locus_protocol::control::{Registration, SchedulerToWorker, WorkerToScheduler};
 use locus_protocol::report::{Recovery, WorkerStats};
 use locus_protocol::submit::{JobRequest, SchedulerToClient};
 use std::collections::{BTreeMap, VecDeque};
@@ -59,6 +62,10 @@ pub enum Event {
     Submit {
         req: Box<JobRequest>,
         client: mpsc::Sender<SchedulerToClient>,
+        /// The request encoded for the store, where the connection task
+        /// did it (on a blocking thread, so neither the actor nor the
+        /// runtime waits on a large scene).
+        encoded: Option<Vec<u8>>,
     },
     /// A client takes up job `job` again.
     Attach {
@@ -94,8 +101,9 @@ pub(crate) struct Queued {
     client: Client,
     /// On tokio's clock, so that a test can let [`WORKER_WAIT`] pass.
     since: tokio::time::Instant,
-    /// Tiles already rendered (a job restored from the store).
-    tiles: Vec<(u32, Vec<[f32; 3]>)>,
+    /// Tiles already rendered, some passes of them (a job restored from
+    /// the store).
+    tiles: Vec<(u32, TileSums)>,
 }
 
 /// How long a job may wait for the workers it asks for to register (a farm
@@ -148,19 +156,32 @@ pub struct Running {
     pub req: Box<JobRequest>,
     pub(crate) scene: Arc<Scene>,
     client: Client,
-    /// Every tile of the image; `job` is the client's id, replaced by the
-    /// attempt's run id when a tile is handed out.
-    pub(crate) tiles: Vec<TileAssignment>,
-    /// Which tiles are in the film: a tile is counted once, however often
-    /// it arrives, and kept across attempts.
-    received: Vec<bool>,
-    pub(crate) done: u32,
-    film: Vec<[f32; 3]>,
+    /// The image's tiles and every pass of them in so far: a tile's pass
+    /// is counted once, however often it arrives, and kept across
+    /// attempts.
+    pub(crate) film: Film,
     pub started: Instant,
     pub recovery: Recovery,
+    /// The run ids of its aborted attempts, whose workers' late reports
+    /// are added to `recovery.aborted`.
+    past_runs: Vec<u64>,
     /// Attempts in a row that failed with no worker lost.
     failures: u32,
     pub attempt: Attempt,
+}
+
+impl Running {
+    /// The job's progress, for its client.
+    pub(crate) fn progress(&self) -> SchedulerToClient {
+        let (samples_done, samples) = self.film.samples();
+        SchedulerToClient::Progress {
+            job: self.id,
+            samples_done,
+            samples,
+            pass: self.film.pass(),
+            passes: self.film.passes().len() as u32,
+        }
+    }
 }
 
 /// One attempt at the job's unfinished tiles on a set of workers.
@@ -171,12 +192,12 @@ pub struct Attempt {
     pub members: Vec<u32>,
     pub(crate) phase: Phase,
     pub prep: Option<Box<job::Prepared>>,
-    /// Tiles not yet handed out, by worker (made when prepared).
+    /// Tile passes not yet handed out, by worker (made when prepared).
     queue: TileQueue,
-    /// Tiles returned in this attempt, by worker.
+    /// Tile passes returned in this attempt, by worker.
     pub(crate) tiles_by: Vec<u32>,
-    /// The job's tiles done when the attempt started.
-    pub(crate) done_before: u32,
+    /// The film's tile passes and pixel samples when the attempt started.
+    pub(crate) before: (u64, u64),
     told_no_more: Vec<bool>,
     ready: usize,
     pub reports: Vec<Option<WorkerStats>>,
@@ -191,7 +212,7 @@ pub struct Attempt {
 
 impl Attempt {
     /// An attempt that has not started: no members, waiting for workers.
-    fn waiting(done_before: u32) -> Self {
+    fn waiting(before: (u64, u64)) -> Self {
         Self {
             run: 0,
             members: Vec::new(),
@@ -199,7 +220,7 @@ impl Attempt {
             prep: None,
             queue: TileQueue::new([], &[], 0),
             tiles_by: Vec::new(),
-            done_before,
+            before,
             told_no_more: Vec::new(),
             ready: 0,
             reports: Vec::new(),
@@ -259,7 +280,22 @@ impl Actor {
     /// Keeps jobs and tiles in `store` from now on, and queues the jobs it
     /// held (with their tiles) ahead of any new one; ids continue from
     /// `next_job`.
-    pub fn with_store(mut self, store: Store, next_job: u64, jobs: Vec<Restored>) -> Self {
+    pub fn with_store(
+        mut self,
+        store: Store,
+        next_job: u64,
+        jobs: Vec<Restored>,
+        kept: Vec<Kept>,
+    ) -> Self {
+        for k in kept {
+            self.next_job = self.next_job.max(k.id + 1);
+            self.finished.push_front(clients::Finished {
+                id: k.id,
+                image: Arc::new(k.image),
+                report: Arc::new(k.report),
+            });
+        }
+        self.finished.truncate(FINISHED_KEPT);
         self.next_job = self.next_job.max(next_job);
         for r in jobs {
             self.next_job = self.next_job.max(r.id + 1);
@@ -288,11 +324,7 @@ impl Actor {
 
     fn preview(&self, id: u64) -> Option<Image> {
         if let Some(j) = self.job.as_ref().filter(|j| j.id == id) {
-            return Some(Image {
-                width: j.req.camera.width,
-                height: j.req.camera.height,
-                pixels: j.film.clone(),
-            });
+            return Some(j.film.image());
         }
         let f = self.finished.iter().find(|f| f.id == id)?;
         Some((*f.image).clone())
@@ -326,7 +358,11 @@ impl Actor {
                     self.try_start();
                 }
                 Event::Left { id, reason } => self.left(id, reason),
-                Event::Submit { req, client } => self.submit(req, client),
+                Event::Submit {
+                    req,
+                    client,
+                    encoded,
+                } => self.submit(req, client, encoded),
                 Event::Attach { job, client } => self.attach(job, client),
                 Event::Prepared { run, prep } => self.on_prepared(run, prep),
                 Event::FromWorker { id, msg } => self.on_worker(id, msg),
@@ -414,7 +450,12 @@ impl Actor {
         self.update_load();
     }
 
-    fn submit(&mut self, req: Box<JobRequest>, client: mpsc::Sender<SchedulerToClient>) {
+    fn submit(
+        &mut self,
+        req: Box<JobRequest>,
+        client: mpsc::Sender<SchedulerToClient>,
+        encoded: Option<Vec<u8>>,
+    ) {
         let refuse = |reason: String| {
             let _ = client.try_send(SchedulerToClient::Failed { job: 0, reason });
         };
@@ -433,10 +474,12 @@ impl Actor {
                 ahead: self.queue.len() as u32 + self.job.is_some() as u32,
             });
             if let Some(s) = &self.store {
-                s.write(Write::Job {
-                    id,
-                    req: req.clone(),
-                });
+                match encoded.map_or_else(|| postcard::to_allocvec(&*req), Ok) {
+                    Ok(request) => {
+                        s.write(Write::Job { id, request });
+                    }
+                    Err(e) => warn!(job = id, "job not stored: {e}"),
+                }
             }
             self.queue.push_back(Queued {
                 id,
@@ -486,54 +529,40 @@ impl Actor {
         // all along, not only when the tiles that look at it come up (in
         // scanline order a worker whose region the top of the image sees
         // little of waited half the job for the others).
-        let tiles: Vec<TileAssignment> = locus_core::render::tiles(
+        let tiles = locus_core::render::tiles(
             cam.width,
             cam.height,
             q.req.options.tile_size,
             locus_core::render::TileOrder::Shuffled(q.req.settings.seed ^ 0x711e),
-        )
-        .into_iter()
-        .enumerate()
-        .map(|(i, t)| TileAssignment {
-            job: id,
-            tile: i as u32,
-            x0: t.x0,
-            y0: t.y0,
-            x1: t.x1,
-            y1: t.y1,
-        })
-        .collect();
+        );
         let mut req = q.req;
         let scene = job::scene_of(&mut req);
-        let mut film = vec![[0.0; 3]; (cam.width * cam.height) as usize];
-        let mut received = vec![false; tiles.len()];
-        let mut done = 0;
-        for (k, pixels) in q.tiles {
+        let mut film = Film::new(cam.width, cam.height, req.settings.spp, tiles);
+        for (k, kept) in q.tiles {
             // A stored tile that does not fit the job is rendered again.
-            if let Some(t) = tiles.get(k as usize)
-                && pixels.len() == t.pixels() as usize
-                && !std::mem::replace(&mut received[k as usize], true)
-            {
-                clients::paste(&mut film, cam.width, t, &pixels);
-                done += 1;
+            if !film.restore(k, kept) {
+                warn!(
+                    job = id,
+                    tile = k,
+                    "a stored tile does not fit the job; rendered again"
+                );
             }
         }
+        let before = film.done();
         self.job = Some(Running {
             id,
             film,
             req,
             scene,
             client: q.client,
-            received,
-            tiles,
-            done,
             started: Instant::now(),
             recovery: Recovery {
                 attempts: 0,
                 ..Default::default()
             },
             failures: 0,
-            attempt: Attempt::waiting(done),
+            past_runs: Vec::new(),
+            attempt: Attempt::waiting(before),
         });
         self.start_attempt(idle[..want].to_vec());
     }

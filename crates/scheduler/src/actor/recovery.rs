@@ -53,8 +53,9 @@ impl Actor {
         self.abort_members(&reason);
         self.release_members();
         let j = self.job.as_mut().expect("checked above");
+        j.past_runs.push(j.attempt.run);
         self.metrics.attempt_restarted();
-        j.attempt = Attempt::waiting(j.done);
+        j.attempt = Attempt::waiting(j.film.done());
         self.restart();
     }
 

@@ -148,6 +148,8 @@ pub struct Links {
 pub enum EngineError {
     #[error(transparent)]
     UnknownSlot(#[from] UnknownSlot),
+    #[error("the scheduler sent a tile this worker cannot render: {0}")]
+    BadTile(String),
     #[error("worker {from} sent a query that resumes in a leaf this worker does not hold")]
     Misrouted { from: WorkerId },
     #[error(transparent)]
@@ -156,8 +158,10 @@ pub enum EngineError {
     LinkClosed(&'static str),
     #[error("the scheduler ended the job with {0} queries still pending")]
     EndedEarly(usize),
+    /// With what the engine had counted when it stopped, which the worker
+    /// reports for the aborted attempt.
     #[error("the job was cancelled")]
-    Cancelled,
+    Cancelled(Box<WorkerStats>),
     #[error("worker {from} sent a malformed packet: {why}")]
     BadPacket { from: WorkerId, why: PacketError },
     #[error("worker {from} asked for leaf {leaf}, which this worker does not own")]
@@ -236,7 +240,10 @@ fn turns<'a: 's, 's>(
     let mut warned = false;
     loop {
         if cancel.is_cancelled() {
-            return Err(EngineError::Cancelled);
+            let mut stats = std::mem::take(&mut e.stats);
+            stats.busy_s = start.elapsed().saturating_sub(idle).as_secs_f64();
+            stats.idle_s = idle.as_secs_f64();
+            return Err(EngineError::Cancelled(Box::new(stats)));
         }
         e.outbox.retry_stalled()?;
         if !e.outbox.is_stalled() {

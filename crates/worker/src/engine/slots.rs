@@ -11,7 +11,8 @@
 
 use glam::Vec3;
 use locus_core::integrator::ShadedVertex;
-use locus_core::path::{Answer, CacheKey, ChainVertex, Child, Dest, PixelSum, Query};
+use locus_core::passes::PixelSum;
+use locus_core::path::{Answer, CacheKey, ChainVertex, Child, Dest, Query};
 use locus_core::region::WorkerId;
 use locus_core::stats::TraceStats;
 use locus_protocol::control::{TileAssignment, TileResult};
@@ -81,7 +82,9 @@ pub struct NewSample {
 pub struct Slots {
     me: WorkerId,
     job: u64,
-    spp: u32,
+    /// The image's width, height and samples per pixel, that tiles must
+    /// fit.
+    image: [u32; 3],
     slots: Vec<Slot>,
     free: Vec<u32>,
     /// Cache entries that pending continuations update, by slot.
@@ -91,11 +94,11 @@ pub struct Slots {
 }
 
 impl Slots {
-    pub fn new(me: WorkerId, job: u64, spp: u32) -> Self {
+    pub fn new(me: WorkerId, job: u64, image: [u32; 3]) -> Self {
         Self {
             me,
             job,
-            spp: spp.max(1),
+            image,
             slots: Vec::new(),
             free: Vec::new(),
             updates: HashMap::new(),
@@ -202,8 +205,14 @@ impl Slots {
         self.free.push(slot);
     }
 
-    pub fn add_tile(&mut self, a: TileAssignment) {
-        let n = a.pixels() * self.spp;
+    /// Holds tile `a` until its pass's samples are in, if it fits the
+    /// image.
+    pub fn add_tile(&mut self, a: TileAssignment) -> Result<(), String> {
+        let [w, h, spp] = self.image;
+        if let Some(p) = a.problem(w, h, spp) {
+            return Err(p);
+        }
+        let n = a.pixels() * a.pass_samples();
         let st = TileState {
             a,
             values: vec![Vec3::ZERO; n as usize],
@@ -214,12 +223,12 @@ impl Slots {
             Some(i) => self.tiles[i] = Some(st),
             None => self.tiles.push(Some(st)),
         }
+        Ok(())
     }
 
     /// The next camera sample of a held tile that has not started, with
     /// the slot its radiance goes to; pixel by pixel, sample by sample.
     pub fn start_sample(&mut self) -> Option<NewSample> {
-        let spp = self.spp;
         let (ti, index, a) = self.tiles.iter_mut().enumerate().find_map(|(i, t)| {
             let t = t.as_mut()?;
             if t.next as usize >= t.values.len() {
@@ -228,6 +237,7 @@ impl Slots {
             t.next += 1;
             Some((i as u32, t.next - 1, t.a))
         })?;
+        let spp = a.pass_samples();
         let p = index / spp;
         let w = a.x1 - a.x0;
         let slot = self.alloc(Slot::Sample { tile: ti, index });
@@ -235,7 +245,7 @@ impl Slots {
         Some(NewSample {
             x: a.x0 + p % w,
             y: a.y0 + p / w,
-            sample: index % spp,
+            sample: a.samples[0] + index % spp,
             reply: ReplyTo {
                 worker: self.me,
                 slot,
@@ -356,27 +366,28 @@ impl Slots {
         Ok(())
     }
 
-    /// Each pixel's samples summed in index order, as one machine does.
+    /// Each pixel's samples of the pass summed in index order, as one
+    /// machine does ([`locus_core::passes`]).
     fn finish_tile(&mut self, tile: u32, st: &mut TraceStats) -> TileResult {
         let t = self.tiles[tile as usize]
             .take()
             .expect("a tile with samples in flight is held");
-        let spp = self.spp;
-        let pixels = t
+        let sums = t
             .values
-            .chunks(spp as usize)
+            .chunks(t.a.pass_samples() as usize)
             .map(|samples| {
                 let mut sum = PixelSum::default();
                 for &l in samples {
                     sum.add(l, st);
                 }
-                sum.mean(spp)
+                sum.total()
             })
             .collect();
         TileResult {
             job: self.job,
             tile: t.a.tile,
-            pixels,
+            pass: t.a.pass,
+            sums,
         }
     }
 }
@@ -387,10 +398,13 @@ mod tests {
     use locus_core::geometry::Ray;
     use locus_core::integrator::ShadowRay;
 
+    /// Tile `tile` of `w` by `h` pixels, samples 2 and 3 of 4.
     fn tile(tile: u32, w: u32, h: u32) -> TileAssignment {
         TileAssignment {
             job: 9,
             tile,
+            pass: 2,
+            samples: [2, 4],
             x0: 10,
             y0: 20,
             x1: 10 + w,
@@ -413,6 +427,28 @@ mod tests {
         })
     }
 
+    /// Width, height and samples per pixel of the tests' image.
+    const IMAGE: [u32; 3] = [64, 64, 4];
+
+    #[test]
+    fn tiles_outside_the_image_are_refused() {
+        let mut s = Slots::new(0, 9, IMAGE);
+        for t in [
+            tile(0, 60, 1),
+            TileAssignment {
+                samples: [2, 5],
+                ..tile(0, 1, 1)
+            },
+            TileAssignment {
+                samples: [3, 3],
+                ..tile(0, 1, 1)
+            },
+        ] {
+            assert!(s.add_tile(t).unwrap_err().contains("tile 0"));
+        }
+        assert!(s.start_sample().is_none());
+    }
+
     #[test]
     fn a_slot_fits_a_cache_line() {
         assert_eq!(std::mem::size_of::<Slot>(), 64);
@@ -420,18 +456,18 @@ mod tests {
 
     #[test]
     fn samples_fill_tiles_in_index_order() {
-        let mut s = Slots::new(0, 9, 2);
-        s.add_tile(tile(4, 2, 1));
+        let mut s = Slots::new(0, 9, IMAGE);
+        s.add_tile(tile(4, 2, 1)).unwrap();
         let mut started = Vec::new();
         while let Some(n) = s.start_sample() {
             started.push(n);
         }
         let xs: Vec<(u32, u32, u32)> = started.iter().map(|n| (n.x, n.y, n.sample)).collect();
-        assert_eq!(xs, [(10, 20, 0), (10, 20, 1), (11, 20, 0), (11, 20, 1)]);
+        assert_eq!(xs, [(10, 20, 2), (10, 20, 3), (11, 20, 2), (11, 20, 3)]);
         assert_eq!(s.samples_open(), 4);
         let mut fx = Vec::new();
         let mut st = TraceStats::default();
-        // Answers in any order; the pixel means do not depend on it.
+        // Answers in any order; the pixel sums do not depend on it.
         for (k, n) in started.iter().enumerate().rev() {
             let v = if k == 3 { f32::NAN } else { k as f32 };
             s.answer(
@@ -448,15 +484,20 @@ mod tests {
         let Effect::TileDone(t) = &fx[0] else {
             panic!("{fx:?}")
         };
-        assert_eq!(t.tile, 4);
-        assert_eq!(t.pixels, vec![[0.5; 3], [1.0; 3]]);
+        assert_eq!((t.tile, t.pass), (4, 2));
+        assert_eq!(t.sums, vec![[1.0; 3], [2.0; 3]]);
         assert_eq!((st.samples, st.invalid_samples), (4, 1));
     }
 
     #[test]
     fn chains_cascade_and_reply_once() {
-        let mut s = Slots::new(1, 9, 1);
-        s.add_tile(tile(0, 1, 1));
+        let mut s = Slots::new(1, 9, IMAGE);
+        s.add_tile(TileAssignment {
+            pass: 3,
+            samples: [3, 4],
+            ..tile(0, 1, 1)
+        })
+        .unwrap();
         let n = s.start_sample().unwrap();
         // Vertex 0: shadow forwarded, continuation is vertex 1; vertex 1:
         // shadow done, continuation forwarded with a cache entry to update.
@@ -512,13 +553,13 @@ mod tests {
         let Effect::TileDone(t) = &fx[0] else {
             panic!("{fx:?}")
         };
-        assert_eq!(t.pixels, vec![[4.0; 3]]);
+        assert_eq!(t.sums, vec![[4.0; 3]]);
         assert_eq!(s.pending(), 0);
     }
 
     #[test]
     fn a_vertex_asked_by_another_worker_replies_there() {
-        let mut s = Slots::new(1, 9, 1);
+        let mut s = Slots::new(1, 9, IMAGE);
         let asker = ReplyTo {
             worker: 3,
             slot: 77,

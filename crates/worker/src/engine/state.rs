@@ -123,7 +123,7 @@ impl<'a> Engine<'a> {
             control: links.control,
             events: events_tx.clone(),
             outbox: Outbox::new(links.peers, s.tuning.packet_size.max(1) as usize, flush),
-            slots: Slots::new(s.me, s.job, s.spp),
+            slots: Slots::new(s.me, s.job, [s.camera.width, s.camera.height, s.spp]),
             work: VecDeque::new(),
             no_more_tiles: false,
             tiles_asked: 0,
@@ -291,7 +291,7 @@ impl<'a> Engine<'a> {
             Input::Leaf { from, bytes, leaf } => self.receive_leaf(from, bytes, *leaf, scope)?,
             Input::Tile(a) => {
                 self.tiles_asked = self.tiles_asked.saturating_sub(1);
-                self.slots.add_tile(a)
+                self.slots.add_tile(a).map_err(EngineError::BadTile)?
             }
             Input::NoMoreTiles => self.no_more_tiles = true,
             Input::End => unreachable!("handled by the loop"),

@@ -1,0 +1,179 @@
+//! Progressive passes and the one pixel mean of one machine and the farm.
+//!
+//! A pixel's samples are split into passes that double in size, the same
+//! for every renderer of a job: a farm hands out every tile of a pass
+//! before the next pass, so a preview sharpens over the whole image
+//! instead of filling tile by tile. Within a pass, samples are summed in
+//! index order; the passes' sums are then added in pass order. Floating
+//! point addition is not associative, so this order is part of the image:
+//! one machine sums the same way ([`crate::render::render_pixel`]), and the
+//! farm's film adds each pass's sums in pass order however they arrive,
+//! which keeps the two bit-identical by construction.
+
+use crate::stats::TraceStats;
+use glam::{DVec3, Vec3};
+use std::ops::Range;
+
+/// The most passes a render is split into: each pass is another message
+/// per tile, and past this the first passes are too small to show.
+pub const MAX_PASSES: u32 = 8;
+
+/// The passes of a render of `spp` samples per pixel: consecutive sample
+/// ranges, each (but the first) about as large as all before it, at most
+/// [`MAX_PASSES`] of them, covering `0..spp`.
+pub fn passes(spp: u32) -> Vec<Range<u32>> {
+    let spp = spp.max(1);
+    let n = (32 - spp.leading_zeros()).min(MAX_PASSES);
+    let mut v = Vec::with_capacity(n as usize);
+    let mut start = 0;
+    for i in 0..n {
+        // The end of pass i is spp / 2^(n-1-i), rounded up: the last ends
+        // at spp, and each earlier one at half the next.
+        let shift = n - 1 - i;
+        let end = ((spp as u64 + (1u64 << shift) - 1) >> shift) as u32;
+        if end > start {
+            v.push(start..end);
+            start = end;
+        }
+    }
+    v
+}
+
+/// A pixel's samples summed in sample-index order (f64), with non-finite
+/// values dropped and counted.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PixelSum {
+    sum: DVec3,
+}
+
+impl PixelSum {
+    #[inline]
+    pub fn add(&mut self, l: Vec3, st: &mut TraceStats) {
+        st.samples += 1;
+        if l.is_finite() {
+            self.sum += l.as_dvec3();
+        } else {
+            st.invalid_samples += 1;
+        }
+    }
+
+    /// Adds the sum of the pixel's next pass.
+    #[inline]
+    pub fn add_pass(&mut self, pass: [f64; 3]) {
+        self.sum += DVec3::from_array(pass);
+    }
+
+    /// The sum, to send or keep.
+    pub fn total(&self) -> [f64; 3] {
+        self.sum.to_array()
+    }
+
+    /// A sum kept earlier.
+    pub fn from_total(total: [f64; 3]) -> Self {
+        Self {
+            sum: DVec3::from_array(total),
+        }
+    }
+
+    /// The mean over `samples` samples.
+    pub fn mean(&self, samples: u32) -> [f32; 3] {
+        let m = self.sum / samples.max(1) as f64;
+        [m.x as f32, m.y as f32, m.z as f32]
+    }
+}
+
+/// The value of one pixel whose samples `sample(s)` are evaluated here, in
+/// the passes of [`passes`]: the one definition both renderers reproduce.
+pub fn pixel_mean(
+    spp: u32,
+    st: &mut TraceStats,
+    mut sample: impl FnMut(u32, &mut TraceStats) -> Vec3,
+) -> [f32; 3] {
+    let mut total = PixelSum::default();
+    for pass in passes(spp) {
+        let mut p = PixelSum::default();
+        for s in pass {
+            let l = sample(s, st);
+            p.add(l, st);
+        }
+        total.add_pass(p.total());
+    }
+    total.mean(spp)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn passes_cover_every_sample_once_and_double() {
+        for spp in (1..=300).chain([1000, 1024, 4095, 65536, crate::limits::MAX_SPP]) {
+            let p = passes(spp);
+            assert!(
+                !p.is_empty() && p.len() <= MAX_PASSES as usize,
+                "spp {spp}: {p:?}"
+            );
+            assert_eq!(p[0].start, 0);
+            assert_eq!(p.last().unwrap().end, spp);
+            for w in p.windows(2) {
+                assert_eq!(w[0].end, w[1].start, "spp {spp}: {p:?}");
+                // Each pass holds about as many samples as all before it.
+                let (before, this) = (w[1].start, w[1].end - w[1].start);
+                assert!(this + 1 >= before && this <= before + 1, "spp {spp}: {p:?}");
+            }
+        }
+        assert_eq!(passes(1), vec![0..1]);
+        assert_eq!(passes(16), vec![0..1, 1..2, 2..4, 4..8, 8..16]);
+        assert_eq!(
+            passes(1024),
+            vec![
+                0..8,
+                8..16,
+                16..32,
+                32..64,
+                64..128,
+                128..256,
+                256..512,
+                512..1024
+            ]
+        );
+    }
+
+    #[test]
+    fn the_pass_order_is_part_of_the_sum() {
+        // Summed straight through, these samples give another f64 than in
+        // passes: the reason both renderers share `pixel_mean`'s order.
+        // 2^53 + 1 rounds back to 2^53 in f64.
+        let big = 2f32.powi(53);
+        let xs = [big, 1.0, 1.0, -big];
+        let mut st = TraceStats::default();
+        let mut straight = PixelSum::default();
+        for &x in &xs {
+            straight.add(Vec3::splat(x), &mut st);
+        }
+        let passed = pixel_mean(4, &mut st, |s, _| Vec3::splat(xs[s as usize]));
+        assert_eq!((straight.mean(4), passed), ([0.0; 3], [0.25; 3]));
+        // And a film that adds the same passes' sums in order agrees.
+        let mut film = PixelSum::default();
+        for pass in passes(4) {
+            let mut p = PixelSum::default();
+            for s in pass {
+                p.add(Vec3::splat(xs[s as usize]), &mut st);
+            }
+            film.add_pass(p.total());
+        }
+        assert_eq!(film.mean(4), passed);
+    }
+
+    #[test]
+    fn non_finite_samples_count_as_zero() {
+        let mut st = TraceStats::default();
+        let m = pixel_mean(
+            4,
+            &mut st,
+            |s, _| if s == 2 { Vec3::NAN } else { Vec3::ONE },
+        );
+        assert_eq!(m, [0.75; 3]);
+        assert_eq!((st.samples, st.invalid_samples), (4, 1));
+    }
+}

@@ -1,0 +1,441 @@
+//! `locus bench-farm`: what the farm costs and gains against one machine
+//! on the same cores, measured in one run.
+//!
+//! For each scene: one machine on all cores; then farms of 1, 2, 4 and 8
+//! worker processes (`locus worker` children of this process, threads per
+//! worker chosen so that the total is the core count, at least one each)
+//! under each fetch policy, and Morton's partition beside region growing
+//! under `forward`. Every farm image is checked bit for bit against the
+//! single machine's. Each row gives:
+//! - efficiency: one machine's time over the farm's, for the render phase
+//!   and for everything after loading (preparation, distribution, BVH
+//!   builds and rendering);
+//! - CPU microseconds per forwarded query: the render phase's CPU time of
+//!   every worker process (as their kernels counted it) less one machine's
+//!   render CPU, over the queries forwarded;
+//! - forwards per ray, bytes per sample, load imbalance, and each worker
+//!   process's peak resident memory against its budget.
+//!
+//! The large scene (a generated room of about four million triangles) runs
+//! on four workers whose budgets are each below the scene's geometry, under
+//! `forward` and `adaptive`: a scene that no one of them could hold.
+
+use crate::farm::{FarmSpec, LocalFarm};
+use anyhow::{Context, Result, bail};
+use locus_core::generate::{RoomParams, write_room};
+use locus_core::image_io::Image;
+use locus_core::render::{Prepared, RenderOptions, render};
+use locus_core::scene::Scene;
+use locus_protocol::report::FarmReport;
+use locus_protocol::submit::{FetchPolicy, JobOptions, Partitioner};
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+pub struct Plan {
+    pub scenes: Vec<PathBuf>,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    /// Runs per configuration; the fastest is reported (noise only adds).
+    pub repeat: u32,
+    pub workers: Vec<usize>,
+    pub policies: Vec<FetchPolicy>,
+    /// Cores the single machine uses and the farms share.
+    pub cores: usize,
+    /// The large generated scene and its workers' budget, if wanted.
+    pub large: Option<Large>,
+    /// The `locus` executable the workers run.
+    pub exe: PathBuf,
+}
+
+pub struct Large {
+    pub path: PathBuf,
+    pub workers: usize,
+    pub budget: u64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    pub scene: String,
+    pub config: String,
+    pub workers: usize,
+    pub threads_per_worker: usize,
+    pub policy: String,
+    pub partitioner: String,
+    /// Render phase (seconds).
+    pub render_s: f64,
+    /// After loading: preparation, distribution, builds and rendering.
+    pub total_s: f64,
+    pub efficiency_render: f64,
+    pub efficiency_total: f64,
+    /// Render-phase CPU seconds, all processes' workers together.
+    pub cpu_s: f64,
+    pub us_per_forward: Option<f64>,
+    pub forwards_per_ray: f64,
+    pub bytes_per_sample: f64,
+    pub imbalance: f64,
+    pub route_nodes: u32,
+    /// Peak resident bytes of each worker process, and their budget.
+    pub peak_rss: Vec<u64>,
+    pub budget: u64,
+    pub identical: bool,
+}
+
+/// The generated four-million-triangle room, written on first use.
+pub fn large_scene(dir: &Path) -> Result<PathBuf> {
+    let path = dir.join("large.toml");
+    if !path.is_file() {
+        let p = RoomParams {
+            detail: 80,
+            resolution: [160, 120],
+            spp: 4,
+            ..RoomParams::default()
+        };
+        let (p, n) = write_room(dir, "large", &p)
+            .with_context(|| format!("writing the large scene into {}", dir.display()))?;
+        tracing::info!(triangles = n, path = %p.display(), "generated the large scene");
+    }
+    Ok(path)
+}
+
+/// How well the two cost models predicted each leaf's work on a scene
+/// (Pearson r against a full-depth measurement, on the 4-worker octree).
+#[derive(Clone, Debug, Serialize)]
+pub struct Prediction {
+    pub scene: String,
+    pub leaves: usize,
+    pub analytic_r: f64,
+    pub sampled_r: f64,
+    pub sampled_rays: u64,
+    pub measured_rays: u64,
+}
+
+/// What one machine did: its image's bits and its times.
+struct Single {
+    bits: Vec<u32>,
+    render_s: f64,
+    total_s: f64,
+    cpu_s: f64,
+}
+
+fn single(scene: &Scene, cores: usize, repeat: u32) -> Single {
+    let mut best: Option<Single> = None;
+    for _ in 0..repeat.max(1) {
+        let t = Instant::now();
+        let prep = Prepared::new(scene.clone());
+        let mut o = RenderOptions::from_scene(scene);
+        o.threads = cores;
+        let cpu0 = locus_worker::sys::process_cpu_s();
+        let out = render(&prep, &o, &|_, _| {});
+        let cpu_s = locus_worker::sys::process_cpu_s() - cpu0;
+        let s = Single {
+            bits: out.image.to_bits(),
+            render_s: out.render_s,
+            total_s: t.elapsed().as_secs_f64(),
+            cpu_s,
+        };
+        if best.as_ref().is_none_or(|b| s.render_s < b.render_s) {
+            best = Some(s);
+        }
+    }
+    best.expect("at least one run")
+}
+
+struct FarmRun {
+    spec: FarmSpec,
+    policy: FetchPolicy,
+    partitioner: Partitioner,
+}
+
+/// Runs `run` `repeat` times on fresh processes; keeps the fastest render
+/// and whether every image matched.
+fn farm(scene: &Scene, run: &FarmRun, repeat: u32, want: &[u32]) -> Result<(FarmReport, bool)> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let mut best: Option<FarmReport> = None;
+    let mut identical = true;
+    for _ in 0..repeat.max(1) {
+        let opts = JobOptions {
+            workers: run.spec.workers as u32,
+            partitioner: run.partitioner,
+            fetch: run.policy,
+            ..JobOptions::default()
+        };
+        let req = locus_scheduler::client::request(scene, opts);
+        let r = rt.block_on(async {
+            let farm = LocalFarm::launch(&run.spec).await?;
+            let r = farm.render(req, &|_, _| {}).await;
+            farm.stop().await?;
+            r
+        })?;
+        let img = Image {
+            width: r.width,
+            height: r.height,
+            pixels: r.pixels,
+        };
+        identical &= img.to_bits() == want;
+        if best
+            .as_ref()
+            .is_none_or(|b| r.report.phases.render_s < b.phases.render_s)
+        {
+            best = Some(r.report);
+        }
+    }
+    Ok((best.expect("at least one run"), identical))
+}
+
+fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool) -> Row {
+    let t = &f.totals;
+    let total_s = f.phases.total_s;
+    let cpu: f64 = f
+        .workers
+        .iter()
+        .map(|w| w.stats.cpu_s - w.stats.setup_cpu_s)
+        .sum();
+    let fwd = t.forwarded_out;
+    Row {
+        scene: scene.to_string(),
+        config: format!(
+            "{} x {} thr, {}, {:?}",
+            run.spec.workers,
+            run.spec.threads_per_worker,
+            run.policy.name(),
+            run.partitioner
+        ),
+        workers: run.spec.workers,
+        threads_per_worker: run.spec.threads_per_worker,
+        policy: run.policy.name().into(),
+        partitioner: format!("{:?}", run.partitioner),
+        render_s: f.phases.render_s,
+        total_s,
+        efficiency_render: one.render_s / f.phases.render_s.max(1e-9),
+        efficiency_total: one.total_s / total_s.max(1e-9),
+        cpu_s: cpu,
+        us_per_forward: (fwd > 0).then(|| (cpu - one.cpu_s) / fwd as f64 * 1e6),
+        forwards_per_ray: f.forwarded_fraction,
+        bytes_per_sample: f.bytes_per_sample,
+        imbalance: f.load_imbalance,
+        route_nodes: f.route_leaves,
+        peak_rss: f.workers.iter().map(|w| w.stats.peak_rss).collect(),
+        budget: run.spec.memory_budget,
+        identical,
+    }
+}
+
+/// Runs the plan; returns every row and, per scene but the large one, the
+/// cost prediction's quality.
+pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
+    let mut rows = Vec::new();
+    let mut predictions = Vec::new();
+    let mut scenes: Vec<(PathBuf, Option<&Large>)> =
+        plan.scenes.iter().map(|s| (s.clone(), None)).collect();
+    if let Some(l) = &plan.large {
+        scenes.push((l.path.clone(), Some(l)));
+    }
+    for (path, large) in scenes {
+        let t = Instant::now();
+        let mut scene = Scene::load(&path)?;
+        let load_s = t.elapsed().as_secs_f64();
+        scene.camera.width = plan.width;
+        scene.camera.height = plan.height;
+        scene.settings.spp = plan.spp;
+        let name = path
+            .file_stem()
+            .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
+        tracing::info!(scene = %name, triangles = scene.tris.len(), load_s, "measuring");
+        let one = single(&scene, plan.cores, plan.repeat);
+        // What one machine needs for the large scene, measured on a process
+        // of its own: the figure the workers' budgets stay below.
+        let one_peak = match large {
+            Some(_) => vec![single_peak(&plan.exe, &path, plan.cores)?],
+            None => Vec::new(),
+        };
+        if large.is_none() {
+            let prep = Prepared::new(scene.clone());
+            let tree = locus_scheduler::job::octree_for(&scene, 4);
+            let q = locus_scheduler::cost::quality(&scene, &tree, &prep.accel, &prep.lights);
+            predictions.push(Prediction {
+                scene: name.clone(),
+                leaves: q.leaves,
+                analytic_r: q.analytic_r,
+                sampled_r: q.sampled_r,
+                sampled_rays: q.sampled_rays,
+                measured_rays: q.measured_rays,
+            });
+        }
+        rows.push(Row {
+            scene: name.clone(),
+            config: format!("one machine, {} threads", plan.cores),
+            workers: 0,
+            threads_per_worker: plan.cores,
+            policy: String::new(),
+            partitioner: String::new(),
+            render_s: one.render_s,
+            total_s: one.total_s,
+            efficiency_render: 1.0,
+            efficiency_total: 1.0,
+            cpu_s: one.cpu_s,
+            us_per_forward: None,
+            forwards_per_ray: 0.0,
+            bytes_per_sample: 0.0,
+            imbalance: 1.0,
+            route_nodes: 0,
+            peak_rss: one_peak,
+            budget: 0,
+            identical: true,
+        });
+        let mut runs = Vec::new();
+        match large {
+            Some(l) => {
+                for policy in [FetchPolicy::Forward, FetchPolicy::Adaptive] {
+                    runs.push(FarmRun {
+                        spec: spec(plan, l.workers, l.budget),
+                        policy,
+                        partitioner: Partitioner::RegionGrowing,
+                    });
+                }
+            }
+            None => {
+                for &w in &plan.workers {
+                    for &policy in &plan.policies {
+                        runs.push(FarmRun {
+                            spec: spec(plan, w, 0),
+                            policy,
+                            partitioner: Partitioner::RegionGrowing,
+                        });
+                    }
+                    if w > 1 && plan.policies.contains(&FetchPolicy::Forward) {
+                        runs.push(FarmRun {
+                            spec: spec(plan, w, 0),
+                            policy: FetchPolicy::Forward,
+                            partitioner: Partitioner::Morton,
+                        });
+                    }
+                }
+            }
+        }
+        for r in &runs {
+            let (f, identical) = farm(&scene, r, plan.repeat, &one.bits)?;
+            let row = row(&name, r, &one, &f, identical);
+            tracing::info!(config = %row.config, render_s = row.render_s, "measured");
+            rows.push(row);
+        }
+    }
+    Ok((rows, predictions))
+}
+
+/// Peak resident memory in bytes of `locus render` of `scene` on one
+/// machine with `cores` threads, as a process of its own (0 where the
+/// platform cannot tell).
+pub fn single_peak(exe: &Path, scene: &Path, cores: usize) -> Result<u64> {
+    let out = std::env::temp_dir().join(format!("locus-bench-{}.exr", std::process::id()));
+    let mut cmd = std::process::Command::new(exe);
+    cmd.arg("render")
+        .arg(scene)
+        .arg("--threads")
+        .arg(cores.to_string())
+        .arg("-o")
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null());
+    let (ok, peak) = locus_worker::sys::run_measuring_peak(&mut cmd)
+        .with_context(|| format!("running {}", exe.display()))?;
+    for ext in ["exr", "png", "json"] {
+        let _ = std::fs::remove_file(out.with_extension(ext));
+    }
+    if !ok {
+        bail!("{} render {} failed", exe.display(), scene.display());
+    }
+    Ok(peak)
+}
+
+fn spec(plan: &Plan, workers: usize, budget: u64) -> FarmSpec {
+    FarmSpec {
+        workers,
+        threads_per_worker: (plan.cores / workers).max(1),
+        memory_budget: budget,
+        processes: Some(plan.exe.clone()),
+        http: None,
+        tls: None,
+    }
+}
+
+fn mib(b: u64) -> String {
+    format!("{:.0}", b as f64 / (1 << 20) as f64)
+}
+
+/// The rows as Markdown tables: the farm against one machine, and the
+/// partitions under `forward`.
+pub fn markdown(rows: &[Row]) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | imbalance | peak MiB per process (budget) | bit-identical |"
+    );
+    let _ = writeln!(
+        s,
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
+    );
+    for r in rows {
+        let peaks = r
+            .peak_rss
+            .iter()
+            .map(|&b| mib(b))
+            .collect::<Vec<_>>()
+            .join(" ");
+        let budget = if r.budget > 0 {
+            format!(" ({})", mib(r.budget))
+        } else {
+            String::new()
+        };
+        let _ = writeln!(
+            s,
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {:.2} | {}{} | {} |",
+            r.scene,
+            r.config,
+            r.render_s,
+            r.total_s,
+            r.efficiency_render,
+            r.efficiency_total,
+            r.us_per_forward.map_or("".into(), |u| format!("{u:.2}")),
+            r.forwards_per_ray,
+            r.bytes_per_sample,
+            r.imbalance,
+            peaks,
+            budget,
+            if r.identical { "yes" } else { "NO" }
+        );
+    }
+    s
+}
+
+/// The prediction quality as a Markdown table.
+pub fn prediction_markdown(p: &[Prediction]) -> String {
+    let mut s = String::from(
+        "| scene | leaves | r analytic vs measured | r sampled vs measured | sampled rays | measured rays |\n|---|---:|---:|---:|---:|---:|\n",
+    );
+    for q in p {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {:.3} | {:.3} | {} | {} |",
+            q.scene, q.leaves, q.analytic_r, q.sampled_r, q.sampled_rays, q.measured_rays
+        );
+    }
+    s
+}
+
+/// Fails when any farm image differs from one machine's.
+pub fn check(rows: &[Row]) -> Result<()> {
+    if let Some(r) = rows.iter().find(|r| !r.identical) {
+        bail!(
+            "{} {}: the farm's image differs from one machine's",
+            r.scene,
+            r.config
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,162 @@
+//! The benchmark commands: `bench` (tracing throughput), `bench locality`
+//! and `bench-farm`; the benchmarks themselves are `locus::bench`.
+
+use crate::cli::*;
+use anyhow::{Context, Result, bail};
+use locus::bench::{farm, locality, trace};
+use locus_core::generate::{RoomParams, write_room};
+use locus_core::render::Prepared;
+use locus_core::scene::Scene;
+use std::path::{Path, PathBuf};
+
+pub(crate) fn default_room() -> Result<PathBuf> {
+    let path = Path::new("scenes/generated/room.toml");
+    if !path.is_file() {
+        let (p, n) = write_room(
+            Path::new("scenes/generated"),
+            "room",
+            &RoomParams::default(),
+        )?;
+        tracing::info!(triangles = n, path = %p.display(), "generated the benchmark room");
+    }
+    Ok(path.to_path_buf())
+}
+
+pub(crate) fn cmd_bench_locality(a: LocalityArgs) -> Result<()> {
+    if a.scene == Path::new("scenes/generated/room.toml") {
+        default_room()?;
+    }
+    let stem = a
+        .scene
+        .file_stem()
+        .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
+    let presets = a.presets;
+    let workers = a.workers.max(1);
+    let threads = if a.threads_per_worker > 0 {
+        a.threads_per_worker
+    } else {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        (cores / workers).max(1)
+    };
+    let plan = locality::Plan {
+        out_dir: a
+            .out_dir
+            .unwrap_or_else(|| PathBuf::from(format!("bench-out/locality-{stem}"))),
+        scene: a.scene,
+        width: a.width,
+        height: a.height,
+        workers,
+        threads_per_worker: threads,
+        reference_spp: a.reference_spp.max(1),
+        presets,
+        policies: a.policies,
+        fetch_budget: a.fetch_budget_mib << 20,
+    };
+    locality::run(&plan)?;
+    let md = plan.out_dir.join("locality.md");
+    print!(
+        "{}",
+        std::fs::read_to_string(&md).with_context(|| format!("reading {}", md.display()))?
+    );
+    println!("\nwrote {}, locality.csv and locality.svg", md.display());
+    Ok(())
+}
+
+pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
+    if let Some(BenchWhat::Locality(l)) = a.what {
+        return cmd_bench_locality(l);
+    }
+    let path = match a.scene {
+        Some(p) => p,
+        None => default_room()?,
+    };
+    let scene = Scene::load(&path)?;
+    if scene.tris.is_empty() {
+        bail!("{}: scene has no triangles", path.display());
+    }
+    let prep = Prepared::new(scene);
+    let r = trace::run(&prep, a.rays, a.rounds, a.spp, a.threads);
+    println!("scene {} ({} triangles)", path.display(), r.triangles);
+    println!("BVH build (obvhs CWBVH, medium): {:.3} s", r.bvh_build_s);
+    println!(
+        "incoherent rays, 1 thread: locus {:.2} Mrays/s, raw obvhs {:.2} Mrays/s, overhead {:+.1}% ({} of {} closest hits agree)",
+        r.locus_mrays_per_s,
+        r.obvhs_mrays_per_s,
+        r.overhead * 100.0,
+        r.hits_agree,
+        r.rays
+    );
+    println!(
+        "path tracing: {:.0} samples/s ({} spp, {} threads)",
+        r.samples_per_s, r.spp, r.threads
+    );
+    if let Some(j) = a.json {
+        std::fs::write(&j, serde_json::to_string_pretty(&r)?)
+            .with_context(|| format!("writing {}", j.display()))?;
+    }
+    Ok(())
+}
+
+pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
+    let mut scenes = if a.large_only {
+        Vec::new()
+    } else if a.scenes.is_empty() {
+        let mut v = vec![default_room()?];
+        // The conference room's mesh lives beside a checkout (see its
+        // scene file); it is measured where it is there.
+        let conf = Path::new("scenes/conference/conference.toml");
+        if Path::new("../shared/scenes/conference/conference.obj").is_file() && conf.is_file() {
+            v.push(conf.to_path_buf());
+        }
+        v
+    } else {
+        a.scenes.clone()
+    };
+    for s in &mut scenes {
+        if s == Path::new("scenes/generated/room.toml") {
+            *s = default_room()?;
+        }
+    }
+    let cores = if a.cores > 0 {
+        a.cores
+    } else {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    };
+    let large = if a.no_large {
+        None
+    } else {
+        Some(farm::Large {
+            path: farm::large_scene(Path::new("scenes/generated"))?,
+            workers: 4,
+            budget: a.large_budget.0,
+        })
+    };
+    let plan = farm::Plan {
+        scenes,
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        repeat: a.repeat.max(1),
+        workers: a.workers.clone(),
+        policies: a.policies.clone(),
+        cores,
+        large,
+        exe: std::env::current_exe().context("finding the locus executable")?,
+    };
+    let (rows, predictions) = farm::run(&plan)?;
+    let md = format!(
+        "{}\n{}",
+        farm::markdown(&rows),
+        farm::prediction_markdown(&predictions)
+    );
+    print!("{md}");
+    if let Some(j) = &a.json {
+        let out = serde_json::json!({ "rows": rows, "prediction": predictions });
+        std::fs::write(j, serde_json::to_string_pretty(&out)?)
+            .with_context(|| format!("writing {}", j.display()))?;
+    }
+    if let Some(m) = &a.markdown {
+        std::fs::write(m, &md).with_context(|| format!("writing {}", m.display()))?;
+    }
+    farm::check(&rows)
+}

@@ -1,0 +1,416 @@
+//! The running job's film: per pixel, the sum of its tile's passes so far
+//! ([`locus_core::passes`]), added in pass order however the passes
+//! arrive, so that the image is bit-identical to one machine's.
+//!
+//! A tile's pass that arrives before an earlier pass of the same tile is
+//! held until that one is in. The scheduler hands passes out in order
+//! (every tile of a pass before the next pass), so what is held is
+//! bounded by the tiles in flight. Counts are kept as the film fills, so
+//! progress is O(passes) to read, not O(tiles).
+
+use locus_core::image_io::Image;
+use locus_core::passes::{PixelSum, passes};
+use locus_core::render::Tile;
+use locus_protocol::control::TileAssignment;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::ops::Range;
+
+/// A tile in one pass: what the scheduler hands out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Unit {
+    pub tile: u32,
+    pub pass: u32,
+}
+
+/// A tile as the store keeps it: its passes in so far and its pixels'
+/// sums over them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TileSums {
+    pub passes: u32,
+    pub sums: Vec<[f64; 3]>,
+}
+
+/// Why a tile's pass was not taken.
+#[derive(Debug, PartialEq)]
+pub enum Refused {
+    /// No such tile or pass.
+    Unknown,
+    /// Already in (or held): a late copy.
+    Duplicate,
+    /// The wrong number of pixels: a broken worker.
+    Size { got: usize, want: u32 },
+}
+
+pub struct Film {
+    width: u32,
+    spp: u32,
+    tiles: Vec<Tile>,
+    passes: Vec<Range<u32>>,
+    sums: Vec<PixelSum>,
+    /// Passes added to each tile, in order.
+    passes_in: Vec<u32>,
+    /// `complete[p]`: tiles whose pass `p` is added.
+    complete: Vec<u32>,
+    /// Passes that came before an earlier pass of their tile.
+    early: BTreeMap<Unit, Vec<[f64; 3]>>,
+    samples_done: u64,
+}
+
+impl Film {
+    /// An empty film of `width` by `height` pixels at `spp` samples per
+    /// pixel, cut into `tiles`.
+    pub fn new(width: u32, height: u32, spp: u32, tiles: Vec<Tile>) -> Self {
+        let passes = passes(spp);
+        Self {
+            width,
+            spp: spp.max(1),
+            passes_in: vec![0; tiles.len()],
+            complete: vec![0; passes.len()],
+            tiles,
+            passes,
+            sums: vec![PixelSum::default(); width as usize * height as usize],
+            early: BTreeMap::new(),
+            samples_done: 0,
+        }
+    }
+
+    pub fn tiles(&self) -> &[Tile] {
+        &self.tiles
+    }
+
+    pub fn passes(&self) -> &[Range<u32>] {
+        &self.passes
+    }
+
+    /// Tile `u.tile` as a worker renders it in pass `u.pass`.
+    pub fn assignment(&self, u: Unit, run: u64) -> TileAssignment {
+        let r = &self.passes[u.pass as usize];
+        let t = self.tiles[u.tile as usize];
+        TileAssignment {
+            job: run,
+            tile: u.tile,
+            pass: u.pass,
+            samples: [r.start, r.end],
+            x0: t.x0,
+            y0: t.y0,
+            x1: t.x1,
+            y1: t.y1,
+        }
+    }
+
+    /// Whether tile `u.tile`'s pass `u.pass` is in (added or held).
+    pub fn has(&self, u: Unit) -> bool {
+        u.pass < self.passes_in[u.tile as usize] || self.early.contains_key(&u)
+    }
+
+    /// The units not yet in, pass by pass, tiles in the job's (shuffled)
+    /// order within each.
+    pub fn missing(&self) -> Vec<Unit> {
+        (0..self.passes.len() as u32)
+            .flat_map(|pass| (0..self.tiles.len() as u32).map(move |tile| Unit { tile, pass }))
+            .filter(|&u| !self.has(u))
+            .collect()
+    }
+
+    /// Takes tile `u.tile`'s sums of pass `u.pass`. Returns whether the
+    /// tile's state in the film changed (an earlier pass was not held up).
+    pub fn add(&mut self, u: Unit, sums: Vec<[f64; 3]>) -> Result<bool, Refused> {
+        let Some(t) = self.tiles.get(u.tile as usize) else {
+            return Err(Refused::Unknown);
+        };
+        if u.pass as usize >= self.passes.len() {
+            return Err(Refused::Unknown);
+        }
+        if sums.len() != t.pixels() as usize {
+            return Err(Refused::Size {
+                got: sums.len(),
+                want: t.pixels(),
+            });
+        }
+        if self.has(u) {
+            return Err(Refused::Duplicate);
+        }
+        if u.pass > self.passes_in[u.tile as usize] {
+            self.early.insert(u, sums);
+            return Ok(false);
+        }
+        self.add_in_order(u.tile, &sums);
+        loop {
+            let next = Unit {
+                tile: u.tile,
+                pass: self.passes_in[u.tile as usize],
+            };
+            let Some(s) = self.early.remove(&next) else {
+                break;
+            };
+            self.add_in_order(u.tile, &s);
+        }
+        Ok(true)
+    }
+
+    /// The film's pixel indices of tile `t`, row by row, in the row-major
+    /// order of a tile's results.
+    fn rows(&self, t: Tile) -> impl Iterator<Item = Range<usize>> + use<> {
+        let width = self.width;
+        (t.y0..t.y1).map(move |y| {
+            let at = (y * width + t.x0) as usize;
+            at..at + (t.x1 - t.x0) as usize
+        })
+    }
+
+    /// Sets or adds to tile `t`'s pixels from its row-major `sums`.
+    fn each_pixel(&mut self, t: Tile, sums: &[[f64; 3]], f: impl Fn(&mut PixelSum, [f64; 3])) {
+        let mut from = sums.iter();
+        for row in self.rows(t) {
+            for (p, s) in self.sums[row].iter_mut().zip(&mut from) {
+                f(p, *s);
+            }
+        }
+    }
+
+    fn add_in_order(&mut self, tile: u32, sums: &[[f64; 3]]) {
+        let t = self.tiles[tile as usize];
+        let pass = self.passes_in[tile as usize];
+        self.each_pixel(t, sums, |p, s| p.add_pass(s));
+        let r = &self.passes[pass as usize];
+        self.samples_done += t.pixels() as u64 * (r.end - r.start) as u64;
+        self.complete[pass as usize] += 1;
+        self.passes_in[tile as usize] += 1;
+    }
+
+    /// What the store keeps of tile `tile`.
+    pub fn tile_sums(&self, tile: u32) -> TileSums {
+        let t = self.tiles[tile as usize];
+        let sums = self
+            .rows(t)
+            .flat_map(|row| self.sums[row].iter().map(PixelSum::total))
+            .collect();
+        TileSums {
+            passes: self.passes_in[tile as usize],
+            sums,
+        }
+    }
+
+    /// Puts back a tile the store kept, if it fits this film and the
+    /// tile has nothing yet. Returns whether it did.
+    pub fn restore(&mut self, tile: u32, kept: TileSums) -> bool {
+        let Some(&t) = self.tiles.get(tile as usize) else {
+            return false;
+        };
+        if kept.passes == 0
+            || kept.passes as usize > self.passes.len()
+            || kept.sums.len() != t.pixels() as usize
+            || self.passes_in[tile as usize] != 0
+        {
+            return false;
+        }
+        self.each_pixel(t, &kept.sums, |p, s| *p = PixelSum::from_total(s));
+        self.passes_in[tile as usize] = kept.passes;
+        self.samples_done += t.pixels() as u64 * self.passes[kept.passes as usize - 1].end as u64;
+        for c in &mut self.complete[..kept.passes as usize] {
+            *c += 1;
+        }
+        true
+    }
+
+    /// Pixel samples in the film, of how many in all.
+    pub fn samples(&self) -> (u64, u64) {
+        (self.samples_done, self.sums.len() as u64 * self.spp as u64)
+    }
+
+    /// The earliest pass not complete (`passes().len()` when all are).
+    pub fn pass(&self) -> u32 {
+        let n = self.tiles.len() as u32;
+        self.complete
+            .iter()
+            .position(|&c| c < n)
+            .unwrap_or(self.complete.len()) as u32
+    }
+
+    /// Tile passes in the film (added), of how many in all.
+    pub fn units(&self) -> (u64, u64) {
+        let done = self.complete.iter().map(|&c| c as u64).sum();
+        (done, self.tiles.len() as u64 * self.passes.len() as u64)
+    }
+
+    /// Tile passes and pixel samples in the film.
+    pub fn done(&self) -> (u64, u64) {
+        (self.units().0, self.samples_done)
+    }
+
+    pub fn is_complete(&self) -> bool {
+        self.pass() as usize == self.passes.len()
+    }
+
+    /// The image so far: each pixel the mean of its tile's passes in (the
+    /// finished image once complete); black where none is.
+    pub fn image(&self) -> Image {
+        let height = (self.sums.len() / self.width.max(1) as usize) as u32;
+        let mut img = Image::new(self.width, height);
+        for (i, t) in self.tiles.iter().enumerate() {
+            let n = self.passes_in[i];
+            if n == 0 {
+                continue;
+            }
+            let samples = self.passes[n as usize - 1].end;
+            for row in self.rows(*t) {
+                for i in row {
+                    img.pixels[i] = self.sums[i].mean(samples);
+                }
+            }
+        }
+        img
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+    use locus_core::passes::pixel_mean;
+    use locus_core::render::{TileOrder, tiles};
+    use locus_core::stats::TraceStats;
+
+    const W: u32 = 7;
+    const H: u32 = 5;
+    const SPP: u32 = 13;
+
+    fn film() -> Film {
+        Film::new(W, H, SPP, tiles(W, H, 3, TileOrder::Scanline))
+    }
+
+    /// A sample whose sums are sensitive to the order they are added in.
+    fn sample(x: u32, y: u32, s: u32) -> Vec3 {
+        let v = ((x * 31 + y * 17 + s * 7) % 11) as f32;
+        Vec3::new(v * 1e7, 1.0 / (v + 0.3), (s as f32).sin() * 1e-3)
+    }
+
+    /// What a worker sends for unit `u`.
+    fn render(f: &Film, u: Unit) -> Vec<[f64; 3]> {
+        let a = f.assignment(u, 3);
+        let mut st = TraceStats::default();
+        let mut v = Vec::new();
+        for y in a.y0..a.y1 {
+            for x in a.x0..a.x1 {
+                let mut p = PixelSum::default();
+                for s in a.samples[0]..a.samples[1] {
+                    p.add(sample(x, y, s), &mut st);
+                }
+                v.push(p.total());
+            }
+        }
+        v
+    }
+
+    fn one_machine() -> Vec<[f32; 3]> {
+        let mut st = TraceStats::default();
+        (0..H)
+            .flat_map(|y| (0..W).map(move |x| (x, y)))
+            .map(|(x, y)| pixel_mean(SPP, &mut st, |s, _| sample(x, y, s)))
+            .collect()
+    }
+
+    #[test]
+    fn passes_in_any_order_give_one_machines_image() {
+        let mut f = film();
+        let mut units = f.missing();
+        assert_eq!(units.len(), f.tiles().len() * f.passes().len());
+        // Latest passes first, and every unit twice.
+        units.reverse();
+        for u in units.iter().chain(&units) {
+            let s = render(&f, *u);
+            let r = f.add(*u, s);
+            assert!(r.is_ok() || r == Err(Refused::Duplicate), "{r:?}");
+        }
+        assert!(f.is_complete());
+        assert!(f.missing().is_empty());
+        assert_eq!(f.samples(), ((W * H * SPP) as u64, (W * H * SPP) as u64));
+        assert_eq!(f.image().pixels, one_machine());
+    }
+
+    #[test]
+    fn a_kept_tile_comes_back_whole() {
+        let mut f = film();
+        let first: Vec<Unit> = f.missing().into_iter().filter(|u| u.pass < 2).collect();
+        for u in &first {
+            let s = render(&f, *u);
+            f.add(*u, s).unwrap();
+        }
+        assert_eq!(f.pass(), 2);
+        let mut again = film();
+        for t in 0..f.tiles().len() as u32 {
+            assert!(again.restore(t, f.tile_sums(t)));
+            assert!(!again.restore(t, f.tile_sums(t)), "a tile restored twice");
+        }
+        assert_eq!(again.samples(), f.samples());
+        assert_eq!(again.image().pixels, f.image().pixels);
+        for u in again.missing() {
+            let s = render(&again, u);
+            again.add(u, s).unwrap();
+        }
+        assert_eq!(again.image().pixels, one_machine());
+    }
+
+    #[test]
+    fn bad_results_are_refused() {
+        let mut f = film();
+        let u = Unit { tile: 0, pass: 0 };
+        assert_eq!(
+            f.add(Unit { tile: 99, pass: 0 }, vec![]),
+            Err(Refused::Unknown)
+        );
+        assert_eq!(
+            f.add(Unit { tile: 0, pass: 99 }, vec![]),
+            Err(Refused::Unknown)
+        );
+        assert_eq!(
+            f.add(u, vec![[0.0; 3]; 2]),
+            Err(Refused::Size { got: 2, want: 9 })
+        );
+        let s = render(&f, u);
+        assert_eq!(f.add(u, s.clone()), Ok(true));
+        assert_eq!(f.add(u, s), Err(Refused::Duplicate));
+        // A held early pass counts as in, once.
+        let late = Unit { tile: 1, pass: 3 };
+        let s = render(&f, late);
+        assert_eq!(f.add(late, s.clone()), Ok(false));
+        assert_eq!(f.add(late, s), Err(Refused::Duplicate));
+        assert!(!f.restore(0, f.tile_sums(0)), "over a tile that has passes");
+        assert!(!f.restore(
+            2,
+            TileSums {
+                passes: 9,
+                sums: vec![[0.0; 3]; 9]
+            }
+        ));
+    }
+
+    #[test]
+    fn the_preview_is_the_mean_of_the_passes_in() {
+        let mut f = film();
+        for u in f.missing().into_iter().filter(|u| u.pass == 0) {
+            let s = render(&f, u);
+            f.add(u, s).unwrap();
+        }
+        // Pass 0 of 13 spp is samples 0 and 1.
+        assert_eq!(f.passes()[0], 0..2);
+        let img = f.image();
+        let mut st = TraceStats::default();
+        for (i, p) in img.pixels.iter().enumerate() {
+            let (x, y) = (i as u32 % W, i as u32 / W);
+            let mut first = PixelSum::default();
+            first.add(sample(x, y, 0), &mut st);
+            first.add(sample(x, y, 1), &mut st);
+            assert_eq!(*p, first.mean(2));
+        }
+        assert_eq!(f.pass(), 1);
+        assert_eq!(
+            f.units(),
+            (
+                f.tiles().len() as u64,
+                (f.tiles().len() * f.passes().len()) as u64
+            )
+        );
+    }
+}
