@@ -273,7 +273,7 @@ mod tests {
     fn soup() -> Vec<[Vec3; 3]> {
         let mut v = Vec::new();
         for i in 0..3000u64 {
-            let k = SampleKey::new(i, 0, 5);
+            let k = SampleKey::independent(i, 0, 5);
             let p = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 10.0;
             let a = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) - 0.5;
             let b = Vec3::new(k.get1d(6), k.get1d(7), k.get1d(8)) - 0.5;
@@ -315,7 +315,7 @@ mod tests {
             assert!(max_part > 40 || set.parts().len() > 50);
             let mut hits = 0;
             for i in 0..3000u64 {
-                let k = SampleKey::new(i, 1, 9);
+                let k = SampleKey::independent(i, 1, 9);
                 let o = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 12.0 - 1.0;
                 let d = (Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) - 0.5).normalize();
                 let r = Ray::new(o, d);

@@ -295,7 +295,7 @@ pub fn incoherent_rays(prep: &Prepared, n: usize, seed: u64) -> Vec<Ray> {
     let e = b.extent() * 0.45;
     (0..n)
         .map(|i| {
-            let k = SampleKey::new(i as u64, 0, seed);
+            let k = SampleKey::independent(i as u64, 0, seed);
             let o = c + e * (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0);
             let z = 1.0 - 2.0 * k.get1d(3);
             let r = (1.0 - z * z).max(0.0).sqrt();

@@ -173,7 +173,7 @@ mod tests {
         let noisy = |amp: f32| {
             let mut im = base.clone();
             for (i, p) in im.pixels.iter_mut().enumerate() {
-                let k = crate::sampler::SampleKey::new(i as u64, 0, 1);
+                let k = crate::sampler::SampleKey::independent(i as u64, 0, 1);
                 let n = (k.get1d(0) - 0.5) * 2.0 * amp;
                 *p = [p[0] + n, p[1] + n, p[2] + n];
             }

@@ -29,7 +29,7 @@ use crate::integrator::{DIM_PIXEL, PathRay, ShadedVertex, ShadowRay, shade};
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::region::WorkerId;
-use crate::sampler::SampleKey;
+use crate::sampler::{SampleKey, Sampler};
 use crate::scene::{Camera, Material};
 use crate::stats::TraceStats;
 use glam::Vec3;
@@ -189,6 +189,7 @@ pub struct Kernel<'a> {
     pub lights: &'a LightSet,
     pub camera: &'a Camera,
     pub seed: u64,
+    pub sampler: Sampler,
     pub max_depth: u32,
     /// Directional caches per octree leaf; None traces every ray.
     pub cache: Option<CacheUse<'a>>,
@@ -202,6 +203,7 @@ impl Kernel<'_> {
             y as u64 * self.camera.width as u64 + x as u64,
             sample,
             self.seed,
+            self.sampler,
         )
     }
 

@@ -13,7 +13,7 @@ use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::passes::pixel_mean;
 use crate::path::{CacheUse, Kernel, WholeScene};
-use crate::sampler::mix64;
+use crate::sampler::{Sampler, mix64};
 use crate::scene::Scene;
 use crate::stats::TraceStats;
 use serde::Serialize;
@@ -86,6 +86,7 @@ impl Prepared {
             lights: &self.lights,
             camera: &self.scene.camera,
             seed: self.scene.settings.seed,
+            sampler: self.scene.settings.sampler,
             max_depth,
             cache,
         }
@@ -105,6 +106,7 @@ pub struct RenderOptions {
     pub spp: u32,
     pub max_depth: u32,
     pub seed: u64,
+    pub sampler: Sampler,
     /// 0 means all cores.
     pub threads: usize,
     pub tile_size: u32,
@@ -119,6 +121,7 @@ impl RenderOptions {
             spp: scene.settings.spp,
             max_depth: scene.settings.max_depth,
             seed: scene.settings.seed,
+            sampler: scene.settings.sampler,
             threads: 0,
             tile_size: 16,
             tile_order: TileOrder::Scanline,
@@ -212,6 +215,7 @@ pub fn render(
         }),
     );
     kernel.seed = opts.seed;
+    kernel.sampler = opts.sampler;
     let tracer = WholeScene(&prep.accel);
     let tl = tiles(cam.width, cam.height, opts.tile_size, opts.tile_order);
     let total = tl.len();

@@ -11,6 +11,7 @@ use crate::error::{Location, SceneError};
 use crate::geometry::{Ray, tri_area_f64};
 use crate::mesh_io;
 use crate::octree::OctreeParams;
+use crate::sampler::Sampler;
 use glam::{Mat4, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -63,6 +64,7 @@ pub struct RenderSettings {
     pub spp: u32,
     pub max_depth: u32,
     pub seed: u64,
+    pub sampler: Sampler,
     pub octree: OctreeParams,
 }
 
@@ -72,6 +74,7 @@ impl Default for RenderSettings {
             spp: 16,
             max_depth: 8,
             seed: 0,
+            sampler: Sampler::default(),
             octree: OctreeParams::default(),
         }
     }
@@ -138,6 +141,9 @@ struct RenderDesc {
     max_depth: u32,
     #[serde(default)]
     seed: u64,
+    /// "sobol" (the default) or "independent".
+    #[serde(default)]
+    sampler: Sampler,
 }
 fn d_spp() -> u32 {
     16
@@ -151,6 +157,7 @@ impl Default for RenderDesc {
             spp: d_spp(),
             max_depth: d_depth(),
             seed: 0,
+            sampler: Sampler::default(),
         }
     }
 }
@@ -346,6 +353,7 @@ impl Scene {
             spp: desc.render.spp.max(1),
             max_depth: desc.render.max_depth,
             seed: desc.render.seed,
+            sampler: desc.render.sampler,
             octree,
         };
 

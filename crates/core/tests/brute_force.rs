@@ -17,7 +17,7 @@ use locus_core::stats::TraceStats;
 fn scene() -> Vec<[Vec3; 3]> {
     let mut tris = Vec::new();
     for i in 0..3000u64 {
-        let k = SampleKey::new(i, 0, 1);
+        let k = SampleKey::independent(i, 0, 1);
         let c = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 10.0;
         let s = if i % 10 == 0 { 4.0 } else { 0.6 };
         let p = |d: u32| (Vec3::new(k.get1d(d), k.get1d(d + 1), k.get1d(d + 2)) * 2.0 - 1.0) * s;
@@ -44,7 +44,7 @@ fn scene() -> Vec<[Vec3; 3]> {
 fn rays(n: u64, seed: u64) -> Vec<Ray> {
     (0..n)
         .map(|i| {
-            let k = SampleKey::new(i, 0, seed);
+            let k = SampleKey::independent(i, 0, seed);
             let o = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 12.0;
             let mut d = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 2.0 - 1.0;
             // Every 7th ray runs exactly along an axis, many of them inside
@@ -98,7 +98,7 @@ fn bvh_matches_brute_force_with_and_without_clipping() {
     let mut st = TraceStats::default();
     let mut hits = 0;
     for (i, r) in rays(4000, 3).iter().enumerate() {
-        let k = SampleKey::new(i as u64, 1, 3);
+        let k = SampleKey::independent(i as u64, 1, 3);
         let (t0, t1) = if i % 2 == 0 {
             (0.0, f32::INFINITY)
         } else {
@@ -237,7 +237,7 @@ fn corner_and_face_rays(oct: &Octree, n: u64) -> Vec<Ray> {
     let m = leaves.len() as u64;
     (0..n)
         .map(|i| {
-            let k = SampleKey::new(i, 7, 11);
+            let k = SampleKey::independent(i, 7, 11);
             let a = &leaves[(k.get1d(0) * m as f32) as usize % m as usize].bounds;
             let b = &leaves[(k.get1d(1) * m as f32) as usize % m as usize].bounds;
             if i % 2 == 0 {
@@ -281,8 +281,8 @@ fn processor_vector_chains_match_one_bvh() {
             let owner: Vec<u16> = (0..n)
                 .map(|l| {
                     if scattered {
-                        (SampleKey::new(l as u64, 0, workers as u64).get1d(0) * workers as f32)
-                            as u16
+                        (SampleKey::independent(l as u64, 0, workers as u64).get1d(0)
+                            * workers as f32) as u16
                             % workers
                     } else {
                         (l * workers as usize / n) as u16
@@ -432,7 +432,7 @@ fn rays_starting_on_a_triangle_find_it_in_any_bvh() {
         let global = Accel::build(&tris, &all, mag);
         let mut st = TraceStats::default();
         for i in 0..600u64 {
-            let k = SampleKey::new(i, 0, 99);
+            let k = SampleKey::independent(i, 0, 99);
             let id = (k.get1d(0) * tris.len() as f32) as u32 % tris.len() as u32;
             let t = tris[id as usize];
             // A point on the triangle, then a direction leaving it steeply

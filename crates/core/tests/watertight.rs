@@ -37,7 +37,7 @@ fn escapes(center: Vec3, radius: f32, origins: usize) -> (usize, usize) {
     let mut escaped = 0;
     let mut st = TraceStats::default();
     for o in 0..origins {
-        let k = SampleKey::new(o as u64, 0, 99);
+        let k = SampleKey::independent(o as u64, 0, 99);
         // Origins spread through the inner 80% of the ball, the first at the
         // exact centre.
         let off = if o == 0 {

@@ -114,7 +114,7 @@ pub fn frames(data: &[u8]) {
     let _ = postcard::from_bytes::<SchedulerToWorker>(data);
     let _ = postcard::from_bytes::<SchedulerToClient>(data);
     if let Ok(PeerMsg::Packet(p)) = postcard::from_bytes::<PeerMsg>(data) {
-        for item in p.items(7) {
+        for item in p.items(7, locus_core::sampler::Sampler::Independent) {
             if item.is_err() {
                 break;
             }

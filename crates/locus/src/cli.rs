@@ -292,6 +292,9 @@ pub(crate) struct SubmitArgs {
     pub(crate) max_depth: Option<u32>,
     #[arg(long)]
     pub(crate) seed: Option<u64>,
+    /// The sample sequence: sobol (the scene's default) or independent.
+    #[arg(long)]
+    pub(crate) sampler: Option<locus_core::sampler::Sampler>,
     #[arg(long)]
     pub(crate) reference: Option<PathBuf>,
     #[arg(long, default_value_t = 1.0)]
@@ -333,6 +336,9 @@ pub(crate) struct RenderArgs {
     pub(crate) max_depth: Option<u32>,
     #[arg(long)]
     pub(crate) seed: Option<u64>,
+    /// The sample sequence: sobol (the scene's default) or independent.
+    #[arg(long)]
+    pub(crate) sampler: Option<locus_core::sampler::Sampler>,
     /// Compute threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     pub(crate) threads: usize,
@@ -412,6 +418,44 @@ pub(crate) enum BenchWhat {
     /// directional cache, under every fetch policy, on the embedded farm,
     /// against a converged reference; writes locality.md, .csv and .svg.
     Locality(LocalityArgs),
+    /// Error per second: a converged reference, then renders at several
+    /// sample counts with each sampler, and Mitsuba 3's where it is
+    /// installed; writes quality.md, .csv and .svg.
+    Quality(QualityArgs),
+}
+
+#[derive(clap::Args)]
+pub(crate) struct QualityArgs {
+    #[arg(default_value = "scenes/cornell-box/cornell.toml")]
+    pub(crate) scene: PathBuf,
+    #[arg(long, num_args = 1.., default_values_t = [16u32, 64, 256, 1024])]
+    pub(crate) spp: Vec<u32>,
+    /// Samples per pixel of the converged reference (rendered once, in two
+    /// halves, and kept in the output folder).
+    #[arg(long, default_value_t = 8192)]
+    pub(crate) reference_spp: u32,
+    #[arg(long, num_args = 1.., default_values = ["sobol", "independent"])]
+    pub(crate) samplers: Vec<locus_core::sampler::Sampler>,
+    /// Threads of both renderers (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) threads: usize,
+    #[arg(long)]
+    pub(crate) max_depth: Option<u32>,
+    /// The Python with Mitsuba 3 (`pip install mitsuba`); Mitsuba's rows
+    /// are left out when it cannot import it.
+    #[arg(long, default_value = "python3", env = "LOCUS_MITSUBA_PYTHON")]
+    pub(crate) python: String,
+    #[arg(long, default_value = "llvm_ad_rgb")]
+    pub(crate) mitsuba_variant: String,
+    #[arg(long, num_args = 1.., default_values = ["independent", "ldsampler"])]
+    pub(crate) mitsuba_samplers: Vec<String>,
+    /// Leave Mitsuba out even where it is installed.
+    #[arg(long)]
+    pub(crate) no_mitsuba: bool,
+    /// Where the tables, the plot and the reference go; default
+    /// bench-out/quality-<scene>.
+    #[arg(long)]
+    pub(crate) out_dir: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]

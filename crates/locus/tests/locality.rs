@@ -111,10 +111,14 @@ fn farm_cache_with_all_geometry_inside_the_radius_changes_no_bit() {
 
 /// The white furnace on four workers with small regions, so that cache
 /// misses are traced across workers and their answers update the caches
-/// when they come back: the mean stays within 4 standard errors of the
-/// analytic value (pixels are independent estimates of it).
+/// when they come back: the mean stays within 4 standard errors (pixels are
+/// independent estimates of it) plus a 2% bias budget of the analytic
+/// value. The directional cache is not exact in expectation (see the core's
+/// `cache_bias_in_a_uniform_environment_is_small`): measured here 1.3% low
+/// with the Sobol sampler and Russian roulette from the fifth vertex,
+/// more than on one machine, where answers update the caches sooner.
 #[test]
-fn farm_cache_is_unbiased_in_a_uniform_environment() {
+fn farm_cache_bias_in_a_uniform_environment_is_small() {
     let (rho, le) = (0.5f32, 1.0f32);
     let mut scene = locus_core::generate::furnace(rho, le, 160, 8);
     scene.settings.octree.max_leaf_tris = 16;
@@ -161,7 +165,10 @@ fn farm_cache_is_unbiased_in_a_uniform_environment() {
         // inside the locality sphere go on uncached.
         assert!(c.lookups > 1000 && c.hit_ratio() > 0.1, "{c:?}");
         assert!(t.cache_memory.nodes > 0);
-        assert!((m - expected).abs() < 4.0 * se, "{m} vs {expected}");
+        assert!(
+            (m - expected).abs() < 4.0 * se + 0.02 * expected,
+            "{m} vs {expected}"
+        );
         farm.stop().await.expect("clean stop");
     });
 }

@@ -24,7 +24,7 @@ fn five_hundred_tiny_jobs_all_finish_bit_for_bit() {
         let farm = locus::farm::LocalFarm::start(8, 1).await.expect("farm");
         let mut workers_seen = [false; 9];
         for i in 0..500u64 {
-            let k = SampleKey::new(i, 0, 77);
+            let k = SampleKey::independent(i, 0, 77);
             let w = 1 + (k.get1d(0) * 16.0) as u32;
             let h = 1 + (k.get1d(1) * 16.0) as u32;
             let workers = 1 + (k.get1d(2) * 8.0) as usize;

@@ -12,6 +12,7 @@ use locus_core::dircache::CacheParams;
 pub use locus_core::geometry::TriangleSet;
 use locus_core::light::LightSet;
 use locus_core::region::{ProcessorMap, WorkerId};
+use locus_core::sampler::Sampler;
 use locus_core::scene::{Camera, Material};
 use serde::{Deserialize, Serialize};
 
@@ -159,6 +160,7 @@ pub struct JobSetup {
     pub spp: u32,
     pub max_depth: u32,
     pub seed: u64,
+    pub sampler: Sampler,
     pub materials: Vec<Material>,
     pub lights: LightSet,
     pub map: ProcessorMap,

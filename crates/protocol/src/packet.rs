@@ -25,7 +25,7 @@ use glam::Vec3;
 use locus_core::geometry::Ray;
 use locus_core::integrator::{PathRay, ShadowRay};
 use locus_core::path::{Answer, Query};
-use locus_core::sampler::SampleKey;
+use locus_core::sampler::{SampleKey, Sampler};
 use serde::{Deserialize, Serialize};
 
 const PATH: u8 = 1;
@@ -232,12 +232,14 @@ impl Packet {
         self.bytes.extend_from_slice(w.done());
     }
 
-    /// The items, in order; path queries get `seed` as their key's seed.
-    pub fn items(&self, seed: u64) -> Items<'_> {
+    /// The items, in order; path queries get `seed` and `sampler` (the
+    /// job's) in their keys.
+    pub fn items(&self, seed: u64, sampler: Sampler) -> Items<'_> {
         Items {
             b: &self.bytes,
             at: 0,
             seed,
+            sampler,
         }
     }
 }
@@ -247,6 +249,7 @@ pub struct Items<'a> {
     b: &'a [u8],
     at: usize,
     seed: u64,
+    sampler: Sampler,
 }
 
 impl Items<'_> {
@@ -264,7 +267,7 @@ impl Items<'_> {
                 RayItem::Trace {
                     query: Query::Path(PathRay {
                         ray,
-                        key: SampleKey::new(pixel, sample, self.seed),
+                        key: SampleKey::new(pixel, sample, self.seed, self.sampler),
                         depth,
                         prev_pdf,
                         beta,
@@ -358,7 +361,7 @@ mod tests {
     fn path(pixel: u64, emit_within: f32) -> PathRay {
         PathRay {
             ray: Ray::new(Vec3::new(1.0, -2.5, 1e-30), Vec3::new(0.0, -0.0, 1.0)),
-            key: SampleKey::new(pixel, 17, 99),
+            key: SampleKey::independent(pixel, 17, 99),
             depth: 5,
             prev_pdf: f32::MIN_POSITIVE,
             beta: Vec3::new(0.5, f32::MAX, 3.0),
@@ -446,7 +449,10 @@ mod tests {
     fn items_roundtrip_bit_for_bit_with_the_jobs_seed() {
         let src = items();
         let p = packet(&src);
-        let back: Vec<RayItem> = p.items(99).collect::<Result<_, _>>().unwrap();
+        let back: Vec<RayItem> = p
+            .items(99, Sampler::Independent)
+            .collect::<Result<_, _>>()
+            .unwrap();
         assert_eq!(back.len(), src.len());
         for (a, b) in src.iter().zip(&back) {
             assert_eq!(bits(a), bits(b));
@@ -460,7 +466,7 @@ mod tests {
     fn a_typical_forward_costs_what_the_adaptive_rule_assumes() {
         let q = RayItem::Trace {
             query: Query::Path(PathRay {
-                key: SampleKey::new(320 * 240 - 1, 15, 1),
+                key: SampleKey::independent(320 * 240 - 1, 15, 1),
                 depth: 3,
                 ..path(0, f32::INFINITY)
             }),
@@ -484,13 +490,13 @@ mod tests {
         let cut = Packet {
             bytes: p.bytes[..first + 10].to_vec(),
         };
-        let r: Vec<_> = cut.items(1).collect();
+        let r: Vec<_> = cut.items(1, Sampler::Independent).collect();
         assert!(r[0].is_ok());
         assert_eq!(r[1], Err(PacketError::Truncated { at: first }));
         assert_eq!(r.len(), 2, "decoding stops at the first error");
         let mut bad = p.clone();
         bad.bytes[first] = 200;
-        let r: Vec<_> = bad.items(1).collect();
+        let r: Vec<_> = bad.items(1, Sampler::Independent).collect();
         assert_eq!(
             r[1],
             Err(PacketError::BadTag {
@@ -503,7 +509,7 @@ mod tests {
             bytes: vec![RADIANCE, 0xff, 0xff, 0xff, 0xff, 0x7f],
         };
         assert_eq!(
-            wide.items(1).next(),
+            wide.items(1, Sampler::Independent).next(),
             Some(Err(PacketError::BadInteger { at: 0 }))
         );
         // A varint that never ends.
@@ -511,7 +517,7 @@ mod tests {
             bytes: vec![VISIBLE, 0x80, 0x80],
         };
         assert_eq!(
-            endless.items(1).next(),
+            endless.items(1, Sampler::Independent).next(),
             Some(Err(PacketError::Truncated { at: 0 }))
         );
     }

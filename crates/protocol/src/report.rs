@@ -168,6 +168,8 @@ pub struct FarmReport {
     pub spp: u32,
     pub max_depth: u32,
     pub seed: u64,
+    /// The sampler's name ("sobol", "independent").
+    pub sampler: String,
     pub partitioner: String,
     pub cost_model: String,
     /// The fetch policy asked for.

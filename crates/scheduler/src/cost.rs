@@ -186,7 +186,8 @@ pub fn preview(
                         (px * div).min(cam.width - 1),
                         (py * div).min(cam.height - 1),
                     );
-                    let key = SampleKey::new(y as u64 * cam.width as u64 + x as u64, 0, seed);
+                    let key =
+                        SampleKey::independent(y as u64 * cam.width as u64 + x as u64, 0, seed);
                     let mut q = PathRay::camera(cam.ray(x, y, key.get2d(DIM_PIXEL)), key);
                     for _ in 0..=bounces {
                         t.rays += 1;

@@ -42,6 +42,7 @@ pub fn ship(
             spp: prep.scene.settings.spp,
             max_depth: prep.scene.settings.max_depth,
             seed: prep.scene.settings.seed,
+            sampler: prep.scene.settings.sampler,
             materials: prep.scene.materials.clone(),
             lights: prep.lights.clone(),
             map: prep.map.clone(),

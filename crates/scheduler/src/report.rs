@@ -62,6 +62,7 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         spp: j.req.settings.spp,
         max_depth: j.req.settings.max_depth,
         seed: j.req.settings.seed,
+        sampler: j.req.settings.sampler.name().into(),
         partitioner: format!("{:?}", j.req.options.partitioner),
         cost_model: format!("{:?}", j.req.options.cost_model),
         policy: j.req.options.fetch.name().to_string(),

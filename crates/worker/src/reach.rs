@@ -237,7 +237,7 @@ mod tests {
     fn merged_parts_answer_as_one_bvh() {
         let tris: Vec<[Vec3; 3]> = (0..4000u64)
             .map(|i| {
-                let k = SampleKey::new(i, 0, 3);
+                let k = SampleKey::independent(i, 0, 3);
                 let p = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 10.0;
                 [
                     p,
@@ -307,7 +307,7 @@ mod tests {
         let mut st = TraceStats::default();
         let mut hits = 0;
         for i in 0..3000u64 {
-            let k = SampleKey::new(i, 1, 4);
+            let k = SampleKey::independent(i, 1, 4);
             let o = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 10.0;
             let d = (Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) - 0.5).normalize();
             let r = locus_core::geometry::Ray::new(o, d);

@@ -3,7 +3,7 @@
 
 use crate::cli::*;
 use anyhow::{Context, Result, bail};
-use locus::bench::{farm, locality, trace};
+use locus::bench::{farm, locality, quality, trace};
 use locus_core::generate::{RoomParams, write_room};
 use locus_core::render::Prepared;
 use locus_core::scene::Scene;
@@ -62,9 +62,53 @@ pub(crate) fn cmd_bench_locality(a: LocalityArgs) -> Result<()> {
     Ok(())
 }
 
+pub(crate) fn cmd_bench_quality(a: QualityArgs) -> Result<()> {
+    let stem = a
+        .scene
+        .file_stem()
+        .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
+    let mitsuba = if a.no_mitsuba {
+        None
+    } else if quality::mitsuba_available(&a.python, &a.mitsuba_variant) {
+        Some(quality::Mitsuba {
+            python: a.python,
+            variant: a.mitsuba_variant,
+            samplers: a.mitsuba_samplers,
+        })
+    } else {
+        eprintln!(
+            "Mitsuba's rows left out: {} cannot import mitsuba with the {} variant \
+             (pip install mitsuba; llvm variants need libLLVM)",
+            a.python, a.mitsuba_variant
+        );
+        None
+    };
+    let plan = quality::Plan {
+        out_dir: a
+            .out_dir
+            .unwrap_or_else(|| PathBuf::from(format!("bench-out/quality-{stem}"))),
+        scene: a.scene,
+        spp: a.spp.iter().map(|&n| n.max(1)).collect(),
+        reference_spp: a.reference_spp,
+        samplers: a.samplers,
+        threads: a.threads,
+        max_depth: a.max_depth,
+        mitsuba,
+    };
+    let out = quality::run(&plan)?;
+    print!("{}", quality::markdown(&out));
+    println!(
+        "\nwrote {} (quality.md, quality.csv, quality.svg)",
+        plan.out_dir.display()
+    );
+    Ok(())
+}
+
 pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
-    if let Some(BenchWhat::Locality(l)) = a.what {
-        return cmd_bench_locality(l);
+    match a.what {
+        Some(BenchWhat::Locality(l)) => return cmd_bench_locality(l),
+        Some(BenchWhat::Quality(q)) => return cmd_bench_quality(q),
+        None => {}
     }
     let path = match a.scene {
         Some(p) => p,

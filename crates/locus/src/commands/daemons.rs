@@ -96,7 +96,15 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
     let (cfg, token, tls) = a.auth.load(false)?;
     let creds = Credentials::new(&token, tls);
     let scheduler = scheduler_of(a.scheduler.clone(), &cfg)?;
-    let scene = load_for_farm(&a.scene, a.spp, a.max_depth, a.seed)?;
+    let scene = load_for_farm(
+        &a.scene,
+        Overrides {
+            spp: a.spp,
+            max_depth: a.max_depth,
+            seed: a.seed,
+            sampler: a.sampler,
+        },
+    )?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
     if a.detach {

@@ -9,6 +9,7 @@ use locus_core::dircache::CacheParams;
 use locus_core::image_io::Image;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::report::{PhaseTimes, RenderReport};
+use locus_core::sampler::Sampler;
 use locus_core::scene::Scene;
 use std::io::IsTerminal;
 use std::path::Path;
@@ -72,6 +73,9 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     if let Some(s) = a.seed {
         opts.seed = s;
+    }
+    if let Some(s) = a.sampler {
+        opts.sampler = s;
     }
     opts.threads = a.threads;
     locus_core::limits::check_settings(opts.spp, opts.max_depth).map_err(anyhow::Error::msg)?;
@@ -167,12 +171,21 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
-pub(crate) fn load_for_farm(
-    path: &Path,
-    spp: Option<u32>,
-    max_depth: Option<u32>,
-    seed: Option<u64>,
-) -> Result<Scene> {
+/// What the command line sets over the scene file's `[render]`.
+pub(crate) struct Overrides {
+    pub(crate) spp: Option<u32>,
+    pub(crate) max_depth: Option<u32>,
+    pub(crate) seed: Option<u64>,
+    pub(crate) sampler: Option<Sampler>,
+}
+
+pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
+    let Overrides {
+        spp,
+        max_depth,
+        seed,
+        sampler,
+    } = o;
     let mut scene = Scene::load(path)?;
     if let Some(s) = spp {
         scene.settings.spp = s.max(1);
@@ -182,6 +195,9 @@ pub(crate) fn load_for_farm(
     }
     if let Some(s) = seed {
         scene.settings.seed = s;
+    }
+    if let Some(s) = sampler {
+        scene.settings.sampler = s;
     }
     let st = &scene.settings;
     locus_core::limits::check_settings(st.spp, st.max_depth).map_err(anyhow::Error::msg)?;
@@ -210,7 +226,15 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
     let (preset, cache) = render_quality(&a)?;
     let spp = a.spp.or(preset.as_ref().map(|p| p.spp));
     let depth = a.max_depth.or(preset.as_ref().map(|p| p.max_depth));
-    let scene = load_for_farm(&a.scene, spp, depth, a.seed)?;
+    let scene = load_for_farm(
+        &a.scene,
+        Overrides {
+            spp,
+            max_depth: depth,
+            seed: a.seed,
+            sampler: a.sampler,
+        },
+    )?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let threads = if a.threads_per_worker > 0 {
         a.threads_per_worker

@@ -85,6 +85,7 @@ impl EngineJob {
             lights: &s.lights,
             camera: &s.camera,
             seed: s.seed,
+            sampler: s.sampler,
             max_depth: s.max_depth,
             cache: self.caches.as_ref().map(|c| CacheUse {
                 octree: &s.map.tree,

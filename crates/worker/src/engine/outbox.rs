@@ -194,7 +194,7 @@ mod tests {
     fn items(m: PeerMsg) -> Vec<u32> {
         match m {
             PeerMsg::Packet(v) => v
-                .items(0)
+                .items(0, locus_core::sampler::Sampler::Independent)
                 .map(|i| match i {
                     Ok(RayItem::Answer { to, .. }) => to,
                     other => panic!("{other:?}"),

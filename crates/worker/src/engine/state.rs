@@ -241,7 +241,7 @@ impl<'a> Engine<'a> {
                     *r += 1;
                 }
                 let mut items = std::mem::take(&mut self.decoded);
-                for it in packet.items(self.job.setup.seed) {
+                for it in packet.items(self.job.setup.seed, self.job.setup.sampler) {
                     items.push(it.map_err(|why| EngineError::BadPacket { from, why })?);
                 }
                 // Answers' slots are fetched from memory a few items ahead,

@@ -1,0 +1,551 @@
+//! `locus bench quality`: error per second of the render core, against
+//! Mitsuba 3 where it is installed.
+//!
+//! A converged reference is rendered once (Sobol, its own seeds) and kept
+//! in the output folder under its settings. It is rendered as two halves
+//! with different seeds, so the reference's own error is measured, not
+//! guessed: the relMSE between the halves, over 4, is that of their mean.
+//! Then the scene is rendered at each sample count with each of locus's
+//! samplers and, when `python3 -c "import mitsuba"` works, with Mitsuba's
+//! `independent` and `ldsampler` on the same threads (the scene exported
+//! as PLY files and a JSON spec, rendered by the script beside this file).
+//! Every row gets its render time, its relMSE against the reference, their
+//! product (lower is better) and the variance a sample leaves (relMSE x
+//! spp). Output: quality.md, quality.csv and quality.svg (relMSE against
+//! time, log-log).
+
+use anyhow::{Context, Result, bail};
+use locus_core::image_io::Image;
+use locus_core::metrics::compare;
+use locus_core::render::{Prepared, RenderOptions, render};
+use locus_core::sampler::Sampler;
+use locus_core::scene::Scene;
+use serde::{Deserialize, Serialize};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// The Mitsuba side of the run.
+pub struct Mitsuba {
+    /// The Python that has `mitsuba` installed.
+    pub python: String,
+    /// Its variant, e.g. `llvm_ad_rgb`.
+    pub variant: String,
+    pub samplers: Vec<String>,
+}
+
+pub struct Plan {
+    pub scene: PathBuf,
+    pub out_dir: PathBuf,
+    pub spp: Vec<u32>,
+    pub reference_spp: u32,
+    pub samplers: Vec<Sampler>,
+    /// Threads for both renderers (0: all cores).
+    pub threads: usize,
+    pub max_depth: Option<u32>,
+    pub mitsuba: Option<Mitsuba>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Row {
+    /// "locus" or "Mitsuba <version> <variant>".
+    pub renderer: String,
+    pub sampler: String,
+    pub spp: u32,
+    pub seconds: f64,
+    pub rel_mse: f64,
+}
+
+impl Row {
+    /// Wall time x relMSE: lower is better, flat in spp for an estimator
+    /// that converges at 1/N.
+    pub fn product(&self) -> f64 {
+        self.seconds * self.rel_mse
+    }
+
+    /// relMSE x spp: the variance one sample leaves (relative).
+    pub fn per_sample(&self) -> f64 {
+        self.rel_mse * self.spp as f64
+    }
+}
+
+/// The outcome: rows, and the reference's own relMSE.
+pub struct Outcome {
+    pub rows: Vec<Row>,
+    pub reference_rel_mse: f64,
+    pub title: String,
+}
+
+#[derive(Serialize, Deserialize, PartialEq)]
+struct ReferenceKey {
+    scene: String,
+    scene_text: u64,
+    width: u32,
+    height: u32,
+    spp: u32,
+    max_depth: u32,
+    seed: u64,
+    reference_rel_mse: f64,
+}
+
+/// The converged reference and its own relMSE; reused from `out_dir` when
+/// one was rendered with the same settings.
+fn reference(plan: &Plan, scene: &Scene, prep: &Prepared) -> Result<(Image, f64)> {
+    let text =
+        std::fs::read(&plan.scene).with_context(|| format!("reading {}", plan.scene.display()))?;
+    let mut key = ReferenceKey {
+        scene: plan.scene.display().to_string(),
+        scene_text: locus_core::sampler::mix64(text.iter().fold(text.len() as u64, |h, &b| {
+            locus_core::sampler::mix64(h ^ b as u64)
+        })),
+        width: scene.camera.width,
+        height: scene.camera.height,
+        spp: plan.reference_spp.max(2),
+        max_depth: scene.settings.max_depth,
+        seed: scene.settings.seed ^ 0x9e11,
+        reference_rel_mse: 0.0,
+    };
+    let exr = plan.out_dir.join("reference.exr");
+    let meta = plan.out_dir.join("reference.json");
+    if let Ok(text) = std::fs::read_to_string(&meta)
+        && let Ok(k) = serde_json::from_str::<ReferenceKey>(&text)
+        && k.reference_rel_mse > 0.0
+        && (ReferenceKey {
+            reference_rel_mse: 0.0,
+            ..k
+        }) == key
+        && let Ok(img) = Image::read_exr(&exr)
+    {
+        tracing::info!(path = %exr.display(), "reusing the reference");
+        return Ok((img, k.reference_rel_mse));
+    }
+    tracing::info!(spp = key.spp, "rendering the reference in two halves");
+    let half = |seed: u64| {
+        let mut o = RenderOptions::from_scene(scene);
+        o.spp = key.spp / 2;
+        o.seed = seed;
+        o.sampler = Sampler::Sobol;
+        o.threads = plan.threads;
+        render(prep, &o, &|_, _| {}).image
+    };
+    let (a, b) = (half(key.seed), half(key.seed ^ 0xb));
+    let mut mean = a.clone();
+    for (m, q) in mean.pixels.iter_mut().zip(&b.pixels) {
+        for c in 0..3 {
+            m[c] = (m[c] + q[c]) * 0.5;
+        }
+    }
+    // a - mean = (a - b) / 2, whose square has the expectation
+    // var(half) / 2 = var(mean): the reference's own error.
+    key.reference_rel_mse = compare(&a, &mean)?.rel_mse.max(f64::MIN_POSITIVE);
+    mean.write_exr(&exr)?;
+    std::fs::write(&meta, serde_json::to_string_pretty(&key)?)
+        .with_context(|| format!("writing {}", meta.display()))?;
+    Ok((mean, key.reference_rel_mse))
+}
+
+/// Runs the benchmark and writes its tables and plot.
+pub fn run(plan: &Plan) -> Result<Outcome> {
+    std::fs::create_dir_all(&plan.out_dir)
+        .with_context(|| format!("creating {}", plan.out_dir.display()))?;
+    let mut scene = Scene::load(&plan.scene)?;
+    if let Some(d) = plan.max_depth {
+        scene.settings.max_depth = d;
+    }
+    if scene.tris.is_empty() {
+        bail!("{}: scene has no triangles", plan.scene.display());
+    }
+    let prep = Prepared::new(scene.clone());
+    let (reference, reference_rel_mse) = reference(plan, &scene, &prep)?;
+    let mut rows = Vec::new();
+    for &sampler in &plan.samplers {
+        for &spp in &plan.spp {
+            let mut o = RenderOptions::from_scene(&scene);
+            o.spp = spp;
+            o.sampler = sampler;
+            o.threads = plan.threads;
+            let out = render(&prep, &o, &|_, _| {});
+            let m = compare(&out.image, &reference)?;
+            rows.push(Row {
+                renderer: "locus".into(),
+                sampler: sampler.name().into(),
+                spp,
+                seconds: out.render_s,
+                rel_mse: m.rel_mse,
+            });
+            tracing::info!(
+                sampler = sampler.name(),
+                spp,
+                seconds = out.render_s,
+                rel_mse = m.rel_mse,
+                "locus"
+            );
+        }
+    }
+    if let Some(mi) = &plan.mitsuba {
+        rows.extend(mitsuba(plan, mi, &scene, &reference)?);
+    }
+    let title = format!(
+        "{} {}x{}, max depth {}, {} threads",
+        plan.scene.display(),
+        scene.camera.width,
+        scene.camera.height,
+        scene.settings.max_depth,
+        if plan.threads == 0 {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        } else {
+            plan.threads
+        }
+    );
+    let out = Outcome {
+        rows,
+        reference_rel_mse,
+        title,
+    };
+    write(&plan.out_dir.join("quality.md"), &markdown(&out))?;
+    write(&plan.out_dir.join("quality.csv"), &csv(&out.rows))?;
+    plot(&plan.out_dir.join("quality.svg"), &out.title, &out.rows)?;
+    Ok(out)
+}
+
+fn write(p: &Path, s: &str) -> Result<()> {
+    std::fs::write(p, s).with_context(|| format!("writing {}", p.display()))
+}
+
+/// Whether `python` can import Mitsuba with `variant`.
+pub fn mitsuba_available(python: &str, variant: &str) -> bool {
+    std::process::Command::new(python)
+        .args([
+            "-c",
+            &format!("import mitsuba as mi; mi.set_variant('{variant}')"),
+        ])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+#[derive(Deserialize)]
+struct MitsubaOut {
+    version: String,
+    runs: Vec<MitsubaRun>,
+}
+
+#[derive(Deserialize)]
+struct MitsubaRun {
+    sampler: String,
+    spp: u32,
+    seconds: f64,
+    image: String,
+}
+
+/// Exports the scene, renders it with Mitsuba, and measures its images.
+fn mitsuba(plan: &Plan, mi: &Mitsuba, scene: &Scene, reference: &Image) -> Result<Vec<Row>> {
+    let dir = plan.out_dir.join("mitsuba");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let spec = export(scene, &dir, plan, mi)?;
+    let spec_path = dir.join("spec.json");
+    write(&spec_path, &serde_json::to_string_pretty(&spec)?)?;
+    let script = dir.join("render.py");
+    write(&script, include_str!("quality_mitsuba.py"))?;
+    tracing::info!(variant = %mi.variant, "rendering with Mitsuba");
+    let result = dir.join("result.json");
+    let status = std::process::Command::new(&mi.python)
+        .arg(&script)
+        .arg(&spec_path)
+        .arg(&result)
+        .status()
+        .with_context(|| format!("running {}", mi.python))?;
+    if !status.success() {
+        bail!("Mitsuba's render ({}) failed: {status}", script.display());
+    }
+    let res: MitsubaOut = std::fs::read(&result)
+        .map_err(anyhow::Error::from)
+        .and_then(|b| Ok(serde_json::from_slice(&b)?))
+        .with_context(|| format!("reading {}", result.display()))?;
+    let (w, h) = (scene.camera.width, scene.camera.height);
+    res.runs
+        .iter()
+        .map(|r| {
+            let path = dir.join(&r.image);
+            let bytes =
+                std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            if bytes.len() != w as usize * h as usize * 12 {
+                bail!(
+                    "{}: {} bytes for {w}x{h} RGB f32",
+                    path.display(),
+                    bytes.len()
+                );
+            }
+            let f: Vec<f32> = bytes
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            let image = Image {
+                width: w,
+                height: h,
+                pixels: f.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect(),
+            };
+            Ok(Row {
+                renderer: format!("Mitsuba {} {}", res.version, mi.variant),
+                sampler: r.sampler.clone(),
+                spp: r.spp,
+                seconds: r.seconds,
+                rel_mse: compare(&image, reference)?.rel_mse,
+            })
+        })
+        .collect()
+}
+
+#[derive(Serialize)]
+struct Spec {
+    camera: serde_json::Value,
+    meshes: Vec<serde_json::Value>,
+    max_depth: u32,
+    spp: Vec<u32>,
+    samplers: Vec<String>,
+    threads: usize,
+    variant: String,
+}
+
+/// The scene for Mitsuba: one binary PLY of unshared triangles per
+/// material, and the spec the script reads.
+fn export(scene: &Scene, dir: &Path, plan: &Plan, mi: &Mitsuba) -> Result<Spec> {
+    let mut meshes = Vec::new();
+    for (m, mat) in scene.materials.iter().enumerate() {
+        let tris: Vec<_> = scene
+            .tris
+            .iter()
+            .zip(&scene.tri_material)
+            .filter(|(_, k)| **k as usize == m)
+            .map(|(t, _)| t)
+            .collect();
+        if tris.is_empty() {
+            continue;
+        }
+        let name = format!("mesh{m}.ply");
+        let mut b = format!(
+            "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\n\
+             property float y\nproperty float z\nelement face {}\n\
+             property list uchar int vertex_indices\nend_header\n",
+            tris.len() * 3,
+            tris.len()
+        )
+        .into_bytes();
+        for t in &tris {
+            for v in t.iter() {
+                for c in v.to_array() {
+                    b.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+        }
+        for i in 0..tris.len() as i32 {
+            b.push(3);
+            for k in 0..3i32 {
+                b.extend_from_slice(&(3 * i + k).to_le_bytes());
+            }
+        }
+        let path = dir.join(&name);
+        std::fs::write(&path, b).with_context(|| format!("writing {}", path.display()))?;
+        meshes.push(serde_json::json!({
+            "ply": name,
+            "albedo": mat.albedo.to_array(),
+            "emission": mat.emission.to_array(),
+        }));
+    }
+    let c = &scene.camera;
+    Ok(Spec {
+        camera: serde_json::json!({
+            "position": c.position.to_array(),
+            "look_at": c.look_at.to_array(),
+            "up": c.up.to_array(),
+            "fov_y": c.fov_y,
+            "width": c.width,
+            "height": c.height,
+        }),
+        meshes,
+        // Mitsuba counts the camera vertex in its depth.
+        max_depth: scene.settings.max_depth + 1,
+        spp: plan.spp.clone(),
+        samplers: mi.samplers.clone(),
+        threads: plan.threads,
+        variant: mi.variant.clone(),
+    })
+}
+
+/// The table: one row per renderer, sampler and spp, and, at the end, each
+/// Mitsuba row's product over locus's best at the same spp.
+pub fn markdown(o: &Outcome) -> String {
+    let mut s = format!(
+        "# Error per second: {}\n\nThe reference's own relMSE: {:.2e} (from its two halves).\n\n\
+         | renderer | sampler | spp | seconds | relMSE | seconds x relMSE | relMSE x spp |\n\
+         |---|---|---:|---:|---:|---:|---:|\n",
+        o.title, o.reference_rel_mse
+    );
+    for r in &o.rows {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {:.3} | {:.3e} | {:.3e} | {:.3e} |",
+            r.renderer,
+            r.sampler,
+            r.spp,
+            r.seconds,
+            r.rel_mse,
+            r.product(),
+            r.per_sample()
+        );
+    }
+    let best = |spp: u32, locus: bool| {
+        o.rows
+            .iter()
+            .filter(|r| r.spp == spp && (r.renderer == "locus") == locus)
+            .map(Row::product)
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut spps: Vec<u32> = o.rows.iter().map(|r| r.spp).collect();
+    spps.sort_unstable();
+    spps.dedup();
+    let vs: Vec<String> = spps
+        .iter()
+        .filter(|&&n| best(n, false).is_finite() && best(n, true).is_finite())
+        .map(|&n| format!("{n} spp {:.2}", best(n, true) / best(n, false)))
+        .collect();
+    if !vs.is_empty() {
+        let _ = writeln!(
+            s,
+            "\nlocus's best seconds x relMSE over Mitsuba's best (below 1: locus leads): {}",
+            vs.join(", ")
+        );
+    }
+    s
+}
+
+pub fn csv(rows: &[Row]) -> String {
+    let mut s = String::from("renderer,sampler,spp,seconds,rel_mse,product,per_sample\n");
+    for r in rows {
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{}",
+            r.renderer,
+            r.sampler,
+            r.spp,
+            r.seconds,
+            r.rel_mse,
+            r.product(),
+            r.per_sample()
+        );
+    }
+    s
+}
+
+/// relMSE against seconds, log-log, one line per renderer and sampler.
+pub fn plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
+    use plotters::prelude::*;
+    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting {}: {e}", path.display());
+    let pos = |v: f64| v.max(1e-12);
+    let (x0, x1) = rows.iter().fold((f64::INFINITY, 0.0f64), |(a, b), r| {
+        (a.min(pos(r.seconds)), b.max(pos(r.seconds)))
+    });
+    let (y0, y1) = rows.iter().fold((f64::INFINITY, 0.0f64), |(a, b), r| {
+        (a.min(pos(r.rel_mse)), b.max(pos(r.rel_mse)))
+    });
+    if rows.is_empty() {
+        bail!("no rows to plot");
+    }
+    let root = SVGBackend::new(path, (900, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(
+            (x0 * 0.8..x1 * 1.25).log_scale(),
+            (y0 * 0.8..y1 * 1.25).log_scale(),
+        )
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("render seconds")
+        .y_desc("relMSE against the reference")
+        .y_label_formatter(&|v| format!("{v:.0e}"))
+        .draw()
+        .map_err(|e| err(&e))?;
+    let mut lines: Vec<(String, String)> = Vec::new();
+    for r in rows {
+        let k = (r.renderer.clone(), r.sampler.clone());
+        if !lines.contains(&k) {
+            lines.push(k);
+        }
+    }
+    for (i, (renderer, sampler)) in lines.iter().enumerate() {
+        let pts: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| &r.renderer == renderer && &r.sampler == sampler)
+            .map(|r| (pos(r.seconds), pos(r.rel_mse)))
+            .collect();
+        let color = Palette99::pick(i).to_rgba();
+        let style = color.stroke_width(2);
+        chart
+            .draw_series(LineSeries::new(pts.clone(), style))
+            .map_err(|e| err(&e))?
+            .label(format!("{renderer}, {sampler}"))
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
+        chart
+            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled())))
+            .map_err(|e| err(&e))?;
+    }
+    chart
+        .configure_series_labels()
+        .border_style(BLACK)
+        .background_style(WHITE.mix(0.8))
+        .draw()
+        .map_err(|e| err(&e))?;
+    root.present().map_err(|e| err(&e))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(renderer: &str, sampler: &str, spp: u32, seconds: f64, rel_mse: f64) -> Row {
+        Row {
+            renderer: renderer.into(),
+            sampler: sampler.into(),
+            spp,
+            seconds,
+            rel_mse,
+        }
+    }
+
+    /// The table compares the best of each side at each spp, and the plot
+    /// names every line.
+    #[test]
+    fn table_ratio_and_plot() {
+        let o = Outcome {
+            rows: vec![
+                row("locus", "sobol", 64, 2.0, 1e-3),
+                row("locus", "independent", 64, 2.0, 4e-3),
+                row("Mitsuba 3.9 llvm_ad_rgb", "ldsampler", 64, 1.0, 4e-3),
+                row("Mitsuba 3.9 llvm_ad_rgb", "independent", 64, 1.0, 8e-3),
+                row("locus", "sobol", 256, 8.0, 2e-4),
+            ],
+            reference_rel_mse: 1e-6,
+            title: "t".into(),
+        };
+        let md = markdown(&o);
+        // locus 2e-3 over Mitsuba 4e-3; no Mitsuba row at 256 spp.
+        assert!(md.contains("64 spp 0.50"), "{md}");
+        assert!(!md.contains("256 spp"), "{md}");
+        assert!(md.contains("| locus | sobol | 64 | 2.000 | 1.000e-3 | 2.000e-3 | 6.400e-2 |"));
+        assert_eq!(csv(&o.rows).lines().count(), 6);
+        let dir = std::env::temp_dir().join(format!("locus-quality-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let svg = dir.join("q.svg");
+        plot(&svg, "t", &o.rows).unwrap();
+        let text = std::fs::read_to_string(&svg).unwrap();
+        assert!(text.contains("<svg") && text.contains("locus, sobol"));
+        assert!(text.contains("Mitsuba 3.9 llvm_ad_rgb, ldsampler"));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
