@@ -410,6 +410,10 @@ pub(crate) struct BenchArgs {
     /// Write the results as JSON here too.
     #[arg(long)]
     pub(crate) json: Option<PathBuf>,
+    /// A Python with embreex (`pip install embreex`): Embree traces the
+    /// same rays, and its throughput is printed beside locus's.
+    #[arg(long)]
+    pub(crate) embree_python: Option<String>,
 }
 
 #[derive(Subcommand)]

@@ -243,3 +243,54 @@ fn daemons_as_processes_match_single_machine() {
         "scheduler exits cleanly on SIGTERM"
     );
 }
+
+/// `locus bench quality` end to end without Mitsuba: a reference in two
+/// halves (kept, and reused by a second run), one row per sampler and
+/// sample count, and errors that fall with more samples.
+#[test]
+fn bench_quality_measures_error_per_second() {
+    let d = scratch("quality");
+    let scene = root().join("scenes/cornell-box/cornell.toml");
+    let run = || {
+        let o = locus()
+            .args(["bench", "quality"])
+            .arg(&scene)
+            .args(["--spp", "1", "8", "--reference-spp", "64", "--threads", "2"])
+            .args(["--no-mitsuba", "--out-dir"])
+            .arg(&d)
+            .env("RUST_LOG", "info")
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    let first = run();
+    assert!(d.join("reference.exr").is_file() && d.join("quality.svg").is_file());
+    let again = run();
+    assert!(
+        String::from_utf8_lossy(&again.stderr).contains("reusing the reference"),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    let csv = std::fs::read_to_string(d.join("quality.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    assert_eq!(rows.len(), 4, "{csv}");
+    for sampler in ["sobol", "independent"] {
+        let err = |spp: &str| -> f64 {
+            let r = rows
+                .iter()
+                .find(|r| r[1] == sampler && r[2] == spp)
+                .unwrap_or_else(|| panic!("no {sampler} {spp} row in {csv}"));
+            r[4].parse().unwrap()
+        };
+        // 8 times the samples: the error must fall well below half (1/8
+        // for independent samples, the reference's own error aside).
+        assert!(err("8") < 0.5 * err("1"), "{sampler}: {csv}");
+    }
+    assert!(String::from_utf8_lossy(&first.stdout).contains("| locus | sobol | 8 |"));
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -1,7 +1,9 @@
 //! `locus bench`: BVH build time, incoherent ray throughput of
 //! [`locus_core::accel::Accel`] against raw obvhs traversal on the same
-//! rays, and path-traced samples per second. Ratios are taken within one
-//! run because the machines are shared and noisy.
+//! rays, and path-traced samples per second; with `--embree-python`,
+//! Embree's throughput on the same rays and triangles (the embreex package,
+//! through the script beside this file). Ratios are taken within one run
+//! because the machines are shared and noisy.
 
 use locus_core::generate::incoherent_rays;
 use locus_core::render::{Prepared, RenderOptions, render};
@@ -22,6 +24,21 @@ pub struct TraceBench {
     pub samples_per_s: f64,
     pub spp: u32,
     pub threads: usize,
+    pub embree: Option<EmbreeBench>,
+}
+
+/// Embree against locus on the same incoherent rays, one thread each.
+#[derive(Clone, Debug, Serialize)]
+pub struct EmbreeBench {
+    pub embree_mrays_per_s: f64,
+    pub embree_build_s: f64,
+    /// locus's rays per second measured just before Embree's.
+    pub locus_mrays_per_s: f64,
+    /// locus over Embree (the tracer issue's target: at least 0.8).
+    pub ratio: f64,
+    /// Rays whose closest-hit distance agrees (both miss, or within 1e-4
+    /// relative).
+    pub hits_agree: usize,
 }
 
 /// Runs the measurements on one thread for the ray part (so the ratio is
@@ -40,7 +57,7 @@ pub fn run(prep: &Prepared, rays: usize, rounds: usize, spp: u32, threads: usize
             .map(|h| h.t)
             .unwrap_or(f32::INFINITY);
         let b = accel.raw_obvhs_closest(&tris, r);
-        if (a == b) || (a - b).abs() <= 1e-4 * a.abs().max(1.0) {
+        if agrees(a, b) {
             agree += 1;
         }
     }
@@ -86,5 +103,92 @@ pub fn run(prep: &Prepared, rays: usize, rounds: usize, spp: u32, threads: usize
         } else {
             threads
         },
+        embree: None,
     }
+}
+
+fn agrees(a: f32, b: f32) -> bool {
+    a == b || (a - b).abs() <= 1e-4 * a.abs().max(1.0)
+}
+
+/// Writes the scene's triangles and `rays` incoherent rays to `dir`, times
+/// locus on them, then has `python` trace them with Embree.
+pub fn embree(
+    prep: &Prepared,
+    rays: usize,
+    rounds: usize,
+    python: &str,
+    dir: &std::path::Path,
+) -> anyhow::Result<EmbreeBench> {
+    use anyhow::{Context, bail};
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let write = |name: &str, floats: &mut dyn Iterator<Item = f32>| {
+        let bytes: Vec<u8> = floats.flat_map(f32::to_le_bytes).collect();
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).with_context(|| format!("writing {}", p.display()))
+    };
+    write(
+        "tris.f32",
+        &mut prep
+            .scene
+            .tris
+            .iter()
+            .flat_map(|t| t.iter().flat_map(|v| v.to_array())),
+    )?;
+    let rs = incoherent_rays(prep, rays, 12345);
+    write(
+        "rays.f32",
+        &mut rs
+            .iter()
+            .flat_map(|r| r.origin.to_array().into_iter().chain(r.dir.to_array())),
+    )?;
+    std::fs::write(dir.join("rounds.txt"), rounds.max(1).to_string())?;
+    let script = dir.join("embree_trace.py");
+    std::fs::write(&script, include_str!("embree_trace.py"))
+        .with_context(|| format!("writing {}", script.display()))?;
+    let accel = &prep.accel;
+    let mut best = f64::INFINITY;
+    let mut ours = vec![f32::INFINITY; rs.len()];
+    for _ in 0..rounds.max(1) {
+        let t = Instant::now();
+        let mut st = TraceStats::default();
+        for (r, o) in rs.iter().zip(&mut ours) {
+            *o = accel
+                .intersect(r, 0.0, f32::INFINITY, &mut st)
+                .map_or(f32::INFINITY, |h| h.t);
+        }
+        best = best.min(t.elapsed().as_secs_f64());
+    }
+    let status = std::process::Command::new(python)
+        .arg(&script)
+        .arg(dir)
+        .status()
+        .with_context(|| format!("running {python}"))?;
+    if !status.success() {
+        bail!(
+            "{} failed ({status}): is embreex installed (pip install embreex)?",
+            script.display()
+        );
+    }
+    #[derive(serde::Deserialize)]
+    struct Out {
+        mrays_per_s: f64,
+        build_s: f64,
+    }
+    let out: Out = serde_json::from_slice(&std::fs::read(dir.join("embree.json"))?)
+        .context("reading embree.json")?;
+    let theirs = std::fs::read(dir.join("embree_t.f32")).context("reading embree_t.f32")?;
+    let hits_agree = theirs
+        .chunks_exact(4)
+        .zip(&ours)
+        .filter(|(b, a)| agrees(**a, f32::from_le_bytes([b[0], b[1], b[2], b[3]])))
+        .count();
+    let locus = rs.len() as f64 / best / 1e6;
+    Ok(EmbreeBench {
+        embree_mrays_per_s: out.mrays_per_s,
+        embree_build_s: out.build_s,
+        locus_mrays_per_s: locus,
+        ratio: locus / out.mrays_per_s,
+        hits_agree,
+    })
 }

@@ -119,7 +119,16 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
         bail!("{}: scene has no triangles", path.display());
     }
     let prep = Prepared::new(scene);
-    let r = trace::run(&prep, a.rays, a.rounds, a.spp, a.threads);
+    let mut r = trace::run(&prep, a.rays, a.rounds, a.spp, a.threads);
+    if let Some(py) = &a.embree_python {
+        r.embree = Some(trace::embree(
+            &prep,
+            a.rays,
+            a.rounds,
+            py,
+            Path::new("bench-out/embree"),
+        )?);
+    }
     println!("scene {} ({} triangles)", path.display(), r.triangles);
     println!("BVH build (obvhs CWBVH, medium): {:.3} s", r.bvh_build_s);
     println!(
@@ -134,6 +143,17 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
         "path tracing: {:.0} samples/s ({} spp, {} threads)",
         r.samples_per_s, r.spp, r.threads
     );
+    if let Some(e) = &r.embree {
+        println!(
+            "Embree (embreex), 1 thread: {:.2} Mrays/s (build {:.3} s); locus {:.2} Mrays/s on the same rays, {:.2} of Embree ({} of {} closest hits agree)",
+            e.embree_mrays_per_s,
+            e.embree_build_s,
+            e.locus_mrays_per_s,
+            e.ratio,
+            e.hits_agree,
+            r.rays
+        );
+    }
     if let Some(j) = a.json {
         std::fs::write(&j, serde_json::to_string_pretty(&r)?)
             .with_context(|| format!("writing {}", j.display()))?;
