@@ -15,7 +15,8 @@
 //! directional-cache lookup, finish) for one machine and the farm alike;
 //! the per-vertex physics is [`integrator`]'s `shade`. Every random number
 //! comes from [`sampler`] as a pure function of (pixel, sample, dimension,
-//! seed); area lights are sampled from [`light`]. [`render`] runs the
+//! seed): Owen-scrambled Sobol by default, independent on request; area
+//! lights are sampled from [`light`]. [`render`] runs the
 //! kernel over tiles on a rayon pool, each pixel's samples in the progressive
 //! [`passes`] the farm renders too, and counts work in [`stats`]. Images
 //! leave through [`image_io`], are compared with [`metrics`], and reports
