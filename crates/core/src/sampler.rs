@@ -41,6 +41,9 @@ pub enum Sampler {
 }
 
 impl Sampler {
+    pub const ALL: [Sampler; 2] = [Sampler::Sobol, Sampler::Independent];
+
+    /// The name the scene file and the command line use.
     pub fn name(self) -> &'static str {
         match self {
             Sampler::Sobol => "sobol",
@@ -53,13 +56,16 @@ impl std::str::FromStr for Sampler {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "sobol" => Ok(Sampler::Sobol),
-            "independent" => Ok(Sampler::Independent),
-            _ => Err(format!(
-                "unknown sampler {s:?}: expected \"sobol\" or \"independent\""
-            )),
-        }
+        Self::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<String> = Self::ALL
+                    .iter()
+                    .map(|k| format!("{:?}", k.name()))
+                    .collect();
+                format!("unknown sampler {s:?}: expected {}", names.join(" or "))
+            })
     }
 }
 
@@ -232,6 +238,23 @@ mod tests {
             let sigma = (1.0 / (12.0 * n as f64)).sqrt();
             assert!((mean - 0.5).abs() < 5.0 * sigma, "{sampler:?}: mean {mean}");
         }
+    }
+
+    /// The names the command line parses are the ones serde reads from a
+    /// scene file.
+    #[test]
+    fn names_agree_with_the_scene_file() {
+        for k in Sampler::ALL {
+            assert_eq!(k.name().parse::<Sampler>(), Ok(k));
+            let quoted = format!("\"{}\"", k.name());
+            assert_eq!(serde_json::from_str::<Sampler>(&quoted).ok(), Some(k));
+        }
+        assert!(
+            "halton"
+                .parse::<Sampler>()
+                .unwrap_err()
+                .contains("\"sobol\" or")
+        );
     }
 
     #[test]

@@ -78,7 +78,9 @@ pub struct Outcome {
 #[derive(Serialize, Deserialize, PartialEq)]
 struct ReferenceKey {
     scene: String,
-    scene_text: u64,
+    /// A hash of what is rendered: camera, materials and every triangle,
+    /// so an edited mesh file renders the reference again.
+    content: u64,
     width: u32,
     height: u32,
     spp: u32,
@@ -90,13 +92,9 @@ struct ReferenceKey {
 /// The converged reference and its own relMSE; reused from `out_dir` when
 /// one was rendered with the same settings.
 fn reference(plan: &Plan, scene: &Scene, prep: &Prepared) -> Result<(Image, f64)> {
-    let text =
-        std::fs::read(&plan.scene).with_context(|| format!("reading {}", plan.scene.display()))?;
     let mut key = ReferenceKey {
         scene: plan.scene.display().to_string(),
-        scene_text: locus_core::sampler::mix64(text.iter().fold(text.len() as u64, |h, &b| {
-            locus_core::sampler::mix64(h ^ b as u64)
-        })),
+        content: content_hash(scene),
         width: scene.camera.width,
         height: scene.camera.height,
         spp: plan.reference_spp.max(2),
@@ -141,6 +139,35 @@ fn reference(plan: &Plan, scene: &Scene, prep: &Prepared) -> Result<(Image, f64)
     std::fs::write(&meta, serde_json::to_string_pretty(&key)?)
         .with_context(|| format!("writing {}", meta.display()))?;
     Ok((mean, key.reference_rel_mse))
+}
+
+/// A hash of the camera, the materials and the triangles with theirs.
+fn content_hash(scene: &Scene) -> u64 {
+    use locus_core::sampler::mix64;
+    let c = &scene.camera;
+    let camera = [c.position, c.look_at, c.up]
+        .into_iter()
+        .flat_map(|v| v.to_array())
+        .chain([c.fov_y, c.width as f32, c.height as f32]);
+    let materials = scene
+        .materials
+        .iter()
+        .flat_map(|m| m.albedo.to_array().into_iter().chain(m.emission.to_array()));
+    let tris = scene
+        .tris
+        .iter()
+        .zip(&scene.tri_material)
+        .flat_map(|(t, &m)| {
+            t.iter()
+                .flat_map(|v| v.to_array())
+                .chain([f32::from_bits(m)])
+        });
+    camera
+        .chain(materials)
+        .chain(tris)
+        .fold(scene.tris.len() as u64, |h, x| {
+            mix64(h ^ x.to_bits() as u64)
+        })
 }
 
 /// Runs the benchmark and writes its tables and plot.
@@ -216,7 +243,8 @@ pub fn mitsuba_available(python: &str, variant: &str) -> bool {
     std::process::Command::new(python)
         .args([
             "-c",
-            &format!("import mitsuba as mi; mi.set_variant('{variant}')"),
+            "import sys, mitsuba as mi; mi.set_variant(sys.argv[1])",
+            variant,
         ])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())

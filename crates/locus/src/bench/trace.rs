@@ -6,6 +6,7 @@
 //! because the machines are shared and noisy.
 
 use locus_core::generate::incoherent_rays;
+use locus_core::geometry::Ray;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::stats::TraceStats;
 use serde::Serialize;
@@ -43,24 +44,37 @@ pub struct EmbreeBench {
 
 /// Runs the measurements on one thread for the ray part (so the ratio is
 /// not disturbed by scheduling) and `threads` for the render part.
-pub fn run(prep: &Prepared, rays: usize, rounds: usize, spp: u32, threads: usize) -> TraceBench {
+/// The incoherent rays every measurement here traces: `n` of them, the
+/// same for locus, raw obvhs and Embree.
+pub fn rays(prep: &Prepared, n: usize) -> Vec<Ray> {
+    incoherent_rays(prep, n, 12345)
+}
+
+/// locus's closest-hit distance of each ray (infinity for a miss), into
+/// `out`, whose room is reused so that timed rounds do not allocate.
+fn distances(prep: &Prepared, rs: &[Ray], out: &mut Vec<f32>) {
+    let mut st = TraceStats::default();
+    out.clear();
+    out.extend(rs.iter().map(|r| {
+        prep.accel
+            .intersect(r, 0.0, f32::INFINITY, &mut st)
+            .map_or(f32::INFINITY, |h| h.t)
+    }));
+}
+
+pub fn run(prep: &Prepared, rs: &[Ray], rounds: usize, spp: u32, threads: usize) -> TraceBench {
     // The BVH that `Prepared::new` built and timed is the one measured.
     let accel = &prep.accel;
     let bvh_build_s = prep.timings.bvh_s;
-    let rs = incoherent_rays(prep, rays, 12345);
+    let rays = rs.len();
     let tris = accel.obvhs_triangles();
-    let mut agree = 0;
-    for r in &rs {
-        let mut st = TraceStats::default();
-        let a = accel
-            .intersect(r, 0.0, f32::INFINITY, &mut st)
-            .map(|h| h.t)
-            .unwrap_or(f32::INFINITY);
-        let b = accel.raw_obvhs_closest(&tris, r);
-        if agrees(a, b) {
-            agree += 1;
-        }
-    }
+    let mut ours = Vec::new();
+    distances(prep, rs, &mut ours);
+    let agree = ours
+        .into_iter()
+        .zip(rs)
+        .filter(|&(a, r)| agrees(a, accel.raw_obvhs_closest(&tris, r)))
+        .count();
     // Interleave the two loops round by round so drifts in machine load hit
     // both alike; keep the best round of each.
     let (mut best_ours, mut best_raw) = (f64::INFINITY, f64::INFINITY);
@@ -68,14 +82,14 @@ pub fn run(prep: &Prepared, rays: usize, rounds: usize, spp: u32, threads: usize
     for _ in 0..rounds.max(1) {
         let t = Instant::now();
         let mut st = TraceStats::default();
-        for r in &rs {
+        for r in rs {
             if let Some(h) = accel.intersect(r, 0.0, f32::INFINITY, &mut st) {
                 sink += h.t;
             }
         }
         best_ours = best_ours.min(t.elapsed().as_secs_f64());
         let t = Instant::now();
-        for r in &rs {
+        for r in rs {
             let d = accel.raw_obvhs_closest(&tris, r);
             if d.is_finite() {
                 sink += d;
@@ -115,7 +129,7 @@ fn agrees(a: f32, b: f32) -> bool {
 /// locus on them, then has `python` trace them with Embree.
 pub fn embree(
     prep: &Prepared,
-    rays: usize,
+    rs: &[Ray],
     rounds: usize,
     python: &str,
     dir: &std::path::Path,
@@ -135,7 +149,6 @@ pub fn embree(
             .iter()
             .flat_map(|t| t.iter().flat_map(|v| v.to_array())),
     )?;
-    let rs = incoherent_rays(prep, rays, 12345);
     write(
         "rays.f32",
         &mut rs
@@ -146,17 +159,12 @@ pub fn embree(
     let script = dir.join("embree_trace.py");
     std::fs::write(&script, include_str!("embree_trace.py"))
         .with_context(|| format!("writing {}", script.display()))?;
-    let accel = &prep.accel;
     let mut best = f64::INFINITY;
-    let mut ours = vec![f32::INFINITY; rs.len()];
+    let mut ours = Vec::with_capacity(rs.len());
+    distances(prep, rs, &mut ours);
     for _ in 0..rounds.max(1) {
         let t = Instant::now();
-        let mut st = TraceStats::default();
-        for (r, o) in rs.iter().zip(&mut ours) {
-            *o = accel
-                .intersect(r, 0.0, f32::INFINITY, &mut st)
-                .map_or(f32::INFINITY, |h| h.t);
-        }
+        distances(prep, rs, &mut ours);
         best = best.min(t.elapsed().as_secs_f64());
     }
     let status = std::process::Command::new(python)

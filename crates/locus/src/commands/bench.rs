@@ -119,11 +119,12 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
         bail!("{}: scene has no triangles", path.display());
     }
     let prep = Prepared::new(scene);
-    let mut r = trace::run(&prep, a.rays, a.rounds, a.spp, a.threads);
+    let rays = trace::rays(&prep, a.rays);
+    let mut r = trace::run(&prep, &rays, a.rounds, a.spp, a.threads);
     if let Some(py) = &a.embree_python {
         r.embree = Some(trace::embree(
             &prep,
-            a.rays,
+            &rays,
             a.rounds,
             py,
             Path::new("bench-out/embree"),
