@@ -22,7 +22,9 @@
 //! leave through [`image_io`], are compared with [`metrics`], and reports
 //! are written by [`report`]. [`dircache`] is Jansen and Reinhard's directional
 //! cache: per octree leaf, the radiance arriving from beyond a locality
-//! radius, by direction. [`generate`] writes the generated scenes (the
+//! radius, by direction. [`radiosity`] is the second job kind, Stürzlinger,
+//! Schaufler and Volkert's progressive refinement radiosity, which shares
+//! the scene, the BVH and the image writers. [`generate`] writes the generated scenes (the
 //! benchmarks, in the `locus` crate, use them too).
 
 pub mod accel;
@@ -40,6 +42,7 @@ pub mod metrics;
 pub mod octree;
 pub mod passes;
 pub mod path;
+pub mod radiosity;
 pub mod region;
 pub mod render;
 pub mod report;

@@ -24,6 +24,11 @@ pub(crate) struct Cli {
 pub(crate) enum Cmd {
     /// Render a scene to EXR, with a PNG preview and a JSON report beside it.
     Render(RenderArgs),
+    /// Solve the scene's diffuse light by progressive refinement radiosity
+    /// (Stürzlinger, Schaufler and Volkert) and write the solution seen
+    /// from its camera (EXR, PNG, JSON), the meshed solution (PLY) and its
+    /// convergence (SVG).
+    Radiosity(RadiosityArgs),
     /// Error metrics (RMSE, relative MSE, MAE) between two EXR images.
     Diff {
         image: PathBuf,
@@ -374,6 +379,52 @@ pub(crate) struct RenderArgs {
     pub(crate) cache_radius: Option<f32>,
     #[command(flatten)]
     pub(crate) farm: FarmArgs,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct RadiosityArgs {
+    pub(crate) scene: PathBuf,
+    #[arg(short, long, default_value = "radiosity.exr")]
+    pub(crate) output: PathBuf,
+    /// Patches (the shooters): edges at most the scene's largest extent
+    /// divided by this.
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().patches)]
+    pub(crate) patches: u32,
+    /// Initial mesh: element edges at most the scene's largest extent
+    /// divided by this.
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().mesh)]
+    pub(crate) mesh: u32,
+    /// Adaptive subdivision levels below the initial mesh (0: none).
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().subdivide)]
+    pub(crate) subdivide: u32,
+    /// Split an element when its corners differ by more than this fraction
+    /// of their mean radiosity.
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().threshold)]
+    pub(crate) threshold: f32,
+    /// Parts of the shooter sampled for visibility, one ray each (M: 1, 4,
+    /// 16 or 64).
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().shooter_parts)]
+    pub(crate) parts: u32,
+    /// Stop when the unshot power is below this fraction of the emitted.
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().stop)]
+    pub(crate) stop: f64,
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().max_iterations)]
+    pub(crate) max_iterations: u64,
+    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().max_elements)]
+    pub(crate) max_elements: u64,
+    /// Camera rays per pixel of the image (antialiasing only: the solution
+    /// itself is noise-free).
+    #[arg(long, default_value_t = 16)]
+    pub(crate) spp: u32,
+    /// Compute threads (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) threads: usize,
+    /// A converged EXR (a path-traced render) to measure the error against.
+    #[arg(long)]
+    pub(crate) reference: Option<PathBuf>,
+    /// Exposure multiplier for the PNG preview and the PLY's colours.
+    #[arg(long, default_value_t = 1.0)]
+    pub(crate) exposure: f32,
 }
 
 #[derive(Subcommand)]

@@ -1,12 +1,14 @@
 //! The library half of the `locus` command: the local farm of in-process or
 //! child-process workers ([`farm`]), daemon configuration and presets
 //! ([`config`]), the `locus status` client ([`status`]) and signal
-//! handling, shared by the binary and the integration tests; and apart
-//! from them, the benchmarks ([`bench`]).
+//! handling, shared by the binary and the integration tests; the SVG line
+//! plots every figure uses ([`plot`]); and apart from them, the benchmarks
+//! ([`bench`]).
 
 pub mod bench;
 pub mod config;
 pub mod farm;
+pub mod plot;
 pub mod status;
 
 use tokio_util::sync::CancellationToken;

@@ -1,7 +1,7 @@
 //! `locus`: the command line of the locus render farm.
 //!
 //! Subcommands: `render` (single machine, or the embedded farm with
-//! `--workers N`), the daemons `scheduler` and `worker`, `submit` (a job to a
+//! `--workers N`), `radiosity` (progressive refinement radiosity), the daemons `scheduler` and `worker`, `submit` (a job to a
 //! running farm), `diff` (error metrics between two EXRs), `gen` (writes
 //! generated scenes) and `bench` (tracing throughput; `bench farm` for the
 //! farm). Logs go to stderr through `tracing`, filtered by `RUST_LOG`.
@@ -29,6 +29,7 @@ fn main() {
     let cli = Cli::parse();
     let r = match cli.cmd {
         Cmd::Render(a) => cmd_render(a),
+        Cmd::Radiosity(a) => commands::radiosity::cmd_radiosity(a),
         Cmd::Diff {
             image,
             reference,

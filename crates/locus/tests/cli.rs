@@ -294,3 +294,96 @@ fn bench_quality_measures_error_per_second() {
     assert!(String::from_utf8_lossy(&first.stdout).contains("| locus | sobol | 8 |"));
     let _ = std::fs::remove_dir_all(&d);
 }
+
+#[test]
+fn radiosity_writes_the_image_the_mesh_and_the_convergence() {
+    let d = scratch("radiosity");
+    let scene = root().join("scenes/cornell-box/cornell.toml");
+    let out = d.join("r.exr");
+    let o = locus()
+        .arg("radiosity")
+        .arg(&scene)
+        .arg("-o")
+        .arg(&out)
+        .args([
+            "--patches",
+            "1",
+            "--mesh",
+            "4",
+            "--subdivide",
+            "1",
+            "--stop",
+            "1e-2",
+        ])
+        .args(["--spp", "2", "--threads", "2"])
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for ext in ["exr", "png", "json", "ply", "convergence.svg"] {
+        assert!(out.with_extension(ext).is_file(), "no {ext}");
+    }
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.with_extension("json")).unwrap())
+            .unwrap();
+    assert_eq!(r["stopped"], "converged");
+    assert!(r["unshot_fraction"].as_f64().unwrap() < 1e-2);
+    let l = &r["ledger"];
+    for c in 0..3 {
+        let f = |k: &str| l[k][c].as_f64().unwrap();
+        let rel = (f("absorbed") + f("unshot") + f("escaped") - f("emitted")).abs() / f("emitted");
+        assert!(rel < 1e-10, "{l}");
+    }
+    let conv = r["convergence"].as_array().unwrap();
+    assert!(conv.len() > 5);
+    let unshot: Vec<f64> = conv
+        .iter()
+        .map(|x| x["unshot_fraction"].as_f64().unwrap())
+        .collect();
+    assert!(unshot.first() > unshot.last(), "{unshot:?}");
+    assert_eq!(conv.last().unwrap()["error"].as_f64(), Some(0.0));
+    // One PLY vertex per element corner.
+    let ply = std::fs::read(out.with_extension("ply")).unwrap();
+    let header =
+        String::from_utf8_lossy(&ply[..ply.windows(10).position(|w| w == b"end_header").unwrap()])
+            .to_string();
+    let elements = r["elements"].as_u64().unwrap();
+    assert!(
+        header.contains(&format!("element vertex {}\n", 3 * elements)),
+        "{header}"
+    );
+    assert!(
+        header.contains(&format!("element face {elements}\n")),
+        "{header}"
+    );
+    let mean = locus_core::image_io::Image::read_exr(&out).unwrap().mean();
+    assert!(mean.iter().all(|&c| c > 0.01), "{mean:?}");
+
+    // Bad settings and a scene without light name what is wrong.
+    let bad = locus()
+        .arg("radiosity")
+        .arg(&scene)
+        .args(["--parts", "3"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("shooter parts"));
+    let dark = d.join("dark.toml");
+    std::fs::write(
+        &dark,
+        "[camera]\nposition = [0, 0, -3]\nlook_at = [0, 0, 0]\nfov_y = 40\nresolution = [8, 8]\n\
+         [[light]]\ncorner = [0, 0, 0]\nedge_a = [1, 0, 0]\nedge_b = [0, 1, 0]\nemission = [0, 0, 0]\n",
+    )
+    .unwrap();
+    let o = locus()
+        .arg("radiosity")
+        .arg(&dark)
+        .arg("-o")
+        .arg(d.join("dark.exr"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("dark.toml") && err.contains("emits"), "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}

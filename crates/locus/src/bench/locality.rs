@@ -398,73 +398,28 @@ pub fn csv(rows: &[Row]) -> String {
 }
 
 /// RMSE against render time, one line per (cache, policy) through the
-/// presets.
+/// presets; lines with the cache on are drawn bold.
 pub fn plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
-    use plotters::prelude::*;
-    let xmax = rows.iter().map(|r| r.render_s).fold(0.0, f64::max) * 1.1;
-    let ymax = rows.iter().map(|r| r.rmse).fold(0.0, f64::max) * 1.1;
-    let root = SVGBackend::new(path, (900, 600)).into_drawing_area();
-    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting {}: {e}", path.display());
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..xmax.max(1e-3), 0.0..ymax.max(1e-6))
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("render seconds")
-        .y_desc("RMSE against the reference")
-        .draw()
-        .map_err(|e| err(&e))?;
-    let policies: Vec<String> = rows.iter().fold(Vec::new(), |mut v, r| {
-        if !v.contains(&r.policy) {
-            v.push(r.policy.clone());
-        }
-        v
-    });
-    for (i, policy) in policies.iter().enumerate() {
-        for cache in [false, true] {
-            let pts: Vec<(f64, f64)> = rows
-                .iter()
-                .filter(|r| &r.policy == policy && r.cache == cache)
-                .map(|r| (r.render_s, r.rmse))
-                .collect();
-            if pts.is_empty() {
-                continue;
-            }
-            let color = Palette99::pick(i).to_rgba();
-            let style = if cache {
-                color.stroke_width(2)
-            } else {
-                color.stroke_width(1)
-            };
-            chart
-                .draw_series(LineSeries::new(pts.clone(), style))
-                .map_err(|e| err(&e))?
-                .label(format!("{policy}, cache {}", on(cache)))
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
-            chart
-                .draw_series(pts.into_iter().map(|p| {
-                    if cache {
-                        Circle::new(p, 4, color.filled())
-                    } else {
-                        Circle::new(p, 4, color.stroke_width(1))
-                    }
-                }))
-                .map_err(|e| err(&e))?;
+    let mut series: Vec<crate::plot::Series> = Vec::new();
+    for r in rows {
+        let label = format!("{}, cache {}", r.policy, on(r.cache));
+        let point = (r.render_s, r.rmse);
+        match series.iter_mut().find(|s| s.label == label) {
+            Some(s) => s.points.push(point),
+            None => series.push(crate::plot::Series {
+                label,
+                points: vec![point],
+                bold: r.cache,
+            }),
         }
     }
-    chart
-        .configure_series_labels()
-        .border_style(BLACK)
-        .background_style(WHITE.mix(0.8))
-        .draw()
-        .map_err(|e| err(&e))?;
-    root.present().map_err(|e| err(&e))?;
-    Ok(())
+    let axes = crate::plot::Axes {
+        x: "render seconds",
+        y: "RMSE against the reference",
+        log_x: false,
+        log_y: false,
+    };
+    crate::plot::lines(path, title, &axes, &series)
 }
 
 #[cfg(test)]

@@ -467,69 +467,26 @@ pub fn csv(rows: &[Row]) -> String {
 
 /// relMSE against seconds, log-log, one line per renderer and sampler.
 pub fn plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
-    use plotters::prelude::*;
-    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting {}: {e}", path.display());
-    let pos = |v: f64| v.max(1e-12);
-    let (x0, x1) = rows.iter().fold((f64::INFINITY, 0.0f64), |(a, b), r| {
-        (a.min(pos(r.seconds)), b.max(pos(r.seconds)))
-    });
-    let (y0, y1) = rows.iter().fold((f64::INFINITY, 0.0f64), |(a, b), r| {
-        (a.min(pos(r.rel_mse)), b.max(pos(r.rel_mse)))
-    });
-    if rows.is_empty() {
-        bail!("no rows to plot");
-    }
-    let root = SVGBackend::new(path, (900, 600)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(70)
-        .build_cartesian_2d(
-            (x0 * 0.8..x1 * 1.25).log_scale(),
-            (y0 * 0.8..y1 * 1.25).log_scale(),
-        )
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("render seconds")
-        .y_desc("relMSE against the reference")
-        .y_label_formatter(&|v| format!("{v:.0e}"))
-        .draw()
-        .map_err(|e| err(&e))?;
-    let mut lines: Vec<(String, String)> = Vec::new();
+    let mut series: Vec<crate::plot::Series> = Vec::new();
     for r in rows {
-        let k = (r.renderer.clone(), r.sampler.clone());
-        if !lines.contains(&k) {
-            lines.push(k);
+        let label = format!("{}, {}", r.renderer, r.sampler);
+        let point = (r.seconds, r.rel_mse);
+        match series.iter_mut().find(|s| s.label == label) {
+            Some(s) => s.points.push(point),
+            None => series.push(crate::plot::Series {
+                label,
+                points: vec![point],
+                bold: true,
+            }),
         }
     }
-    for (i, (renderer, sampler)) in lines.iter().enumerate() {
-        let pts: Vec<(f64, f64)> = rows
-            .iter()
-            .filter(|r| &r.renderer == renderer && &r.sampler == sampler)
-            .map(|r| (pos(r.seconds), pos(r.rel_mse)))
-            .collect();
-        let color = Palette99::pick(i).to_rgba();
-        let style = color.stroke_width(2);
-        chart
-            .draw_series(LineSeries::new(pts.clone(), style))
-            .map_err(|e| err(&e))?
-            .label(format!("{renderer}, {sampler}"))
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
-        chart
-            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled())))
-            .map_err(|e| err(&e))?;
-    }
-    chart
-        .configure_series_labels()
-        .border_style(BLACK)
-        .background_style(WHITE.mix(0.8))
-        .draw()
-        .map_err(|e| err(&e))?;
-    root.present().map_err(|e| err(&e))?;
-    Ok(())
+    let axes = crate::plot::Axes {
+        x: "render seconds",
+        y: "relMSE against the reference",
+        log_x: true,
+        log_y: true,
+    };
+    crate::plot::lines(path, title, &axes, &series)
 }
 
 #[cfg(test)]

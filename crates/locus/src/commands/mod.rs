@@ -2,5 +2,6 @@
 
 pub(crate) mod bench;
 pub(crate) mod daemons;
+pub(crate) mod radiosity;
 pub(crate) mod render;
 pub(crate) mod tools;

@@ -1,0 +1,192 @@
+//! `locus radiosity`: progressive refinement radiosity on this machine,
+//! with the image, the meshed solution and the convergence report.
+
+use crate::cli::RadiosityArgs;
+use crate::commands::render::progress_bar;
+use crate::output::{Written, sibling, write_image};
+use anyhow::{Context, Result};
+use locus_core::image_io::Image;
+use locus_core::radiosity::output::{render_image, write_ply};
+use locus_core::radiosity::shoot::BvhVisibility;
+use locus_core::radiosity::{Convergence, Ledger, RadiosityParams, Record, Solver, solve};
+use locus_core::render::Prepared;
+use locus_core::scene::Scene;
+use std::path::Path;
+use std::time::Instant;
+
+/// The JSON written beside the image.
+#[derive(serde::Serialize)]
+struct RadiosityReport {
+    scene: String,
+    image: String,
+    mesh: String,
+    plot: String,
+    params: RadiosityParams,
+    threads: usize,
+    patches: usize,
+    elements: u64,
+    vertices: u64,
+    mesh_bytes: usize,
+    iterations: u64,
+    stopped: &'static str,
+    load_s: f64,
+    bvh_s: f64,
+    solve_s: f64,
+    image_s: f64,
+    visibility_rays: u64,
+    rays_per_second: f64,
+    unshot_fraction: f64,
+    ledger: Ledger,
+    convergence: Vec<Record>,
+    error_vs_reference: Option<locus_core::metrics::ErrorMetrics>,
+}
+
+fn params(a: &RadiosityArgs) -> RadiosityParams {
+    RadiosityParams {
+        patches: a.patches,
+        mesh: a.mesh,
+        subdivide: a.subdivide,
+        threshold: a.threshold,
+        shooter_parts: a.parts,
+        stop: a.stop,
+        max_iterations: a.max_iterations,
+        max_elements: a.max_elements,
+    }
+}
+
+pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
+    let p = params(&a);
+    p.check()?;
+    let t = Instant::now();
+    let scene = Scene::load(&a.scene)?;
+    let load_s = t.elapsed().as_secs_f64();
+    let cam = &scene.camera;
+    locus_core::limits::check_film(cam.width, cam.height, 2, "this machine")
+        .map_err(anyhow::Error::msg)?;
+    locus_core::limits::check_settings(a.spp.max(1), 1).map_err(anyhow::Error::msg)?;
+    let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
+    let mut solver =
+        Solver::new(&scene, p).with_context(|| format!("meshing {}", a.scene.display()))?;
+    let prep = Prepared::new(scene);
+    let threads = if a.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        a.threads
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    let pb = progress_bar(1000, "radiosity");
+    let vis = BvhVisibility(&prep.accel);
+    let first = solver.unshot_fraction();
+    let conv: Convergence = pool.install(|| {
+        solve(&mut solver, &vis, &mut |s| {
+            if let Some(pb) = &pb {
+                // Progress on a log scale from the first unshot fraction
+                // to the stopping one.
+                let f = s.unshot_fraction().max(p.stop);
+                let done = (first / f).ln() / (first / p.stop).ln();
+                pb.set_position((done.clamp(0.0, 1.0) * 1000.0) as u64);
+            }
+        })
+    });
+    if let Some(pb) = pb {
+        pb.finish_and_clear();
+    }
+    let t = Instant::now();
+    let (image, _) = pool.install(|| {
+        let s = &prep.scene.settings;
+        render_image(
+            &solver,
+            &prep.accel,
+            &prep.scene.camera,
+            a.spp.max(1),
+            s.seed,
+            s.sampler,
+        )
+    });
+    let image_s = t.elapsed().as_secs_f64();
+    let Written { png, json, error } =
+        write_image(&image, &a.output, a.exposure, reference.as_ref())?;
+    let ply = sibling(&a.output, "ply");
+    write_ply(&solver, &ply, a.exposure).with_context(|| format!("writing {}", ply.display()))?;
+    let svg = a.output.with_extension("convergence.svg");
+    plot(&svg, &a.scene, &conv.records)?;
+    let report = RadiosityReport {
+        scene: a.scene.display().to_string(),
+        image: a.output.display().to_string(),
+        mesh: ply.display().to_string(),
+        plot: svg.display().to_string(),
+        params: p,
+        threads,
+        patches: solver.patches.len(),
+        elements: solver.elements,
+        vertices: solver.vertices(),
+        mesh_bytes: solver.bytes(),
+        iterations: solver.iterations,
+        stopped: conv.stopped,
+        load_s,
+        bvh_s: prep.timings.bvh_s,
+        solve_s: conv.seconds,
+        image_s,
+        visibility_rays: solver.stats.rays(),
+        rays_per_second: solver.stats.rays() as f64 / conv.seconds.max(1e-9),
+        unshot_fraction: solver.unshot_fraction(),
+        ledger: solver.ledger(),
+        convergence: conv.records,
+        error_vs_reference: error,
+    };
+    let text = serde_json::to_string_pretty(&report)?;
+    std::fs::write(&json, text).with_context(|| format!("writing {}", json.display()))?;
+    println!(
+        "wrote {} with {}, {}, {} and {}\n  {} patches, {} elements, {} iterations ({}), unshot {:.2e} of emitted\n  load {:.3}s  bvh {:.3}s  solve {:.3}s  image {:.3}s  {:.2} M visibility rays/s",
+        a.output.display(),
+        png.display(),
+        json.display(),
+        ply.display(),
+        svg.display(),
+        report.patches,
+        report.elements,
+        report.iterations,
+        report.stopped,
+        report.unshot_fraction,
+        load_s,
+        report.bvh_s,
+        report.solve_s,
+        image_s,
+        report.rays_per_second / 1e6
+    );
+    if let Some(e) = error {
+        println!("error vs reference: {e}");
+    }
+    Ok(())
+}
+
+/// Unshot power and the error against the final solution, against time.
+fn plot(path: &Path, scene: &Path, records: &[Record]) -> Result<()> {
+    use locus::plot::{Axes, Series, lines};
+    let unshot = Series {
+        label: "unshot power / emitted".into(),
+        points: records
+            .iter()
+            .map(|r| (r.seconds, r.unshot_fraction))
+            .collect(),
+        bold: true,
+    };
+    let error = Series {
+        label: "relative L2 error of patch radiosity vs final".into(),
+        points: records
+            .iter()
+            .filter_map(|r| r.error.filter(|&e| e > 0.0).map(|e| (r.seconds, e)))
+            .collect(),
+        bold: false,
+    };
+    let axes = Axes {
+        x: "solve seconds",
+        y: "fraction",
+        log_x: false,
+        log_y: true,
+    };
+    let title = format!("radiosity convergence: {}", scene.display());
+    lines(path, &title, &axes, &[unshot, error])
+}
