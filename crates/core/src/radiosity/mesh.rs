@@ -304,8 +304,11 @@ mod tests {
     #[test]
     fn locate_finds_the_leaf_holding_a_point() {
         let mut p = Patch::new(tri(), Vec3::splat(0.5), Vec3::ZERO, 2, 5);
-        p.split(3, |_| [Vec3::ZERO; 2]);
-        p.split(7, |_| [Vec3::ZERO; 2]);
+        // Two levels deeper in places, so the descent crosses levels.
+        let leaf = p.leaves()[3];
+        let (first, _) = p.split(leaf, |_| [Vec3::ZERO; 2]);
+        p.split(first + 3, |_| [Vec3::ZERO; 2]);
+        p.split(p.leaves()[9], |_| [Vec3::ZERO; 2]);
         let mut s = 7u64;
         for _ in 0..2000 {
             s = crate::sampler::mix64(s);
