@@ -381,6 +381,10 @@ pub(crate) struct RenderArgs {
     pub(crate) farm: FarmArgs,
 }
 
+/// The radiosity defaults the flags below show.
+const RADIOSITY: locus_core::radiosity::RadiosityParams =
+    locus_core::radiosity::RadiosityParams::DEFAULT;
+
 #[derive(clap::Args)]
 pub(crate) struct RadiosityArgs {
     pub(crate) scene: PathBuf,
@@ -388,29 +392,29 @@ pub(crate) struct RadiosityArgs {
     pub(crate) output: PathBuf,
     /// Patches (the shooters): edges at most the scene's largest extent
     /// divided by this.
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().patches)]
+    #[arg(long, default_value_t = RADIOSITY.patches)]
     pub(crate) patches: u32,
     /// Initial mesh: element edges at most the scene's largest extent
     /// divided by this.
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().mesh)]
+    #[arg(long, default_value_t = RADIOSITY.mesh)]
     pub(crate) mesh: u32,
     /// Adaptive subdivision levels below the initial mesh (0: none).
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().subdivide)]
+    #[arg(long, default_value_t = RADIOSITY.subdivide)]
     pub(crate) subdivide: u32,
     /// Split an element when its corners differ by more than this fraction
     /// of their mean radiosity.
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().threshold)]
+    #[arg(long, default_value_t = RADIOSITY.threshold)]
     pub(crate) threshold: f32,
     /// Parts of the shooter sampled for visibility, one ray each (M: 1, 4,
     /// 16 or 64).
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().shooter_parts)]
+    #[arg(long, default_value_t = RADIOSITY.shooter_parts)]
     pub(crate) parts: u32,
     /// Stop when the unshot power is below this fraction of the emitted.
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().stop)]
+    #[arg(long, default_value_t = RADIOSITY.stop)]
     pub(crate) stop: f64,
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().max_iterations)]
+    #[arg(long, default_value_t = RADIOSITY.max_iterations)]
     pub(crate) max_iterations: u64,
-    #[arg(long, default_value_t = locus_core::radiosity::RadiosityParams::default().max_elements)]
+    #[arg(long, default_value_t = RADIOSITY.max_elements)]
     pub(crate) max_elements: u64,
     /// Camera rays per pixel of the image (antialiasing only: the solution
     /// itself is noise-free).

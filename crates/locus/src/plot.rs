@@ -13,6 +13,23 @@ pub struct Series {
     pub bold: bool,
 }
 
+/// Points gathered into one series per label, in order of first
+/// appearance; a series is bold if its first point says so.
+pub fn group(points: impl IntoIterator<Item = (String, (f64, f64), bool)>) -> Vec<Series> {
+    let mut series: Vec<Series> = Vec::new();
+    for (label, point, bold) in points {
+        match series.iter_mut().find(|s| s.label == label) {
+            Some(s) => s.points.push(point),
+            None => series.push(Series {
+                label,
+                points: vec![point],
+                bold,
+            }),
+        }
+    }
+    series
+}
+
 /// The axes: descriptions and whether each is logarithmic.
 pub struct Axes<'a> {
     pub x: &'a str,

@@ -82,7 +82,7 @@ impl Patch {
             elements: Vec::new(),
             lattice: HashMap::new(),
         };
-        let corners = [[0, 0], [d, 0], [0, d]].map(|l| p.vertex(l, |_| [emitted, Vec3::ZERO]).0);
+        let corners = [[0, 0], [d, 0], [0, d]].map(|l| p.vertex(l, [emitted, Vec3::ZERO]).0);
         p.elements.push(Element {
             corners,
             children: LEAF,
@@ -92,7 +92,7 @@ impl Patch {
         for _ in 0..initial {
             let mut next = Vec::with_capacity(frontier.len() * 4);
             for e in frontier {
-                let (first, _) = p.split(e, |_| [emitted, Vec3::ZERO]);
+                let (first, _) = p.split(e, [emitted, Vec3::ZERO]);
                 next.extend(first..first + 4);
             }
             frontier = next;
@@ -112,9 +112,9 @@ impl Patch {
         self.lattice.get(&key(l)).copied()
     }
 
-    /// The vertex at `l`, created with radiosity `init(l)` if new; the
-    /// flag says whether it was created.
-    fn vertex(&mut self, l: [u32; 2], init: impl FnOnce([u32; 2]) -> [Vec3; 2]) -> (u32, bool) {
+    /// The vertex at `l`, created with radiosity `init` if new; the flag
+    /// says whether it was created.
+    fn vertex(&mut self, l: [u32; 2], init: [Vec3; 2]) -> (u32, bool) {
         if let Some(&v) = self.lattice.get(&key(l)) {
             return (v, false);
         }
@@ -123,20 +123,15 @@ impl Patch {
         self.vertices.push(Vertex {
             lattice: l,
             pos,
-            b: init(l),
+            b: init,
         });
         self.lattice.insert(key(l), id);
         (id, true)
     }
 
-    /// Splits leaf `e` into four; a new midpoint's radiosity is
-    /// `init(a, b)` of the edge's end vertices. Returns the first child
-    /// and the vertices created.
-    pub fn split(
-        &mut self,
-        e: u32,
-        mut init: impl FnMut([u32; 2]) -> [Vec3; 2],
-    ) -> (u32, Vec<u32>) {
+    /// Splits leaf `e` into four; a midpoint that is new starts with
+    /// radiosity `init`. Returns the first child and the vertices created.
+    pub fn split(&mut self, e: u32, init: [Vec3; 2]) -> (u32, Vec<u32>) {
         let el = self.elements[e as usize];
         debug_assert_eq!(el.children, LEAF);
         let l = el.corners.map(|c| self.vertices[c as usize].lattice);
@@ -144,7 +139,7 @@ impl Patch {
         let mut created = Vec::new();
         let mut m = [0u32; 3];
         for (k, (a, b)) in [(0, 1), (1, 2), (2, 0)].into_iter().enumerate() {
-            let (v, new) = self.vertex(mid(l[a], l[b]), &mut init);
+            let (v, new) = self.vertex(mid(l[a], l[b]), init);
             if new {
                 created.push(v);
             }
@@ -294,8 +289,8 @@ mod tests {
         let mut p = Patch::new(tri(), Vec3::splat(0.5), Vec3::ZERO, 1, 4);
         let before = p.vertices.len();
         // The middle child shares an edge with each corner child.
-        let (_, a) = p.split(4, |_| [Vec3::ONE, Vec3::ZERO]);
-        let (_, b) = p.split(1, |_| [Vec3::ONE, Vec3::ZERO]);
+        let (_, a) = p.split(4, [Vec3::ONE, Vec3::ZERO]);
+        let (_, b) = p.split(1, [Vec3::ONE, Vec3::ZERO]);
         assert_eq!(a.len(), 3);
         assert_eq!(b.len(), 2, "one midpoint is shared with the middle child");
         assert_eq!(p.vertices.len(), before + 5);
@@ -306,9 +301,9 @@ mod tests {
         let mut p = Patch::new(tri(), Vec3::splat(0.5), Vec3::ZERO, 2, 5);
         // Two levels deeper in places, so the descent crosses levels.
         let leaf = p.leaves()[3];
-        let (first, _) = p.split(leaf, |_| [Vec3::ZERO; 2]);
-        p.split(first + 3, |_| [Vec3::ZERO; 2]);
-        p.split(p.leaves()[9], |_| [Vec3::ZERO; 2]);
+        let (first, _) = p.split(leaf, [Vec3::ZERO; 2]);
+        p.split(first + 3, [Vec3::ZERO; 2]);
+        p.split(p.leaves()[9], [Vec3::ZERO; 2]);
         let mut s = 7u64;
         for _ in 0..2000 {
             s = crate::sampler::mix64(s);

@@ -56,17 +56,22 @@ pub struct RadiosityParams {
 
 impl Default for RadiosityParams {
     fn default() -> Self {
-        Self {
-            patches: 2,
-            mesh: 8,
-            subdivide: 2,
-            threshold: 0.5,
-            shooter_parts: 16,
-            stop: 1e-3,
-            max_iterations: 1_000_000,
-            max_elements: 4_000_000,
-        }
+        Self::DEFAULT
     }
+}
+
+impl RadiosityParams {
+    /// The defaults, as a constant so the command line can show them.
+    pub const DEFAULT: Self = Self {
+        patches: 2,
+        mesh: 8,
+        subdivide: 2,
+        threshold: 0.5,
+        shooter_parts: 16,
+        stop: 1e-3,
+        max_iterations: 1_000_000,
+        max_elements: 4_000_000,
+    };
 }
 
 /// Finest lattice a patch may use: `2^30` divisions per edge still fits

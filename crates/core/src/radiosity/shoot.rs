@@ -198,9 +198,7 @@ fn level(c: Vec3) -> f32 {
 }
 
 /// Per-side irradiance this shot brings to each vertex of a patch.
-struct Incoming {
-    e: Vec<[Vec3; 2]>,
-}
+type Incoming = Vec<[Vec3; 2]>;
 
 /// Receives one shot into patch `p` (whose index is `index`).
 pub fn receive(
@@ -219,13 +217,11 @@ pub fn receive(
     if sides == [false, false] {
         return receipt;
     }
-    let mut inc = Incoming {
-        e: vec![[Vec3::ZERO; 2]; p.vertices.len()],
-    };
+    let mut inc: Incoming = vec![[Vec3::ZERO; 2]; p.vertices.len()];
     let all: Vec<u32> = (0..p.vertices.len() as u32).collect();
     irradiance(p, shooter, sides, &all, &mut inc, vis, stats);
     let albedo = p.albedo;
-    for (v, e) in p.vertices.iter_mut().zip(&inc.e) {
+    for (v, e) in p.vertices.iter_mut().zip(&inc) {
         reflect(v, albedo, e);
     }
     let mut budget = refine.budget;
@@ -246,7 +242,7 @@ pub fn receive(
         for e in split_now {
             // New corners start from zero here; `seed_midpoints` gives
             // them the radiosity their edge had before this shot.
-            let (first, new) = p.split(e, |_| [Vec3::ZERO; 2]);
+            let (first, new) = p.split(e, [Vec3::ZERO; 2]);
             created.extend(new);
             children.extend(first..first + 4);
         }
@@ -257,20 +253,16 @@ pub fn receive(
         seed_midpoints(p, &created, &mut inc);
         irradiance(p, shooter, sides, &created, &mut inc, vis, stats);
         for &v in &created {
-            reflect(&mut p.vertices[v as usize], albedo, &inc.e[v as usize]);
+            reflect(&mut p.vertices[v as usize], albedo, &inc[v as usize]);
         }
         check = children;
     }
     for e in p.leaves() {
         let c = p.elements[e as usize].corners;
         let area = p.element_area(e);
-        for s in 0..2 {
-            let mean = c
-                .iter()
-                .map(|&v| inc.e[v as usize][s].as_dvec3())
-                .sum::<DVec3>()
-                / 3.0;
-            receipt.received[s] += mean * area;
+        for (s, received) in receipt.received.iter_mut().enumerate() {
+            let sum: DVec3 = c.iter().map(|&v| inc[v as usize][s].as_dvec3()).sum();
+            *received += sum / 3.0 * area;
         }
     }
     receipt
@@ -307,12 +299,11 @@ fn too_different(p: &Patch, e: u32, refine: Refine) -> bool {
 /// interpolated between the edge's ends (already updated by this shot, so
 /// this shot's reflected part is taken off first).
 fn seed_midpoints(p: &mut Patch, created: &[u32], inc: &mut Incoming) {
-    inc.e.resize(p.vertices.len(), [Vec3::ZERO; 2]);
+    inc.resize(p.vertices.len(), [Vec3::ZERO; 2]);
     for &v in created {
         let l = p.vertices[v as usize].lattice;
         let (a, b) = edge_ends(p, l);
-        let before =
-            |x: u32, s: usize| p.vertices[x as usize].b[s] - p.albedo * inc.e[x as usize][s];
+        let before = |x: u32, s: usize| p.vertices[x as usize].b[s] - p.albedo * inc[x as usize][s];
         let b_new = [0, 1].map(|s| (before(a, s) + before(b, s)) * 0.5);
         p.vertices[v as usize].b = b_new;
     }
@@ -356,7 +347,7 @@ fn irradiance(
     vis: &dyn Visibility,
     stats: &mut TraceStats,
 ) {
-    inc.e.resize(p.vertices.len(), [Vec3::ZERO; 2]);
+    inc.resize(p.vertices.len(), [Vec3::ZERO; 2]);
     let centroid = (p.tri[0] + p.tri[1] + p.tri[2]) / 3.0;
     let off = spawn_offset(&p.tri);
     let m = shooter.parts.len();
@@ -394,7 +385,7 @@ fn irradiance(
             bits &= bits - 1;
             f += ff[k];
         }
-        inc.e[v as usize][s] = (shooter.delta * f).as_vec3();
+        inc[v as usize][s] = (shooter.delta * f).as_vec3();
     }
 }
 
@@ -407,7 +398,7 @@ mod tests {
         let tri = [Vec3::ZERO, Vec3::X, Vec3::Y];
         let mut p = Patch::new(tri, Vec3::splat(0.5), Vec3::ZERO, 1, 4);
         for e in 1..5 {
-            let (_, created) = p.split(e, |_| [Vec3::ZERO; 2]);
+            let (_, created) = p.split(e, [Vec3::ZERO; 2]);
             for v in created {
                 let l = p.vertices[v as usize].lattice;
                 let (a, b) = edge_ends(&p, l);

@@ -400,19 +400,10 @@ pub fn csv(rows: &[Row]) -> String {
 /// RMSE against render time, one line per (cache, policy) through the
 /// presets; lines with the cache on are drawn bold.
 pub fn plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
-    let mut series: Vec<crate::plot::Series> = Vec::new();
-    for r in rows {
+    let series = crate::plot::group(rows.iter().map(|r| {
         let label = format!("{}, cache {}", r.policy, on(r.cache));
-        let point = (r.render_s, r.rmse);
-        match series.iter_mut().find(|s| s.label == label) {
-            Some(s) => s.points.push(point),
-            None => series.push(crate::plot::Series {
-                label,
-                points: vec![point],
-                bold: r.cache,
-            }),
-        }
-    }
+        (label, (r.render_s, r.rmse), r.cache)
+    }));
     let axes = crate::plot::Axes {
         x: "render seconds",
         y: "RMSE against the reference",

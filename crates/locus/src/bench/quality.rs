@@ -467,19 +467,13 @@ pub fn csv(rows: &[Row]) -> String {
 
 /// relMSE against seconds, log-log, one line per renderer and sampler.
 pub fn plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
-    let mut series: Vec<crate::plot::Series> = Vec::new();
-    for r in rows {
-        let label = format!("{}, {}", r.renderer, r.sampler);
-        let point = (r.seconds, r.rel_mse);
-        match series.iter_mut().find(|s| s.label == label) {
-            Some(s) => s.points.push(point),
-            None => series.push(crate::plot::Series {
-                label,
-                points: vec![point],
-                bold: true,
-            }),
-        }
-    }
+    let series = crate::plot::group(rows.iter().map(|r| {
+        (
+            format!("{}, {}", r.renderer, r.sampler),
+            (r.seconds, r.rel_mse),
+            true,
+        )
+    }));
     let axes = crate::plot::Axes {
         x: "render seconds",
         y: "relMSE against the reference",
