@@ -429,6 +429,59 @@ pub(crate) struct RadiosityArgs {
     /// Exposure multiplier for the PNG preview and the PLY's colours.
     #[arg(long, default_value_t = 1.0)]
     pub(crate) exposure: f32,
+    /// Solve on a farm of this many nodes in this process (0: on this
+    /// machine's pool); the solution is the same bits.
+    #[arg(long, default_value_t = 0)]
+    pub(crate) workers: u32,
+    /// Nodes per ring: each ring holds the scene once, one region per
+    /// node (default: one ring of all nodes).
+    #[arg(long)]
+    pub(crate) ring: Option<u32>,
+    /// Load balancing on the farm.
+    #[arg(long, value_enum, default_value_t = BalanceArg::Both)]
+    pub(crate) balance: BalanceArg,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub(crate) enum BalanceArg {
+    /// Equal numbers of patches per node, regions of equal leaf counts.
+    None,
+    /// Equal numbers of elements per node, regions of equal predicted cost.
+    Static,
+    /// Random polling for sample packets of other rings.
+    Dynamic,
+    Both,
+}
+
+impl BalanceArg {
+    pub(crate) fn balance(self) -> locus_worker::radiosity::Balance {
+        use locus_worker::radiosity::Balance;
+        match self {
+            BalanceArg::None => Balance::None,
+            BalanceArg::Static => Balance::Static,
+            BalanceArg::Dynamic => Balance::Dynamic,
+            BalanceArg::Both => Balance::Both,
+        }
+    }
+}
+
+#[derive(clap::Args)]
+pub(crate) struct RadiosityBenchArgs {
+    #[arg(default_value = "scenes/cornell-box/cornell.toml")]
+    pub(crate) scene: PathBuf,
+    /// Node counts (rows) and ring lengths (columns).
+    #[arg(long, num_args = 1.., default_values_t = [1u32, 2, 4, 8])]
+    pub(crate) nodes: Vec<u32>,
+    /// Shots averaged (the paper: the first four).
+    #[arg(long, default_value_t = 4)]
+    pub(crate) shots: u64,
+    #[arg(long, default_value_t = 4)]
+    pub(crate) patches: u32,
+    #[arg(long, default_value_t = 32)]
+    pub(crate) mesh: u32,
+    /// Default bench-out/radiosity.
+    #[arg(long)]
+    pub(crate) out_dir: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -481,6 +534,10 @@ pub(crate) enum BenchWhat {
     /// sample counts with each sampler, and Mitsuba 3's where it is
     /// installed; writes quality.md, .csv and .svg.
     Quality(QualityArgs),
+    /// Paper 003's Tables 1-4: radiosity shots on N nodes in rings of R
+    /// with no, static, dynamic and both load balancing, with the busiest
+    /// node's work and the idle share; writes radiosity.md and .json.
+    Radiosity(RadiosityBenchArgs),
 }
 
 #[derive(clap::Args)]

@@ -8,7 +8,8 @@
 //! link is TLS first ([`stream`] is either). Then one message
 //! family per kind of link: [`control`] (scheduler and workers), [`submit`]
 //! (client and scheduler), [`rays`] (worker to worker, its ray items in
-//! the compact encoding of [`packet`]); [`report`] holds the
+//! the compact encoding of [`packet`]), [`radiosity`] (the radiosity job's
+//! shots, sample packets and random polling); [`report`] holds the
 //! counters a job reports. postcard is not self-describing: enum variants
 //! are only ever appended, never reordered or removed.
 
@@ -18,6 +19,7 @@ pub mod control;
 pub mod error;
 pub mod handshake;
 pub mod packet;
+pub mod radiosity;
 pub mod rays;
 pub mod report;
 pub mod stream;

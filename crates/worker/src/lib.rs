@@ -9,7 +9,8 @@
 //! incoming peer link, one writer per outgoing one, and the scheduler link.
 //! Rays never pass through the scheduler. What a worker can trace is its
 //! [`reach`]: its own region plus, under a fetch policy ([`fetch`]), leaves
-//! fetched from their owners and merged into its BVH parts. [`sys`] reads
+//! fetched from their owners and merged into its BVH parts. [`radiosity`]
+//! is the radiosity job's node and its in-process farm. [`sys`] reads
 //! the CPU time and peak memory that reports give. Shutdown is by a
 //! cancellation token every task selects on.
 
@@ -17,6 +18,7 @@ pub mod engine;
 pub mod fetch;
 pub mod job;
 pub mod peers;
+pub mod radiosity;
 pub mod reach;
 pub mod sys;
 

@@ -250,6 +250,33 @@ impl Patch {
         sum / self.area
     }
 
+    /// Unshot power of `side` (W, mean of the channels): what the shooter
+    /// choice maximises.
+    pub fn unshot_power(&self, side: usize) -> f64 {
+        let c = self.unshot[side];
+        (c.x + c.y + c.z) / 3.0 * self.area
+    }
+
+    /// Keeps what a shot brought for the patch to shoot later: the part of
+    /// the received power it reflects, as unshot radiosity.
+    pub fn book(&mut self, r: &super::shoot::Receipt) {
+        let rho = self.albedo.as_dvec3();
+        for s in 0..2 {
+            self.unshot[s] += rho * r.received[s] / self.area;
+        }
+    }
+
+    /// The patch without its mesh: what a farm's coordinator keeps of a
+    /// patch a worker holds, to choose shooters and keep the ledger.
+    pub fn shell(&self) -> Patch {
+        Patch {
+            vertices: Vec::new(),
+            elements: Vec::new(),
+            lattice: HashMap::new(),
+            ..*self
+        }
+    }
+
     /// Bytes held by this patch's mesh.
     pub fn bytes(&self) -> usize {
         std::mem::size_of::<Self>()

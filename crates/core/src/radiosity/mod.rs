@@ -24,7 +24,7 @@ pub mod output;
 pub mod shoot;
 pub mod solve;
 
-pub use solve::{Convergence, Ledger, Record, Solver, solve};
+pub use solve::{Convergence, Ledger, LocalShots, Record, Shots, Solver, solve, solve_with};
 
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;

@@ -42,33 +42,70 @@ pub struct Shooter {
     centroid: Vec3,
     /// Distance from the centroid to the farthest corner.
     radius: f32,
+    front: Vec3,
+}
+
+/// What every worker needs to know of a shot: the shooting patch side and
+/// the unshot radiosity it sends. The parts follow from it.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ShotSpec {
+    pub patch: u32,
+    pub side: u8,
+    pub tri: [Vec3; 3],
+    /// Unit normal of the patch's front side.
+    pub front: Vec3,
+    pub delta: DVec3,
 }
 
 impl Shooter {
     pub fn new(patch: u32, side: usize, p: &Patch, delta: DVec3, part_levels: u32) -> Self {
-        let normal = if side == 0 { p.normal } else { -p.normal };
-        let parts = parts(&p.tri, part_levels);
-        let off = spawn_offset(&p.tri);
+        let spec = ShotSpec {
+            patch,
+            side: side as u8,
+            tri: p.tri,
+            front: p.normal,
+            delta,
+        };
+        Self::from_spec(&spec, part_levels)
+    }
+
+    pub fn from_spec(spec: &ShotSpec, part_levels: u32) -> Self {
+        let side = spec.side as usize;
+        let normal = if side == 0 { spec.front } else { -spec.front };
+        let tri = spec.tri;
+        let parts = parts(&tri, part_levels);
+        let off = spawn_offset(&tri);
         let targets = parts
             .iter()
             .map(|t| (t[0] + t[1] + t[2]) / 3.0 + normal * off)
             .collect();
-        let centroid = (p.tri[0] + p.tri[1] + p.tri[2]) / 3.0;
-        let radius = p
-            .tri
+        let centroid = (tri[0] + tri[1] + tri[2]) / 3.0;
+        let radius = tri
             .iter()
             .map(|&v| (v - centroid).length())
             .fold(0.0, f32::max);
         Self {
-            patch,
+            patch: spec.patch,
             side,
             normal,
-            tri: p.tri,
-            delta,
+            tri,
+            delta: spec.delta,
             parts,
             targets,
             centroid,
             radius,
+            front: spec.front,
+        }
+    }
+
+    /// The shot as workers are told of it.
+    pub fn spec(&self) -> ShotSpec {
+        ShotSpec {
+            patch: self.patch,
+            side: self.side as u8,
+            tri: self.tri,
+            front: self.front,
+            delta: self.delta,
         }
     }
 
@@ -133,7 +170,7 @@ impl Shooter {
 }
 
 /// A receiving point and the shooter's parts it may see.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct VisSample {
     /// The ray origin: the point moved off its surface.
     pub origin: Vec3,
@@ -146,42 +183,64 @@ pub trait Visibility: Sync {
     fn resolve(&self, shooter: &Shooter, samples: &mut [VisSample], stats: &mut TraceStats);
 }
 
-/// Visibility through one BVH (one machine, or one owner's region).
+/// Visibility through one BVH (one machine).
 pub struct BvhVisibility<'a>(pub &'a Accel);
 
 impl Visibility for BvhVisibility<'_> {
     fn resolve(&self, shooter: &Shooter, samples: &mut [VisSample], stats: &mut TraceStats) {
-        for s in samples {
-            let mut bits = s.bits;
-            while bits != 0 {
-                let k = bits.trailing_zeros();
-                bits &= bits - 1;
-                let seg = shooter.targets[k as usize] - s.origin;
-                let len = seg.length();
-                if len.is_nan() || len <= 0.0 {
-                    continue;
-                }
-                stats.shadow_rays += 1;
-                if self
-                    .0
-                    .occluded(&Ray::new(s.origin, seg / len), 0.0, len, stats)
-                {
-                    s.bits &= !(1u64 << k);
-                }
+        clear_hidden(shooter, samples, stats, |ray, len, st| {
+            self.0.occluded(ray, 0.0, len, st)
+        });
+    }
+}
+
+/// Visibility through the BVH parts of one region (a farm node's): it
+/// clears what that region's triangles hide.
+pub struct RegionVisibility<'a>(pub &'a crate::accel_set::AccelSet);
+
+impl Visibility for RegionVisibility<'_> {
+    fn resolve(&self, shooter: &Shooter, samples: &mut [VisSample], stats: &mut TraceStats) {
+        clear_hidden(shooter, samples, stats, |ray, len, st| {
+            self.0.occluded(ray, 0.0, len, st)
+        });
+    }
+}
+
+/// One shadow ray per set bit, from the sample to its part's target;
+/// `occluded(ray, length)` clears the bit.
+fn clear_hidden(
+    shooter: &Shooter,
+    samples: &mut [VisSample],
+    stats: &mut TraceStats,
+    occluded: impl Fn(&Ray, f32, &mut TraceStats) -> bool,
+) {
+    for s in samples {
+        let mut bits = s.bits;
+        while bits != 0 {
+            let k = bits.trailing_zeros();
+            bits &= bits - 1;
+            let seg = shooter.targets[k as usize] - s.origin;
+            let len = seg.length();
+            if len.is_nan() || len <= 0.0 {
+                continue;
+            }
+            stats.shadow_rays += 1;
+            if occluded(&Ray::new(s.origin, seg / len), len, stats) {
+                s.bits &= !(1u64 << k);
             }
         }
     }
 }
 
 /// What one patch received in one shot: power (W) per side, and the work.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Receipt {
     pub received: [DVec3; 2],
     pub new_elements: u64,
 }
 
 /// Subdivision settings of a shot.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Refine {
     /// Split when corners' radiosity (mean of channels) differs by more
     /// than this fraction of their mean...
@@ -200,7 +259,8 @@ fn level(c: Vec3) -> f32 {
 /// Per-side irradiance this shot brings to each vertex of a patch.
 type Incoming = Vec<[Vec3; 2]>;
 
-/// Receives one shot into patch `p` (whose index is `index`).
+/// Receives one shot into patch `p` (whose index is `index`), asking `vis`
+/// for each round's visibility in one batch.
 pub fn receive(
     p: &mut Patch,
     index: u32,
@@ -209,32 +269,114 @@ pub fn receive(
     refine: Refine,
     stats: &mut TraceStats,
 ) -> Receipt {
-    let mut receipt = Receipt::default();
-    if index == shooter.patch {
-        return receipt;
+    let mut r = Reception::start(p, index, shooter);
+    while !r.is_done() {
+        vis.resolve(shooter, r.samples_mut(), stats);
+        r.advance(p, shooter, refine);
     }
-    let sides = facing_sides(p, shooter);
-    if sides == [false, false] {
-        return receipt;
+    r.receipt
+}
+
+/// Receiving points waiting for visibility, and what each one is for.
+#[derive(Default)]
+struct Pending {
+    samples: Vec<VisSample>,
+    /// `m` form factors per sample, one per shooter part.
+    ffs: Vec<f64>,
+    /// The vertex and side each sample lights.
+    owners: Vec<(u32, usize)>,
+}
+
+/// One patch receiving one shot, as a sequence of rounds: each round's
+/// receiving points wait for visibility (which a farm answers through its
+/// regions while the patch waits), then [`Reception::advance`] lights
+/// them, splits what now differs too much and makes the next round's
+/// points at the new corners. [`receive`] runs the rounds on one machine;
+/// the farm runs every patch's round together; the arithmetic is the same.
+pub struct Reception {
+    index: u32,
+    sides: [bool; 2],
+    inc: Incoming,
+    pending: Pending,
+    /// Vertices whose irradiance the pending round brings: every vertex
+    /// in the first round, the new corners after.
+    lit: Option<Vec<u32>>,
+    /// Elements to check for splitting after the pending round: None for
+    /// the first round (all leaves).
+    check: Option<Vec<u32>>,
+    /// Elements this patch may still create in this shot.
+    budget: Option<u64>,
+    done: bool,
+    pub receipt: Receipt,
+}
+
+impl Reception {
+    /// The first round's receiving points (none if the patch is the
+    /// shooter or faces none of it: then it is done at once).
+    pub fn start(p: &Patch, index: u32, shooter: &Shooter) -> Self {
+        let sides = facing_sides(p, shooter);
+        let mut r = Self {
+            index,
+            sides,
+            inc: Vec::new(),
+            pending: Pending::default(),
+            lit: None,
+            check: None,
+            budget: None,
+            done: index == shooter.patch || sides == [false, false],
+            receipt: Receipt::default(),
+        };
+        if !r.done {
+            r.inc = vec![[Vec3::ZERO; 2]; p.vertices.len()];
+            let all: Vec<u32> = (0..p.vertices.len() as u32).collect();
+            r.pending = sample_points(p, shooter, sides, &all);
+        }
+        r
     }
-    let mut inc: Incoming = vec![[Vec3::ZERO; 2]; p.vertices.len()];
-    let all: Vec<u32> = (0..p.vertices.len() as u32).collect();
-    irradiance(p, shooter, sides, &all, &mut inc, vis, stats);
-    let albedo = p.albedo;
-    for (v, e) in p.vertices.iter_mut().zip(&inc) {
-        reflect(v, albedo, e);
+
+    pub fn index(&self) -> u32 {
+        self.index
     }
-    let mut budget = refine.budget;
-    let mut check = p.leaves();
-    while !check.is_empty() {
+
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+
+    /// This round's receiving points, for visibility to clear hidden
+    /// parts in.
+    pub fn samples_mut(&mut self) -> &mut [VisSample] {
+        &mut self.pending.samples
+    }
+
+    /// Lights the round's vertices with its resolved samples, splits, and
+    /// makes the next round's points; done when nothing was split.
+    pub fn advance(&mut self, p: &mut Patch, shooter: &Shooter, refine: Refine) {
+        debug_assert!(!self.done, "advance after the last round");
+        let pending = std::mem::take(&mut self.pending);
+        gather(&pending, shooter, &mut self.inc);
+        let albedo = p.albedo;
+        match self.lit.take() {
+            None => {
+                for (v, e) in p.vertices.iter_mut().zip(&self.inc) {
+                    reflect(v, albedo, e);
+                }
+            }
+            Some(created) => {
+                for &v in &created {
+                    reflect(&mut p.vertices[v as usize], albedo, &self.inc[v as usize]);
+                }
+            }
+        }
+        let check = self.check.take().unwrap_or_else(|| p.leaves());
+        let budget = self.budget.get_or_insert(refine.budget);
         let mut split_now = Vec::new();
         for &e in &check {
             if (p.elements[e as usize].level as u32) < p.levels
-                && budget >= 3
+                && *budget >= 3
                 && too_different(p, e, refine)
             {
                 split_now.push(e);
-                budget -= 3;
+                *budget -= 3;
             }
         }
         let mut created = Vec::new();
@@ -246,26 +388,29 @@ pub fn receive(
             created.extend(new);
             children.extend(first..first + 4);
         }
-        receipt.new_elements += 3 * (children.len() as u64 / 4);
+        self.receipt.new_elements += 3 * (children.len() as u64 / 4);
         if created.is_empty() && children.is_empty() {
-            break;
+            self.finish(p);
+            return;
         }
-        seed_midpoints(p, &created, &mut inc);
-        irradiance(p, shooter, sides, &created, &mut inc, vis, stats);
-        for &v in &created {
-            reflect(&mut p.vertices[v as usize], albedo, &inc[v as usize]);
-        }
-        check = children;
+        seed_midpoints(p, &created, &mut self.inc);
+        self.pending = sample_points(p, shooter, self.sides, &created);
+        self.lit = Some(created);
+        self.check = Some(children);
     }
-    for e in p.leaves() {
-        let c = p.elements[e as usize].corners;
-        let area = p.element_area(e);
-        for (s, received) in receipt.received.iter_mut().enumerate() {
-            let sum: DVec3 = c.iter().map(|&v| inc[v as usize][s].as_dvec3()).sum();
-            *received += sum / 3.0 * area;
+
+    /// The power received over the patch's leaves.
+    fn finish(&mut self, p: &Patch) {
+        for e in p.leaves() {
+            let c = p.elements[e as usize].corners;
+            let area = p.element_area(e);
+            for (s, received) in self.receipt.received.iter_mut().enumerate() {
+                let sum: DVec3 = c.iter().map(|&v| self.inc[v as usize][s].as_dvec3()).sum();
+                *received += sum / 3.0 * area;
+            }
         }
+        self.done = true;
     }
-    receipt
 }
 
 /// Adds what a corner reflects of this shot's irradiance `e`, per side.
@@ -336,24 +481,13 @@ fn edge_ends(p: &Patch, l: [u32; 2]) -> (u32, u32) {
     unreachable!("a midpoint at {l:?} without its edge's ends")
 }
 
-/// Computes the irradiance from the shooter at vertices `which` into
-/// `inc`, asking `vis` for the visibility of the parts in one batch.
-fn irradiance(
-    p: &Patch,
-    shooter: &Shooter,
-    sides: [bool; 2],
-    which: &[u32],
-    inc: &mut Incoming,
-    vis: &dyn Visibility,
-    stats: &mut TraceStats,
-) {
-    inc.resize(p.vertices.len(), [Vec3::ZERO; 2]);
+/// The receiving points of vertices `which`, with their form factors,
+/// for the parts each may see.
+fn sample_points(p: &Patch, shooter: &Shooter, sides: [bool; 2], which: &[u32]) -> Pending {
     let centroid = (p.tri[0] + p.tri[1] + p.tri[2]) / 3.0;
     let off = spawn_offset(&p.tri);
     let m = shooter.parts.len();
-    let mut samples = Vec::new();
-    let mut ffs: Vec<f64> = Vec::new();
-    let mut owners = Vec::new();
+    let mut out = Pending::default();
     for &v in which {
         let pos = p.vertices[v as usize].pos;
         let at = pos + (centroid - pos) * CORNER_INSET;
@@ -362,22 +496,29 @@ fn irradiance(
         }
         for (s, _) in sides.iter().enumerate().filter(|(_, on)| **on) {
             let n = if s == 0 { p.normal } else { -p.normal };
-            let at_ff = ffs.len();
-            ffs.resize(at_ff + m, 0.0);
-            let bits = shooter.part_form_factors(at, n, &mut ffs[at_ff..]);
+            let at_ff = out.ffs.len();
+            out.ffs.resize(at_ff + m, 0.0);
+            let bits = shooter.part_form_factors(at, n, &mut out.ffs[at_ff..]);
             if bits != 0 {
-                samples.push(VisSample {
+                out.samples.push(VisSample {
                     origin: at + n * off,
                     bits,
                 });
-                owners.push((v, s));
+                out.owners.push((v, s));
             } else {
-                ffs.truncate(at_ff);
+                out.ffs.truncate(at_ff);
             }
         }
     }
-    vis.resolve(shooter, &mut samples, stats);
-    for ((sample, ff), (v, s)) in samples.iter().zip(ffs.chunks_exact(m)).zip(owners) {
+    out
+}
+
+/// The irradiance each resolved sample brings: the shooter's unshot
+/// radiosity times the form factors of its visible parts.
+fn gather(pending: &Pending, shooter: &Shooter, inc: &mut Incoming) {
+    let m = shooter.parts.len();
+    let rows = pending.samples.iter().zip(pending.ffs.chunks_exact(m));
+    for ((sample, ff), &(v, s)) in rows.zip(&pending.owners) {
         let mut f = 0.0;
         let mut bits = sample.bits;
         while bits != 0 {

@@ -59,6 +59,11 @@ pub struct Record {
     pub error: Option<f64>,
 }
 
+/// A patch's two sides' mean radiosity levels (the error series' unit).
+pub fn patch_levels(p: &Patch) -> [f32; 2] {
+    [0, 1].map(|s| power(p.mean_radiosity(s)) as f32)
+}
+
 fn power(c: DVec3) -> f64 {
     (c.x + c.y + c.z) / 3.0
 }
@@ -168,7 +173,7 @@ impl Solver {
         let mut best: Option<(u32, usize, f64)> = None;
         for (i, p) in self.patches.iter().enumerate() {
             for s in 0..2 {
-                let w = power(p.unshot[s]) * p.area;
+                let w = p.unshot_power(s);
                 if w > 0.0 && best.is_none_or(|b| w > b.2) {
                     best = Some((i as u32, s, w));
                 }
@@ -226,8 +231,8 @@ impl Solver {
             for s in 0..2 {
                 received += r.received[s];
                 self.absorbed += (DVec3::ONE - rho) * r.received[s];
-                p.unshot[s] += rho * r.received[s] / p.area;
             }
+            p.book(r);
             self.elements += r.new_elements;
         }
         self.escaped += shot - received;
@@ -260,12 +265,29 @@ impl Solver {
         true
     }
 
+    /// Moves every patch to the worker `owner[patch]` (of `workers`),
+    /// leaving its shell here: enough to choose shooters and keep the
+    /// ledger while the workers receive.
+    pub fn hand_out(&mut self, owner: &[u32], workers: usize) -> Vec<Vec<(u32, Patch)>> {
+        assert_eq!(owner.len(), self.patches.len(), "one owner per patch");
+        let mut out: Vec<Vec<(u32, Patch)>> = (0..workers).map(|_| Vec::new()).collect();
+        for (i, (p, &w)) in self.patches.iter_mut().zip(owner).enumerate() {
+            let shell = p.shell();
+            out[w as usize].push((i as u32, std::mem::replace(p, shell)));
+        }
+        out
+    }
+
+    /// Puts patches handed out back in place of their shells.
+    pub fn take_back(&mut self, patches: Vec<(u32, Patch)>) {
+        for (i, p) in patches {
+            self.patches[i as usize] = p;
+        }
+    }
+
     /// Each patch side's mean radiosity level, for the error series.
-    fn levels(&self) -> Vec<f32> {
-        self.patches
-            .iter()
-            .flat_map(|p| (0..2).map(|s| power(p.mean_radiosity(s)) as f32))
-            .collect()
+    pub fn levels(&self) -> Vec<f32> {
+        self.patches.iter().flat_map(patch_levels).collect()
     }
 
     pub fn vertices(&self) -> u64 {
@@ -286,19 +308,71 @@ pub struct Convergence {
     pub stopped: &'static str,
 }
 
-/// Iterates `solver` until its unshot fraction is below `params.stop`, its
-/// iteration limit, or nothing is left to shoot. `progress(fraction)` is
-/// called after each iteration.
+/// How iterations are carried out: on this machine ([`LocalShots`]) or by
+/// a farm, whose workers hold the patches meanwhile.
+pub trait Shots {
+    /// One iteration: shoot the next shooter, let every patch receive, and
+    /// book it into `solver`. With `snapshot`, each patch side's mean
+    /// radiosity after the shot is kept for the error series. False when
+    /// nothing was left to shoot (or the shot could not be made).
+    fn shoot(&mut self, solver: &mut Solver, snapshot: bool) -> bool;
+    /// Ends the iterations: every patch is back in `solver`, and the
+    /// snapshots kept, in order.
+    fn finish(&mut self, solver: &mut Solver) -> Vec<Vec<f32>>;
+}
+
+/// Iterations on this machine's pool, with visibility from `vis`.
+pub struct LocalShots<'a> {
+    pub vis: &'a dyn Visibility,
+    snapshots: Vec<Vec<f32>>,
+}
+
+impl<'a> LocalShots<'a> {
+    pub fn new(vis: &'a dyn Visibility) -> Self {
+        Self {
+            vis,
+            snapshots: Vec::new(),
+        }
+    }
+}
+
+impl Shots for LocalShots<'_> {
+    fn shoot(&mut self, solver: &mut Solver, snapshot: bool) -> bool {
+        let shot = solver.iterate(self.vis);
+        if shot && snapshot {
+            self.snapshots.push(solver.levels());
+        }
+        shot
+    }
+
+    fn finish(&mut self, _: &mut Solver) -> Vec<Vec<f32>> {
+        std::mem::take(&mut self.snapshots)
+    }
+}
+
+/// Iterates `solver` on this machine until its unshot fraction is below
+/// `params.stop`, its iteration limit, or nothing is left to shoot.
+/// `progress(solver)` is called after each iteration.
 pub fn solve(
     solver: &mut Solver,
     vis: &dyn Visibility,
     progress: &mut dyn FnMut(&Solver),
 ) -> Convergence {
+    solve_with(solver, &mut LocalShots::new(vis), progress)
+}
+
+/// [`solve`] with iterations made by `shots`.
+pub fn solve_with(
+    solver: &mut Solver,
+    shots: &mut dyn Shots,
+    progress: &mut dyn FnMut(&Solver),
+) -> Convergence {
     let start = Instant::now();
     let mut records = Vec::new();
-    // Snapshots for the error series, at about 1.5x apart, capped in size.
-    let mut snapshots: Vec<(usize, Vec<f32>)> = Vec::new();
-    let snapshot_cap = (64usize << 20) / (8 * solver.patches.len().max(1));
+    // Snapshots for the error series, at recorded iterations about 1.5x
+    // apart, capped in size.
+    let mut snapshot_at: Vec<usize> = Vec::new();
+    let snapshot_cap = ((64usize << 20) / (8 * solver.patches.len().max(1))).min(64);
     let (mut next_record, mut next_snapshot) = (1u64, 1u64);
     let stopped = loop {
         if solver.unshot_fraction() < solver.params.stop {
@@ -307,26 +381,44 @@ pub fn solve(
         if solver.iterations >= solver.params.max_iterations {
             break "iteration limit";
         }
-        if !solver.iterate(vis) {
+        let it = solver.iterations + 1;
+        let record_now = it >= next_record;
+        let snapshot = record_now && it >= next_snapshot && snapshot_at.len() < snapshot_cap;
+        if !shots.shoot(solver, snapshot) {
             break "nothing left to shoot";
         }
         progress(solver);
-        let it = solver.iterations;
-        if it >= next_record {
+        if record_now {
             records.push(record(solver, start));
             next_record = (it + 1).max((it as f64 * 1.02).ceil() as u64);
         }
-        if it >= next_snapshot && snapshots.len() < snapshot_cap.min(64) {
-            snapshots.push((records.len() - 1, solver.levels()));
+        if snapshot {
+            snapshot_at.push(records.len() - 1);
             next_snapshot = (it + 1).max((it as f64 * 1.5).ceil() as u64);
         }
     };
+    let snapshots = shots.finish(solver);
     if records
         .last()
         .is_none_or(|r| r.iteration != solver.iterations)
     {
         records.push(record(solver, start));
     }
+    fill_errors(solver, &mut records, snapshot_at.into_iter().zip(snapshots));
+    Convergence {
+        records,
+        seconds: start.elapsed().as_secs_f64(),
+        stopped,
+    }
+}
+
+/// Each snapshot's relative L2 difference from the final solution
+/// (area-weighted over patch sides), into the record it was taken at.
+fn fill_errors(
+    solver: &Solver,
+    records: &mut [Record],
+    snapshots: impl Iterator<Item = (usize, Vec<f32>)>,
+) {
     let last = solver.levels();
     let areas: Vec<f64> = solver
         .patches
@@ -353,11 +445,6 @@ pub fn solve(
     }
     if let Some(r) = records.last_mut() {
         r.error = Some(0.0);
-    }
-    Convergence {
-        records,
-        seconds: start.elapsed().as_secs_f64(),
-        stopped,
     }
 }
 

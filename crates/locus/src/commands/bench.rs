@@ -108,6 +108,9 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
     match a.what {
         Some(BenchWhat::Locality(l)) => return cmd_bench_locality(l),
         Some(BenchWhat::Quality(q)) => return cmd_bench_quality(q),
+        Some(BenchWhat::Radiosity(r)) => {
+            return crate::commands::radiosity_farm::cmd_bench_radiosity(r);
+        }
         None => {}
     }
     let path = match a.scene {

@@ -2,6 +2,7 @@
 //! with the image, the meshed solution and the convergence report.
 
 use crate::cli::RadiosityArgs;
+use crate::commands::radiosity_farm::{ShotSummary, run_farm, summarize};
 use crate::commands::render::progress_bar;
 use crate::output::{Written, sibling, write_image};
 use anyhow::{Context, Result};
@@ -13,6 +14,17 @@ use locus_core::render::Prepared;
 use locus_core::scene::Scene;
 use std::path::Path;
 use std::time::Instant;
+
+#[derive(serde::Serialize)]
+struct FarmReport {
+    workers: u32,
+    ring: u32,
+    balance: locus_worker::radiosity::Balance,
+    packets: u64,
+    helped: u64,
+    /// Per shot, averaged over all shots.
+    shots: ShotSummary,
+}
 
 /// The JSON written beside the image.
 #[derive(serde::Serialize)]
@@ -38,6 +50,8 @@ struct RadiosityReport {
     unshot_fraction: f64,
     ledger: Ledger,
     convergence: Vec<Record>,
+    /// The farm's layout and what it measured, when solved on one.
+    farm: Option<FarmReport>,
     error_vs_reference: Option<locus_core::metrics::ErrorMetrics>,
 }
 
@@ -65,6 +79,7 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
         .map_err(anyhow::Error::msg)?;
     locus_core::limits::check_settings(a.spp.max(1), 1).map_err(anyhow::Error::msg)?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
+    let farm_scene = (a.workers > 0).then(|| scene.clone());
     let mut solver =
         Solver::new(&scene, p).with_context(|| format!("meshing {}", a.scene.display()))?;
     let prep = Prepared::new(scene);
@@ -79,17 +94,34 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
     let pb = progress_bar(1000, "radiosity");
     let vis = BvhVisibility(&prep.accel);
     let first = solver.unshot_fraction();
-    let conv: Convergence = pool.install(|| {
-        solve(&mut solver, &vis, &mut |s| {
-            if let Some(pb) = &pb {
-                // Progress on a log scale from the first unshot fraction
-                // to the stopping one.
-                let f = s.unshot_fraction().max(p.stop);
-                let done = (first / f).ln() / (first / p.stop).ln();
-                pb.set_position((done.clamp(0.0, 1.0) * 1000.0) as u64);
-            }
-        })
-    });
+    let mut show = |s: &Solver| {
+        if let Some(pb) = &pb {
+            // Progress on a log scale from the first unshot fraction to
+            // the stopping one.
+            let f = s.unshot_fraction().max(p.stop);
+            let done = (first / f).ln() / (first / p.stop).ln();
+            pb.set_position((done.clamp(0.0, 1.0) * 1000.0) as u64);
+        }
+    };
+    let mut farm = None;
+    let conv: Convergence = match &farm_scene {
+        Some(scene) => {
+            let ring = a.ring.unwrap_or(a.workers);
+            let (s, conv, measured) =
+                run_farm(scene, p, a.workers, ring, a.balance.balance(), &mut show)?;
+            solver = s;
+            farm = Some(FarmReport {
+                workers: a.workers,
+                ring,
+                balance: a.balance.balance(),
+                packets: measured.packets,
+                helped: measured.helped,
+                shots: summarize(&measured, usize::MAX),
+            });
+            conv
+        }
+        None => pool.install(|| solve(&mut solver, &vis, &mut show)),
+    };
     if let Some(pb) = pb {
         pb.finish_and_clear();
     }
@@ -134,6 +166,7 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
         unshot_fraction: solver.unshot_fraction(),
         ledger: solver.ledger(),
         convergence: conv.records,
+        farm,
         error_vs_reference: error,
     };
     let text = serde_json::to_string_pretty(&report)?;
