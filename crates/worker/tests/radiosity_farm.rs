@@ -138,7 +138,7 @@ fn idle_nodes_take_packets_of_other_rings_only_with_dynamic_balancing() {
 }
 
 #[test]
-fn longer_rings_hold_less_of_the_scene_and_trace_more_rays() {
+fn longer_rings_trace_each_ray_in_every_region_it_crosses() {
     let scene = cornell();
     let (one, _) = on_farm(&scene, 4, 1, true, false);
     let (four, _) = on_farm(&scene, 4, 4, true, false);

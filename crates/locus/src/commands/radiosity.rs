@@ -79,7 +79,9 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
         .map_err(anyhow::Error::msg)?;
     locus_core::limits::check_settings(a.spp.max(1), 1).map_err(anyhow::Error::msg)?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
-    let farm_scene = (a.workers > 0).then(|| scene.clone());
+    if a.ring.is_some() && a.workers == 0 {
+        anyhow::bail!("--ring needs --workers: rings are a farm's layout");
+    }
     let mut solver =
         Solver::new(&scene, p).with_context(|| format!("meshing {}", a.scene.display()))?;
     let prep = Prepared::new(scene);
@@ -104,23 +106,23 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
         }
     };
     let mut farm = None;
-    let conv: Convergence = match &farm_scene {
-        Some(scene) => {
-            let ring = a.ring.unwrap_or(a.workers);
-            let (s, conv, measured) =
-                run_farm(scene, p, a.workers, ring, a.balance.balance(), &mut show)?;
-            solver = s;
+    let conv: Convergence = match a.workers {
+        0 => pool.install(|| solve(&mut solver, &vis, &mut show)),
+        workers => {
+            let ring = a.ring.unwrap_or(workers);
+            let balance = a.balance.balance();
+            let (conv, measured) =
+                run_farm(&mut solver, &prep.scene, workers, ring, balance, &mut show)?;
             farm = Some(FarmReport {
                 workers: a.workers,
                 ring,
-                balance: a.balance.balance(),
+                balance,
                 packets: measured.packets,
                 helped: measured.helped,
                 shots: summarize(&measured, usize::MAX),
             });
             conv
         }
-        None => pool.install(|| solve(&mut solver, &vis, &mut show)),
     };
     if let Some(pb) = pb {
         pb.finish_and_clear();

@@ -18,20 +18,22 @@ use std::time::Duration;
 /// How long a shot may go without word from a node.
 const STALL: Duration = Duration::from_secs(120);
 
-/// Solves `scene` on `nodes` nodes in rings of `ring`.
+/// Solves `solver` (meshed from `scene`) on `nodes` nodes in rings of
+/// `ring`.
 pub(crate) fn run_farm(
+    solver: &mut Solver,
     scene: &Scene,
-    params: RadiosityParams,
     nodes: u32,
     ring: u32,
     balance: Balance,
     progress: &mut dyn FnMut(&Solver),
-) -> Result<(Solver, Convergence, FarmTimes)> {
+) -> Result<(Convergence, FarmTimes)> {
     if nodes == 0 || ring == 0 || ring > 64 || !nodes.is_multiple_of(ring) {
-        bail!("--workers {nodes} must be a whole number of rings of --ring {ring} (1 to 64)");
+        bail!(
+            "{nodes} nodes cannot form rings of {ring}: the node count (--workers) must be a \
+             multiple of the ring length (--ring, 1 to 64)"
+        );
     }
-    let mut solver =
-        Solver::new(scene, params).with_context(|| format!("meshing {}", scene.path.display()))?;
     // Leaves small enough that every ring position gets a region.
     let tree = Octree::build(
         &scene.tris,
@@ -55,19 +57,19 @@ pub(crate) fn run_farm(
         refs: &refs,
     };
     let positions = partition::morton(&leaf_cost, &limits).map_err(anyhow::Error::msg)?;
-    let owner = assign_patches(&solver, nodes, balance.is_static());
+    let owner = assign_patches(solver, nodes, balance.is_static());
     let cfg = FarmConfig {
         layout: Layout { nodes, ring },
         dynamic: balance.is_dynamic(),
         seed: scene.settings.seed,
         stall: STALL,
     };
-    let mut farm = Farm::start(&mut solver, scene, &tree, &positions, &owner, cfg);
-    let conv = solve_with(&mut solver, &mut farm, progress);
+    let mut farm = Farm::start(solver, scene, &tree, &positions, &owner, cfg);
+    let conv = solve_with(solver, &mut farm, progress);
     if let Some(e) = farm.error {
         bail!("the radiosity farm failed: {e}");
     }
-    Ok((solver, conv, farm.measured))
+    Ok((conv, farm.measured))
 }
 
 /// The first `shots` shots of a run, averaged: what one table cell shows.
@@ -151,7 +153,9 @@ pub(crate) fn cmd_bench_radiosity(a: RadiosityBenchArgs) -> Result<()> {
                     md += " |";
                     continue;
                 }
-                let (_, _, m) = run_farm(&scene, params, n, r, *balance, &mut |_| {})?;
+                let mut solver = Solver::new(&scene, params)
+                    .with_context(|| format!("meshing {}", a.scene.display()))?;
+                let (_, m) = run_farm(&mut solver, &scene, n, r, *balance, &mut |_| {})?;
                 let s = summarize(&m, a.shots as usize);
                 write!(
                     md,
