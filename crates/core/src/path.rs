@@ -28,7 +28,7 @@ use crate::geometry::Ray;
 use crate::integrator::{DIM_PIXEL, PathRay, ShadedVertex, ShadowRay, shade};
 use crate::light::LightSet;
 use crate::octree::Octree;
-use crate::region::WorkerId;
+use crate::region::{Resume, WorkerId};
 use crate::sampler::{SampleKey, Sampler};
 use crate::scene::{Camera, Material};
 use crate::stats::TraceStats;
@@ -66,8 +66,8 @@ pub enum Traced {
     Hit(Surface),
     Occluded,
     Miss,
-    /// Go on at `t` elsewhere.
-    Next(Dest, f32),
+    /// Go on elsewhere, from where the resume says.
+    Next(Dest, Resume),
 }
 
 /// What a ray is, for policies that treat camera rays apart.
@@ -79,13 +79,13 @@ pub enum RayKind {
 
 /// Traces segments through the geometry at hand.
 pub trait Tracer {
-    /// The closest hit of `ray` on `[0, t_max)` from `resume` (with `any`:
-    /// whether anything blocks it), or where it must go on.
+    /// The closest hit of `ray` on `[0, t_max)` from `resume.at` (with
+    /// `any`: whether anything blocks it), or where it must go on.
     fn trace(
         &self,
         ray: &Ray,
         t_max: f32,
-        resume: f32,
+        resume: Resume,
         any: bool,
         kind: RayKind,
         stats: &mut TraceStats,
@@ -101,12 +101,12 @@ impl Tracer for WholeScene<'_> {
         &self,
         ray: &Ray,
         t_max: f32,
-        resume: f32,
+        resume: Resume,
         any: bool,
         _kind: RayKind,
         stats: &mut TraceStats,
     ) -> Traced {
-        let t0 = resume.max(0.0);
+        let t0 = resume.at.max(0.0);
         if any {
             if self.0.occluded(ray, t0, t_max, stats) {
                 Traced::Occluded
@@ -149,8 +149,8 @@ pub enum Task {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Child<T> {
     Done(T),
-    /// Must go on elsewhere, resuming at `f32`.
-    Forward(Dest, Query, f32),
+    /// Must go on elsewhere, resuming as given.
+    Forward(Dest, Query, Resume),
     /// The next vertex of the chain.
     Deeper,
 }
@@ -169,11 +169,11 @@ pub struct ChainVertex {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Outcome {
     Answer(Answer),
-    /// The query goes on elsewhere, resuming at `resume`.
+    /// The query goes on elsewhere, resuming as `resume` says.
     Forward {
         dest: Dest,
         query: Query,
-        resume: f32,
+        resume: Resume,
     },
     /// Vertices `start..end` of the caller's chain wait on forwarded
     /// children; vertex k+1 is the continuation of vertex k.
@@ -213,7 +213,7 @@ impl Kernel<'_> {
         &self,
         tracer: &T,
         task: Task,
-        resume: f32,
+        resume: Resume,
         chain: &mut Vec<ChainVertex>,
         st: &mut TraceStats,
     ) -> Outcome {
@@ -280,7 +280,7 @@ impl Kernel<'_> {
         st: &mut TraceStats,
     ) -> Vec3 {
         let task = Task::Camera { x, y, sample };
-        match self.process(tracer, task, f32::NEG_INFINITY, chain, st) {
+        match self.process(tracer, task, Resume::START, chain, st) {
             Outcome::Answer(Answer::Radiance(l)) => l,
             other => unreachable!("a tracer that never forwards left {other:?}"),
         }
@@ -313,14 +313,7 @@ impl Kernel<'_> {
             Some(sr) => {
                 st.shadow_rays += 1;
                 let ray = &sr.ray;
-                match tracer.trace(
-                    ray,
-                    sr.t_max,
-                    f32::NEG_INFINITY,
-                    true,
-                    RayKind::Secondary,
-                    st,
-                ) {
+                match tracer.trace(ray, sr.t_max, Resume::START, true, RayKind::Secondary, st) {
                     Traced::Miss => Child::Done(true),
                     Traced::Occluded | Traced::Hit(_) => Child::Done(false),
                     Traced::Next(dest, t) => Child::Forward(dest, Query::Shadow(sr), t),
@@ -377,7 +370,7 @@ impl Kernel<'_> {
             let t = tracer.trace(
                 &nq.ray,
                 f32::INFINITY,
-                f32::NEG_INFINITY,
+                Resume::START,
                 false,
                 RayKind::Secondary,
                 st,
@@ -387,14 +380,7 @@ impl Kernel<'_> {
         // `shade` found the leaf and used the perimeter `emit_within` for
         // this ray's emission and its vertex's next-event weights.
         let tp = nq.emit_within;
-        let inside = tracer.trace(
-            &nq.ray,
-            tp,
-            f32::NEG_INFINITY,
-            false,
-            RayKind::Secondary,
-            st,
-        );
+        let inside = tracer.trace(&nq.ray, tp, Resume::START, false, RayKind::Secondary, st);
         if !matches!(inside, Traced::Miss) {
             st.cache.local += 1;
             return (follow(inside, chain, st), None);
@@ -404,7 +390,14 @@ impl Kernel<'_> {
             return (Child::Done(v), None);
         }
         st.cache.global += 1;
-        let beyond = tracer.trace(&nq.ray, f32::INFINITY, tp, false, RayKind::Secondary, st);
+        let beyond = tracer.trace(
+            &nq.ray,
+            f32::INFINITY,
+            Resume::at(tp),
+            false,
+            RayKind::Secondary,
+            st,
+        );
         match follow(beyond, chain, st) {
             Child::Done(v) => {
                 c.caches.update(leaf, nq.ray.dir, v);

@@ -38,6 +38,9 @@ pub struct Route<L> {
     /// cover entirely (see [`Route::grow_local_boxes`]); its own bounds
     /// until grown.
     boxes: Vec<Bounds>,
+    /// The largest grown box, tried before any other: most pieces a
+    /// worker traces lie in it, and it needs no descent of the tree.
+    largest: Option<Bounds>,
 }
 
 impl<L: Copy + PartialEq> Route<L> {
@@ -49,6 +52,7 @@ impl<L: Copy + PartialEq> Route<L> {
             tree,
             labels,
             boxes,
+            largest: None,
         }
     }
 
@@ -107,6 +111,11 @@ impl<L: Copy + PartialEq> Route<L> {
             }
             *out = b;
         }
+        let volume = |b: &Bounds| b.extent().as_dvec3().element_product();
+        self.largest = (0..boxes.len())
+            .filter(|&i| local(self.labels[i]))
+            .map(|i| boxes[i])
+            .max_by(|a, b| volume(a).total_cmp(&volume(b)));
         self.boxes = boxes;
     }
 
@@ -215,6 +224,38 @@ impl ProcessorMap {
     }
 }
 
+/// Where a ray resumes, and how far beyond that it is known to lie in
+/// leaves the tracer holds: a worker that forwards a ray has walked the
+/// route node it forwards it into (one owner's subtree, or one leaf), so
+/// the receiver need not walk `[at, local_until)` again.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Resume {
+    pub at: f32,
+    pub local_until: f32,
+}
+
+impl Resume {
+    /// A ray traced from its origin, with nothing known.
+    pub const START: Resume = Resume::at(f32::NEG_INFINITY);
+
+    /// Resuming at `t`, with nothing known beyond.
+    pub const fn at(t: f32) -> Self {
+        Self {
+            at: t,
+            local_until: t,
+        }
+    }
+
+    /// Resuming at `at` in a route node that ends at `end`, all of it held
+    /// by the receiver.
+    pub const fn within(at: f32, end: f32) -> Self {
+        Self {
+            at,
+            local_until: end,
+        }
+    }
+}
+
 /// What the local BVHs hold along a ray beyond where it was first asked:
 /// computed once per ray and kept while the ray is traced piece by piece
 /// (a later piece starts beyond an earlier one, where the answer is the
@@ -242,8 +283,57 @@ pub enum RunEnd<L> {
     Foreign { label: L, ta: f32, tb: f32 },
 }
 
-/// Traces `ray` on `[0, t_max)` from `resume` through the leaves `local`
-/// accepts, whose triangles `accel` holds (it may hold others too).
+/// Whether the piece `[ts, te]` of `ray` lies in one box that local leaves
+/// cover (a local node, grown), or in two that both hold its middle. A box
+/// is convex, so points decide: the piece's ends and its middle. Boxes are
+/// found from points a little inside the piece: its start may lie on a
+/// face (a forwarded ray resumes on its region's border).
+#[inline]
+fn covered<L: Copy + PartialEq>(
+    route: &Route<L>,
+    local: &impl Fn(L) -> bool,
+    ray: &Ray,
+    ts: f32,
+    te: f32,
+) -> bool {
+    let local_box = |t: f32| match route.containing(ray.at(t)) {
+        Some((l, b)) if local(l) => Some(*b),
+        _ => None,
+    };
+    let (start, end) = (ray.at(ts), ray.at(te));
+    if let Some(b) = &route.largest
+        && b.contains(start)
+        && b.contains(end)
+    {
+        return true;
+    }
+    let tm = 0.5 * (ts + te);
+    let Some(mid) = local_box(tm) else {
+        return false;
+    };
+    let (has_start, has_end) = (mid.contains(start), mid.contains(end));
+    if has_start && has_end {
+        return true;
+    }
+    // The other end's box must hold the middle too.
+    let step = 0.0625 * (te - ts);
+    let (t, p) = if has_start {
+        (te - step, end)
+    } else if has_end {
+        (ts + step, start)
+    } else {
+        return false;
+    };
+    match local_box(t) {
+        Some(b) => b.contains(p) && b.contains(ray.at(tm)),
+        None => false,
+    }
+}
+
+/// Traces `ray` on `[0, t_max)` from `resume.at` through the leaves `local`
+/// accepts, whose triangles `accel` holds (it may hold others too); the
+/// caller vouches that `[resume.at, resume.local_until)` lies in such
+/// leaves.
 ///
 /// The BVHs are asked first over the whole rest of the ray:
 /// - closest hit `h`: the route is walked until the interval holding `h`;
@@ -261,12 +351,12 @@ pub fn trace_local<L: Copy + PartialEq>(
     accel: &AccelSet,
     ray: &Ray,
     t_max: f32,
-    resume: f32,
+    resume: Resume,
     any: bool,
     known: &mut Known,
     stats: &mut TraceStats,
 ) -> RunEnd<L> {
-    let t0 = resume.max(0.0);
+    let t0 = resume.at.max(0.0);
     if let Known::Closest(Some(h)) = *known
         && h.hit.hit.t < t0
     {
@@ -301,14 +391,20 @@ pub fn trace_local<L: Copy + PartialEq>(
         None => None,
     };
     if let Some(te) = piece_end {
-        // Located by the piece's middle: its start may lie on a face (a
-        // forwarded ray resumes on its region's border).
-        let (start, end) = (ray.at(t0), ray.at(te));
-        if let Some((label, b)) = route.containing(ray.at(0.5 * (t0 + te)))
-            && local(label)
-            && b.contains(start)
-            && b.contains(end)
-        {
+        // The sender's walk already showed `[at, local_until)` to lie in
+        // leaves held here: a piece ending inside it needs no walk at all.
+        let inside = if any {
+            te <= resume.local_until
+        } else {
+            te < resume.local_until
+        };
+        if inside {
+            return match hit {
+                Some(h) => RunEnd::Hit(h),
+                None => RunEnd::Miss,
+            };
+        }
+        if covered(route, &local, ray, t0.max(resume.local_until), te) {
             return match hit {
                 Some(h) => RunEnd::Hit(h),
                 None => RunEnd::Miss,
@@ -316,7 +412,9 @@ pub fn trace_local<L: Copy + PartialEq>(
         }
     }
     let mut end = RunEnd::Miss;
-    let _ = route.walk(ray, 0.0, t_max, resume, |label, ta, tb| {
+    // Nothing local is hit on `[at, local_until)`: the walk starts beyond.
+    let from = resume.at.max(resume.local_until);
+    let _ = route.walk(ray, 0.0, t_max, from, |label, ta, tb| {
         if !local(label) {
             end = RunEnd::Foreign { label, ta, tb };
             return ControlFlow::Break(());

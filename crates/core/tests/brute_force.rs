@@ -265,7 +265,7 @@ fn corner_and_face_rays(oct: &Octree, n: u64) -> Vec<Ray> {
 #[test]
 fn processor_vector_chains_match_one_bvh() {
     use locus_core::accel_set::{AccelSet, build_parts};
-    use locus_core::region::{Known, ProcessorMap, RunEnd, trace_local};
+    use locus_core::region::{Known, ProcessorMap, Resume, RunEnd, trace_local};
     let tris = scene();
     let oct = region_octree(&tris);
     let all: Vec<u32> = (0..tris.len() as u32).collect();
@@ -312,7 +312,10 @@ fn processor_vector_chains_match_one_bvh() {
                 for any in [false, true] {
                     let mut got = None;
                     let mut occluded = false;
-                    if let Some((mut w, mut t)) = map.first_owner(r, t_max) {
+                    if let Some((mut w, t)) = map.first_owner(r, t_max) {
+                        // Every other ray's forwards carry the span of the
+                        // route node they go into, as workers send them.
+                        let mut t = Resume::at(t);
                         loop {
                             let mut known = Known::Unknown;
                             let a = &accels[w as usize];
@@ -336,11 +339,18 @@ fn processor_vector_chains_match_one_bvh() {
                                     occluded = true;
                                     break;
                                 }
-                                RunEnd::Foreign { label, ta, .. } => {
-                                    assert!(label != w && ta >= t, "forward goes on along the ray");
+                                RunEnd::Foreign { label, ta, tb } => {
+                                    assert!(
+                                        label != w && ta >= t.at && tb > ta,
+                                        "forward goes on along the ray"
+                                    );
                                     forwards += 1;
                                     w = label;
-                                    t = ta;
+                                    t = if i % 2 == 0 {
+                                        Resume::within(ta, tb)
+                                    } else {
+                                        Resume::at(ta)
+                                    };
                                 }
                                 RunEnd::Miss => break,
                             }

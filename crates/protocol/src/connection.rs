@@ -84,11 +84,18 @@ fn encode<T: Serialize>(
     peer: SocketAddr,
     max: usize,
 ) -> Result<bytes::Bytes, ProtocolError> {
-    let bytes = postcard::to_stdvec(msg).map_err(|e| ProtocolError::Decode {
+    let fail = |e: postcard::Error| ProtocolError::Decode {
         peer,
         what: "outgoing",
         message: e.to_string(),
-    })?;
+    };
+    // Sized first, so that a packet of ray items is written once rather
+    // than copied each time a growing buffer doubles.
+    let len = postcard::experimental::serialized_size(msg).map_err(fail)?;
+    if len > max {
+        return Err(ProtocolError::FrameTooLarge { peer, max });
+    }
+    let bytes = postcard::to_extend(msg, Vec::with_capacity(len)).map_err(fail)?;
     if bytes.len() > max {
         return Err(ProtocolError::FrameTooLarge { peer, max });
     }

@@ -15,8 +15,12 @@
 //!
 //! | item | fields | bytes, typically |
 //! |---|---|---:|
-//! | path query | tag, resume, reply, origin, direction, pixel, sample, depth, pdf, throughput, [emission bound] | 55-64 |
-//! | shadow query | tag, resume, reply, origin, direction, t_max | 37-39 |
+//! | path query | tag, resume, [span end], reply, origin, direction, pixel, sample, depth, pdf, throughput, [emission bound] | 59-68 |
+//! | shadow query | tag, resume, [span end], reply, origin, direction, t_max | 41-43 |
+//!
+//! A query forwarded into a route node carries where that node ends on
+//! its ray (the [`Resume`]'s `local_until`), flagged in its tag, so that
+//! its receiver need not walk the route over it again.
 //! | radiance answer | tag, slot, RGB | 15-16 |
 //! | visibility answer | tag, slot | 3-4 |
 
@@ -25,6 +29,7 @@ use glam::Vec3;
 use locus_core::geometry::Ray;
 use locus_core::integrator::{PathRay, ShadowRay};
 use locus_core::path::{Answer, Query};
+use locus_core::region::Resume;
 use locus_core::sampler::{SampleKey, Sampler};
 use serde::{Deserialize, Serialize};
 
@@ -35,15 +40,17 @@ const SHADOW: u8 = 3;
 const RADIANCE: u8 = 4;
 const VISIBLE: u8 = 5;
 const BLOCKED: u8 = 6;
+/// Flag on a query's tag: the item carries its span's end.
+const SPAN: u8 = 0x10;
 
 /// The longest item: a path query with every varint at its longest.
-pub const MAX_ITEM: usize = 1 + 4 + 3 + 5 + 24 + 10 + 5 + 5 + 4 + 12 + 4;
+pub const MAX_ITEM: usize = 1 + 4 + 4 + 3 + 5 + 24 + 10 + 5 + 5 + 4 + 12 + 4;
 
 /// Bytes of a path query (without caches) and of its radiance answer as a
 /// typical job encodes them (a pixel index below 2^21, a sample and depth
 /// below 128, a slot below 2^21): what one forwarded query costs on the
 /// wire, for the adaptive policy's rent-or-buy rule.
-pub const TYPICAL_FORWARD_BYTES: u64 = 1 + 4 + 1 + 3 + 24 + 3 + 1 + 1 + 4 + 12 + 1 + 3 + 12;
+pub const TYPICAL_FORWARD_BYTES: u64 = 1 + 4 + 4 + 1 + 3 + 24 + 3 + 1 + 1 + 4 + 12 + 1 + 3 + 12;
 
 /// Ray items in the compact encoding.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -59,6 +66,12 @@ pub enum PacketError {
     Truncated { at: usize },
     #[error("an integer out of range in the item at byte {at}")]
     BadInteger { at: usize },
+}
+
+/// Whether a resume carries a span beyond its start (NaN ends never do).
+#[inline(always)]
+fn spans(r: Resume) -> bool {
+    r.local_until > r.at
 }
 
 /// Writes an item's fields into a buffer long enough for any item.
@@ -96,8 +109,12 @@ impl Writer {
         self.at += 1;
     }
     #[inline(always)]
-    fn head(&mut self, resume: f32, reply: ReplyTo, ray: &Ray) {
-        self.f32(resume);
+    fn head(&mut self, resume: Resume, reply: ReplyTo, ray: &Ray) {
+        self.f32(resume.at);
+        if spans(resume) {
+            self.buf[0] |= SPAN;
+            self.f32(resume.local_until);
+        }
         self.var(reply.worker as u64);
         self.var(reply.slot as u64);
         self.v3(ray.origin);
@@ -152,8 +169,13 @@ impl Reader<'_> {
         }
     }
     #[inline(always)]
-    fn head(&mut self) -> Result<(f32, ReplyTo, Ray), Fail> {
-        let resume = self.f32()?;
+    fn head(&mut self, span: bool) -> Result<(Resume, ReplyTo, Ray), Fail> {
+        let at = self.f32()?;
+        let resume = if span {
+            Resume::within(at, self.f32()?)
+        } else {
+            Resume::at(at)
+        };
         let worker = self.var(16)? as u16;
         let slot = self.var(32)? as u32;
         let origin = self.v3()?;
@@ -255,15 +277,20 @@ pub struct Items<'a> {
 impl Items<'_> {
     #[inline(always)]
     fn item(&self, tag: u8, r: &mut Reader) -> Result<RayItem, Fail> {
-        Ok(match tag {
+        let span = tag & SPAN != 0;
+        Ok(match tag & !SPAN {
             PATH | PATH_UNBOUNDED => {
-                let (resume, reply, ray) = r.head()?;
+                let (resume, reply, ray) = r.head(span)?;
                 let pixel = r.var(64)?;
                 let sample = r.var(32)? as u32;
                 let depth = r.var(32)? as u32;
                 let prev_pdf = r.f32()?;
                 let beta = r.v3()?;
-                let emit_within = if tag == PATH { r.f32()? } else { f32::INFINITY };
+                let emit_within = if tag & !SPAN == PATH {
+                    r.f32()?
+                } else {
+                    f32::INFINITY
+                };
                 RayItem::Trace {
                     query: Query::Path(PathRay {
                         ray,
@@ -278,7 +305,7 @@ impl Items<'_> {
                 }
             }
             SHADOW => {
-                let (resume, reply, ray) = r.head()?;
+                let (resume, reply, ray) = r.head(span)?;
                 let t_max = r.f32()?;
                 RayItem::Trace {
                     query: Query::Shadow(ShadowRay { ray, t_max }),
@@ -305,7 +332,8 @@ impl Iterator for Items<'_> {
     fn next(&mut self) -> Option<Self::Item> {
         let at = self.at;
         let &tag = self.b.get(at)?;
-        if !(PATH..=BLOCKED).contains(&tag) {
+        let query = (PATH..=SHADOW).contains(&(tag & !SPAN));
+        if !(PATH..=BLOCKED).contains(&tag) && !query {
             self.at = self.b.len();
             return Some(Err(PacketError::BadTag { tag, at }));
         }
@@ -378,17 +406,22 @@ mod tests {
         vec![
             RayItem::Trace {
                 query: Query::Path(path(u64::MAX, f32::INFINITY)),
-                resume: f32::NEG_INFINITY,
+                resume: Resume::START,
                 reply,
             },
             RayItem::Trace {
                 query: Query::Path(path(3, 2.5)),
-                resume: 0.0,
+                resume: Resume::at(0.0),
                 reply: ReplyTo { worker: 0, slot: 0 },
             },
             RayItem::Trace {
+                query: Query::Path(path(4, f32::INFINITY)),
+                resume: Resume::within(0.5, f32::INFINITY),
+                reply,
+            },
+            RayItem::Trace {
                 query: Query::Shadow(ShadowRay { ray, t_max: 2.0 }),
-                resume: 0.25,
+                resume: Resume::within(0.25, 1.5),
                 reply,
             },
             RayItem::Answer {
@@ -418,7 +451,8 @@ mod tests {
             } => format!(
                 "{:?}",
                 (
-                    f(*resume),
+                    f(resume.at),
+                    f(resume.local_until),
                     reply,
                     q.ray.origin.to_array().map(f),
                     q.ray.dir.to_array().map(f),
@@ -470,7 +504,7 @@ mod tests {
                 depth: 3,
                 ..path(0, f32::INFINITY)
             }),
-            resume: 1.0,
+            resume: Resume::within(1.0, 2.0),
             reply: ReplyTo {
                 worker: 1,
                 slot: 30_000,
@@ -487,6 +521,17 @@ mod tests {
     fn malformed_packets_are_errors_at_their_byte() {
         let p = packet(&items());
         let first = packet(&items()[..1]).len();
+        // A span flag on an answer is an unknown tag.
+        let flagged = Packet {
+            bytes: vec![RADIANCE | SPAN, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
+        };
+        assert_eq!(
+            flagged.items(1, Sampler::Independent).next(),
+            Some(Err(PacketError::BadTag {
+                tag: RADIANCE | SPAN,
+                at: 0
+            }))
+        );
         let cut = Packet {
             bytes: p.bytes[..first + 10].to_vec(),
         };

@@ -9,7 +9,7 @@
 
 pub use crate::packet::Packet;
 pub use locus_core::path::{Answer, Query};
-use locus_core::region::WorkerId;
+use locus_core::region::{Resume, WorkerId};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -46,9 +46,10 @@ pub struct ReplyTo {
 pub enum RayItem {
     Trace {
         query: Query,
-        /// Where on the ray the receiver's run begins; `-inf` for a query
-        /// not yet routed.
-        resume: f32,
+        /// Where on the ray the receiver's run begins (`-inf` for a query
+        /// not yet routed), and how far it is known to lie in the
+        /// receiver's leaves.
+        resume: Resume,
         reply: ReplyTo,
     },
     Answer {

@@ -7,7 +7,7 @@ use locus_core::geometry::Ray;
 use locus_core::integrator::{PathRay, ShadowRay};
 use locus_core::light::LightSet;
 use locus_core::octree::{Octree, OctreeParams};
-use locus_core::region::ProcessorMap;
+use locus_core::region::{ProcessorMap, Resume};
 use locus_core::sampler::SampleKey;
 use locus_core::scene::{Camera, Material, RenderSettings};
 use locus_protocol::control::*;
@@ -63,11 +63,17 @@ fn ray_item() -> impl Strategy<Value = RayItem> {
         any::<bool>().prop_map(Answer::Visible)
     ];
     prop_oneof![
-        (query, -1e6f32..1e6, reply).prop_map(|(query, resume, reply)| RayItem::Trace {
-            query,
-            resume,
-            reply
-        }),
+        (query, -1e6f32..1e6, 0f32..1e3, any::<bool>(), reply).prop_map(
+            |(query, at, span, spans, reply)| RayItem::Trace {
+                query,
+                resume: if spans {
+                    Resume::within(at, at + span)
+                } else {
+                    Resume::at(at)
+                },
+                reply
+            }
+        ),
         (any::<u32>(), answer).prop_map(|(to, answer)| RayItem::Answer { to, answer }),
     ]
 }

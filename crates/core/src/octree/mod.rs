@@ -299,17 +299,18 @@ impl Octree {
         match self.nodes[n] {
             Node::Leaf { leaf } => f(leaf, ta.max(resume), tb),
             Node::Interior { first_child } => {
-                let m = self.node_bounds[n].center();
-                // Plane crossings inside the interval, with their axes.
+                let m = self.node_bounds[n].center().to_array();
+                // Plane crossings inside the interval, with their axes. A
+                // ray that does not move along an axis has an infinite
+                // inverse there: its crossing is infinite or NaN, never
+                // inside.
                 let mut cuts = [(tb, 3usize); 3];
                 let mut k = 0;
-                for a in 0..3 {
-                    if ray.moves[a] {
-                        let t = ((m[a] as f64 - ray.o[a]) * ray.inv[a]) as f32;
-                        if t > ta && t < tb {
-                            cuts[k] = (t, a);
-                            k += 1;
-                        }
+                for (a, &c) in m.iter().enumerate() {
+                    let t = ((c as f64 - ray.o[a]) * ray.inv[a]) as f32;
+                    if t > ta && t < tb {
+                        cuts[k] = (t, a);
+                        k += 1;
                     }
                 }
                 // A sorting network for at most three cuts (unused slots
@@ -329,8 +330,8 @@ impl Octree {
                 let first_end = if k > 0 { cuts[0].0 } else { tb };
                 let tm = 0.5 * (ta as f64 + first_end as f64);
                 let mut oct = 0usize;
-                for a in 0..3 {
-                    let upper = ray.o[a] + tm * ray.d[a] >= m[a] as f64;
+                for (a, &c) in m.iter().enumerate() {
+                    let upper = ray.o[a] + tm * ray.d[a] >= c as f64;
                     oct |= (upper as usize) << a;
                 }
                 let mut start = ta;

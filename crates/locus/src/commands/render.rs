@@ -226,6 +226,7 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
     let (preset, cache) = render_quality(&a)?;
     let spp = a.spp.or(preset.as_ref().map(|p| p.spp));
     let depth = a.max_depth.or(preset.as_ref().map(|p| p.max_depth));
+    let t = Instant::now();
     let scene = load_for_farm(
         &a.scene,
         Overrides {
@@ -235,6 +236,7 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
             sampler: a.sampler,
         },
     )?;
+    let load_s = t.elapsed().as_secs_f64();
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let threads = if a.threads_per_worker > 0 {
         a.threads_per_worker
@@ -244,7 +246,8 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
     };
     let mut opts = a.farm.job_options(a.workers as u32);
     opts.cache = cache;
-    let req = locus_scheduler::client::request(&scene, opts);
+    // The scene's triangles move into the request: loaded once, not copied.
+    let req = locus_scheduler::client::request_owned(scene, opts, load_s);
     let (pb, progress) = tile_progress(0);
     let spec = locus::farm::FarmSpec {
         http: a.http.clone(),

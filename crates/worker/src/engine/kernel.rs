@@ -9,7 +9,7 @@ use crate::reach::{Label, Reach};
 use crate::sys;
 use locus_core::geometry::Ray;
 use locus_core::path::{ChainVertex, Dest, Outcome, RayKind, Task, Traced, Tracer};
-use locus_core::region::{Known, RunEnd, WorkerId, trace_local};
+use locus_core::region::{Known, Resume, RunEnd, WorkerId, trace_local};
 use locus_core::stats::TraceStats;
 use locus_protocol::rays::ReplyTo;
 use std::cell::Cell;
@@ -19,7 +19,7 @@ use std::sync::Arc;
 /// its answer goes.
 pub struct Work {
     pub task: Task,
-    pub resume: f32,
+    pub resume: Resume,
     pub reply: ReplyTo,
     /// The worker it came from (this one for local work), for errors.
     pub from: WorkerId,
@@ -80,14 +80,14 @@ impl Tracer for ItemTracer<'_> {
         &self,
         ray: &Ray,
         t_max: f32,
-        resume: f32,
+        resume: Resume,
         any: bool,
         kind: RayKind,
         st: &mut TraceStats,
     ) -> Traced {
         let reach = self.reach;
         if reach.all_local {
-            let t0 = resume.max(0.0);
+            let t0 = resume.at.max(0.0);
             return if any {
                 if reach.accel.occluded(ray, t0, t_max, st) {
                     Traced::Occluded
@@ -127,18 +127,21 @@ impl Tracer for ItemTracer<'_> {
                     if let Some(t) = self.trace_leaf(f, ray, ta, tb, any, st) {
                         return t;
                     }
-                    resume = tb;
+                    resume = Resume::at(tb);
                 }
                 Label::Remote { owner, leaf } => {
                     if let Some(p) = self.pinned.filter(|p| p.leaf == leaf) {
                         if let Some(t) = self.trace_leaf(p, ray, ta, tb, any, st) {
                             return t;
                         }
-                        resume = tb;
+                        resume = Resume::at(tb);
                     } else if leaf != u32::MAX && self.job.locality.wants_fetch(leaf, kind) {
-                        return Traced::Next(Dest::Leaf(leaf), ta);
+                        // Traced here once the leaf has come: nothing of it
+                        // is in the BVH parts meanwhile.
+                        return Traced::Next(Dest::Leaf(leaf), Resume::at(ta));
                     } else {
-                        return Traced::Next(Dest::Peer(owner), ta);
+                        // The owner holds the whole route node.
+                        return Traced::Next(Dest::Peer(owner), Resume::within(ta, tb));
                     }
                 }
                 Label::Local => unreachable!("trace_local stops only at foreign leaves"),
@@ -175,7 +178,7 @@ pub fn trace_batch(
         let o = kernel.process(&tracer, w.task, w.resume, &mut b.chain, &mut b.stats);
         b.fetched_leaf_traces += tracer.fetched_traces.get();
         if let Outcome::Forward { resume, .. } = o
-            && resume == w.resume
+            && resume.at == w.resume.at
             && w.from != me
         {
             // The sender computed the same processor vector; a query that

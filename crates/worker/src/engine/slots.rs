@@ -13,11 +13,11 @@ use glam::Vec3;
 use locus_core::integrator::ShadedVertex;
 use locus_core::passes::PixelSum;
 use locus_core::path::{Answer, CacheKey, ChainVertex, Child, Dest, Query};
-use locus_core::region::WorkerId;
+use locus_core::region::{Resume, WorkerId};
 use locus_core::stats::TraceStats;
 use locus_protocol::control::{TileAssignment, TileResult};
 use locus_protocol::rays::ReplyTo;
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("worker {from} sent an answer for slot {slot}, which is not waiting for one")]
@@ -90,6 +90,12 @@ pub struct Slots {
     /// Cache entries that pending continuations update, by slot.
     updates: HashMap<u32, CacheKey>,
     tiles: Vec<Option<TileState>>,
+    /// Held tiles with samples not started yet, in arrival order: the
+    /// front one starts next.
+    fresh: VecDeque<u32>,
+    /// Tiles held, and the samples of the largest tile ever held.
+    held: usize,
+    largest: usize,
     samples_open: usize,
 }
 
@@ -103,6 +109,9 @@ impl Slots {
             free: Vec::new(),
             updates: HashMap::new(),
             tiles: Vec::new(),
+            fresh: VecDeque::new(),
+            held: 0,
+            largest: 0,
             samples_open: 0,
         }
     }
@@ -172,19 +181,13 @@ impl Slots {
 
     /// Whether a tile is held (started or not).
     pub fn has_tiles(&self) -> bool {
-        self.tiles.iter().any(Option::is_some)
+        self.held > 0
     }
 
     /// Tiles held: all of them, those with samples not started yet, and
-    /// the samples of the largest.
+    /// the samples of the largest held so far.
     pub fn tiles_held(&self) -> (usize, usize, usize) {
-        let held = self.tiles.iter().flatten();
-        let fresh = held
-            .clone()
-            .filter(|t| (t.next as usize) < t.values.len())
-            .count();
-        let largest = held.clone().map(|t| t.values.len()).max().unwrap_or(0);
-        (held.count(), fresh, largest)
+        (self.held, self.fresh.len(), self.largest)
     }
 
     fn alloc(&mut self, s: Slot) -> u32 {
@@ -219,24 +222,34 @@ impl Slots {
             remaining: n,
             next: 0,
         };
-        match self.tiles.iter().position(Option::is_none) {
-            Some(i) => self.tiles[i] = Some(st),
-            None => self.tiles.push(Some(st)),
-        }
+        let i = match self.tiles.iter().position(Option::is_none) {
+            Some(i) => {
+                self.tiles[i] = Some(st);
+                i
+            }
+            None => {
+                self.tiles.push(Some(st));
+                self.tiles.len() - 1
+            }
+        };
+        self.fresh.push_back(i as u32);
+        self.held += 1;
+        self.largest = self.largest.max(n as usize);
         Ok(())
     }
 
     /// The next camera sample of a held tile that has not started, with
     /// the slot its radiance goes to; pixel by pixel, sample by sample.
     pub fn start_sample(&mut self) -> Option<NewSample> {
-        let (ti, index, a) = self.tiles.iter_mut().enumerate().find_map(|(i, t)| {
-            let t = t.as_mut()?;
-            if t.next as usize >= t.values.len() {
-                return None;
-            }
-            t.next += 1;
-            Some((i as u32, t.next - 1, t.a))
-        })?;
+        let ti = *self.fresh.front()?;
+        let t = self.tiles[ti as usize]
+            .as_mut()
+            .expect("a fresh tile is held");
+        let (index, a) = (t.next, t.a);
+        t.next += 1;
+        if t.next as usize >= t.values.len() {
+            self.fresh.pop_front();
+        }
         let spp = a.pass_samples();
         let p = index / spp;
         let w = a.x1 - a.x0;
@@ -260,7 +273,7 @@ impl Slots {
         &mut self,
         reply: ReplyTo,
         chain: &[ChainVertex],
-        out: &mut Vec<(Dest, Query, f32, ReplyTo)>,
+        out: &mut Vec<(Dest, Query, Resume, ReplyTo)>,
     ) {
         let mut parent = reply;
         for cv in chain {
@@ -372,6 +385,7 @@ impl Slots {
         let t = self.tiles[tile as usize]
             .take()
             .expect("a tile with samples in flight is held");
+        self.held -= 1;
         let sums = t
             .values
             .chunks(t.a.pass_samples() as usize)
@@ -504,14 +518,14 @@ mod tests {
         let chain = [
             ChainVertex {
                 vertex: vertex(1.0),
-                shadow: Child::Forward(Dest::Peer(2), shadow(), 0.5),
+                shadow: Child::Forward(Dest::Peer(2), shadow(), Resume::at(0.5)),
                 next: Child::Deeper,
                 update: None,
             },
             ChainVertex {
                 vertex: vertex(2.0),
                 shadow: Child::Done(false),
-                next: Child::Forward(Dest::Peer(0), shadow(), 0.25),
+                next: Child::Forward(Dest::Peer(0), shadow(), Resume::at(0.25)),
                 update: Some((7, Vec3::Y)),
             },
         ];
@@ -567,7 +581,7 @@ mod tests {
         let chain = [ChainVertex {
             vertex: vertex(0.0),
             shadow: Child::Done(true),
-            next: Child::Forward(Dest::Peer(0), shadow(), 0.0),
+            next: Child::Forward(Dest::Peer(0), shadow(), Resume::at(0.0)),
             update: None,
         }];
         let mut out = Vec::new();

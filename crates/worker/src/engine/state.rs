@@ -11,6 +11,7 @@ use crate::fetch::FetchedLeaf;
 use crate::reach::Reach;
 use locus_core::accel_set::{AccelSet, Part};
 use locus_core::path::{Answer, Dest, Outcome, Query, Task};
+use locus_core::region::Resume;
 use locus_protocol::control::WorkerToScheduler;
 use locus_protocol::rays::{PeerMsg, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
@@ -47,9 +48,9 @@ pub(super) struct Engine<'a> {
     pub(super) tiles_asked: usize,
     pub(super) stats: WorkerStats,
     pub(super) effects: Vec<Effect>,
-    /// A packet's items, decoded (kept to reuse its allocation).
-    pub(super) decoded: Vec<RayItem>,
-    pub(super) children: Vec<(Dest, Query, f32, ReplyTo)>,
+    /// A packet's answers, decoded (kept to reuse its allocation).
+    pub(super) answers: Vec<(u32, Answer)>,
+    pub(super) children: Vec<(Dest, Query, Resume, ReplyTo)>,
     pub(super) traffic: Arc<crate::peers::Traffic>,
     /// Packets received from each peer.
     pub(super) received: Vec<u64>,
@@ -137,7 +138,7 @@ impl<'a> Engine<'a> {
                 ..Default::default()
             },
             effects: Vec::new(),
-            decoded: Vec::new(),
+            answers: Vec::new(),
             children: Vec::new(),
             traffic: links.traffic.clone(),
             received: vec![0; job.workers],
@@ -219,7 +220,7 @@ impl<'a> Engine<'a> {
                     y: n.y,
                     sample: n.sample,
                 },
-                resume: f32::NEG_INFINITY,
+                resume: Resume::START,
                 reply: n.reply,
                 from: me,
                 pinned: None,
@@ -240,20 +241,13 @@ impl<'a> Engine<'a> {
                 if let Some(r) = self.received.get_mut(from as usize) {
                     *r += 1;
                 }
-                let mut items = std::mem::take(&mut self.decoded);
+                // Queries go straight into the work queue; answers are
+                // gathered, so that each one's slot can be fetched from
+                // memory a few answers ahead (answers arrive for slots at
+                // random), and what it will write next half as far ahead.
+                let mut answers = std::mem::take(&mut self.answers);
                 for it in packet.items(self.job.setup.seed, self.job.setup.sampler) {
-                    items.push(it.map_err(|why| EngineError::BadPacket { from, why })?);
-                }
-                // Answers' slots are fetched from memory a few items ahead,
-                // and what they will write next half as far ahead.
-                for i in 0..items.len() {
-                    if let Some(RayItem::Answer { to, .. }) = items.get(i + AHEAD) {
-                        self.slots.prefetch(*to);
-                    }
-                    if let Some(RayItem::Answer { to, .. }) = items.get(i + AHEAD / 2) {
-                        self.slots.prefetch_next(*to);
-                    }
-                    match items[i] {
+                    match it.map_err(|why| EngineError::BadPacket { from, why })? {
                         RayItem::Trace {
                             query,
                             resume,
@@ -272,20 +266,28 @@ impl<'a> Engine<'a> {
                                 pinned: None,
                             });
                         }
-                        RayItem::Answer { to, answer } => {
-                            self.slots.answer(
-                                from,
-                                to,
-                                answer,
-                                &mut self.effects,
-                                &mut self.stats.trace,
-                            )?;
-                            self.effects()?;
-                        }
+                        RayItem::Answer { to, answer } => answers.push((to, answer)),
                     }
                 }
-                items.clear();
-                self.decoded = items;
+                for i in 0..answers.len() {
+                    if let Some(&(to, _)) = answers.get(i + AHEAD) {
+                        self.slots.prefetch(to);
+                    }
+                    if let Some(&(to, _)) = answers.get(i + AHEAD / 2) {
+                        self.slots.prefetch_next(to);
+                    }
+                    let (to, answer) = answers[i];
+                    self.slots.answer(
+                        from,
+                        to,
+                        answer,
+                        &mut self.effects,
+                        &mut self.stats.trace,
+                    )?;
+                    self.effects()?;
+                }
+                answers.clear();
+                self.answers = answers;
             }
             Input::Fetch { from, leaves } => self.serve(from, leaves)?,
             Input::Leaf { from, bytes, leaf } => self.receive_leaf(from, bytes, *leaf, scope)?,
@@ -394,7 +396,7 @@ impl<'a> Engine<'a> {
         &mut self,
         dest: Dest,
         query: Query,
-        resume: f32,
+        resume: Resume,
         reply: ReplyTo,
     ) -> Result<(), EngineError> {
         let job = self.job;

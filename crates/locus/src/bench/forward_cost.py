@@ -1,0 +1,157 @@
+#!/usr/bin/env python3
+"""Instructions a forwarded query costs the farm, counted by callgrind.
+
+Wall and CPU times on a shared machine vary by 10-30% between runs, which
+is as large as the differences that matter here; instruction counts do
+not. This script renders a small version of a scene three ways, each under
+`valgrind --tool=callgrind`:
+
+  - one machine (`locus render --threads 2`), counting the render's
+    instructions (`locus_core::passes::pixel_mean`, inclusive);
+  - a farm of a scheduler and two `locus worker --threads 1` processes
+    (the workers under callgrind; the scheduler natively, with a worker
+    timeout long enough for valgrind's pace), counting each worker's
+    render phase: its engine (`locus_worker::engine::turns`) plus what its
+    async runtime spends outside setup (sockets, frames, control);
+
+and prints the farm's instructions above one machine's per forwarded query,
+with the farm image checked bit for bit against one machine's. It needs
+valgrind and callgrind_annotate on the PATH.
+
+    python3 crates/locus/src/bench/forward_cost.py [--locus target/release/locus]
+        [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
+        [--fetch forward] [--out bench-out/forward-cost]
+"""
+
+import argparse
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+
+def inclusive(path):
+    """Inclusive instruction counts by function, and the program total."""
+    out = subprocess.run(
+        ["callgrind_annotate", "--inclusive=yes", "--threshold=100", "--auto=no", path],
+        capture_output=True, text=True, check=True).stdout
+    costs = {}
+    total = 0
+    for line in out.splitlines():
+        m = re.match(r"\s*([\d,]+) \(\s*[\d.]+%\)\s+(.*)$", line)
+        if not m:
+            continue
+        n = int(m.group(1).replace(",", ""))
+        rest = m.group(2)
+        if rest.strip() == "PROGRAM TOTALS":
+            total = n
+            continue
+        fn = re.sub(r" \[.*\]$", "", rest.split(":", 1)[-1]).strip()
+        fn = re.sub(r"'\d+$", "", fn)
+        costs[fn] = max(costs.get(fn, 0), n)
+    return costs, total
+
+
+def small_scene(src, dst, width, height, spp):
+    """A copy of scene `src` at another size, its mesh paths made absolute."""
+    base = os.path.dirname(os.path.abspath(src))
+    text = open(src).read()
+    text = re.sub(r"resolution\s*=\s*\[[^\]]*\]", f"resolution = [{width}, {height}]", text)
+    if re.search(r"^spp\s*=", text, re.M):
+        text = re.sub(r"^spp\s*=.*$", f"spp = {spp}", text, flags=re.M)
+    text = re.sub(r'file\s*=\s*"([^"]+)"',
+                  lambda m: 'file = "%s"' % os.path.join(base, m.group(1)), text)
+    with open(dst, "w") as f:
+        f.write(text)
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--locus", default="target/release/locus")
+    ap.add_argument("--scene", default="scenes/generated/room.toml")
+    ap.add_argument("--width", type=int, default=96)
+    ap.add_argument("--height", type=int, default=72)
+    ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--fetch", default="forward")
+    ap.add_argument("--out", default="bench-out/forward-cost")
+    a = ap.parse_args()
+    os.makedirs(a.out, exist_ok=True)
+    out = os.path.abspath(a.out)
+    locus = os.path.abspath(a.locus)
+    scene = os.path.join(out, "scene.toml")
+    small_scene(a.scene, scene, a.width, a.height, a.spp)
+    cg = ["valgrind", "--tool=callgrind"]
+
+    one_exr = os.path.join(out, "one.exr")
+    subprocess.run(cg + [f"--callgrind-out-file={out}/one.cg", locus, "render", scene,
+                         "--threads", "2", "-o", one_exr],
+                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    one = inclusive(f"{out}/one.cg")[0]["locus_core::passes::pixel_mean"]
+
+    port = free_port()
+    token = ["--token", "forward-cost"]
+    log = open(os.path.join(out, "farm.log"), "w")
+    sched = subprocess.Popen([locus, "scheduler", "--listen", f"127.0.0.1:{port}",
+                              "--worker-timeout", "600"] + token, stdout=log, stderr=log)
+    workers = [subprocess.Popen(cg + [f"--callgrind-out-file={out}/w{i}.cg", locus, "worker",
+                                      "--scheduler", f"127.0.0.1:{port}",
+                                      "--listen", "127.0.0.1:0", "--threads", "1",
+                                      "--name", f"w{i}"] + token, stdout=log, stderr=log)
+               for i in (1, 2)]
+    farm_exr = os.path.join(out, "farm.exr")
+    try:
+        # The client waits for both workers to register.
+        subprocess.run([locus, "submit", "--scheduler", f"127.0.0.1:{port}", scene,
+                        "--workers", "2", "--fetch", a.fetch, "-o", farm_exr] + token,
+                       check=True, stdout=log, stderr=log, timeout=1800)
+    finally:
+        for w in workers:
+            w.send_signal(signal.SIGINT)
+        for w in workers:
+            w.wait(timeout=120)
+        sched.send_signal(signal.SIGINT)
+        sched.wait(timeout=60)
+    report = json.load(open(os.path.join(out, "farm.json")))["farm"]
+    forwards = sum(w["stats"]["forwarded_out"] for w in report["workers"])
+    same = subprocess.run([locus, "diff", one_exr, farm_exr, "--exact"],
+                          capture_output=True, text=True).returncode == 0
+    rows = []
+    farm = 0
+    for i in (1, 2):
+        costs, total = inclusive(f"{out}/w{i}.cg")
+        # Everything the worker did but its setup: the blocking pool holds
+        # the BVH builds and the engine, the async side the job's setup
+        # message with its triangles.
+        blocking = costs.get("tokio::runtime::blocking::pool::Inner::run", 0)
+        turns = costs.get("locus_worker::engine::turns", 0)
+        setup = costs.get("locus_protocol::control::_::<impl serde_core::de::Deserialize "
+                          "for locus_protocol::control::SchedulerToWorker>::deserialize", 0)
+        render = total - blocking + turns - setup
+        rows.append((f"w{i}", turns, total - blocking - setup, render))
+        farm += render
+    print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, 2 workers x 1 thread, {a.fetch}")
+    print(f"one machine's render: {one / 1e6:.1f} M instructions")
+    for name, turns, runtime, render in rows:
+        print(f"{name}: engine {turns / 1e6:.1f} M, runtime {runtime / 1e6:.1f} M, "
+              f"render phase {render / 1e6:.1f} M")
+    print(f"forwarded queries: {forwards}")
+    per = (farm - one) / max(forwards, 1)
+    print(f"instructions per forwarded query beyond one machine: {per:.0f}")
+    print(f"farm image bit-identical to one machine's: {'yes' if same else 'NO'}")
+    json.dump({"one": one, "workers": rows, "forwards": forwards, "per_forward": per,
+               "identical": same}, open(os.path.join(out, "forward-cost.json"), "w"), indent=1)
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
