@@ -8,7 +8,7 @@
 //! traced the ray. [`crate::accel_set::AccelSet`] traces several such BVHs
 //! as one, which is how a worker bounds the memory a build needs.
 
-use crate::geometry::{Bounds, Ray, TriHit, TriangleSet, WatertightRay};
+use crate::geometry::{Bounds, FLAT, Ray, TriHit, TriangleSet, WatertightRay};
 use crate::octree::Octree;
 use crate::stats::TraceStats;
 use glam::{UVec2, Vec3, Vec3A};
@@ -42,6 +42,9 @@ pub struct Surface {
     pub hit: Hit,
     pub verts: [Vec3; 3],
     pub material: u32,
+    /// The shading normal interpolated at the hit (unit length), or zero
+    /// for a flat triangle.
+    pub shading: Vec3,
 }
 
 /// The closer of two hits; at equal distance the smaller global id, which
@@ -70,6 +73,8 @@ pub struct Accel {
     ids: Vec<u32>,
     /// Material of each BVH primitive.
     material: Vec<u32>,
+    /// Shading normals of each BVH primitive; empty when none has any.
+    normals: Vec<[Vec3; 3]>,
     /// Primitive positions ordered by global id, for serving triangles by id.
     by_id: Vec<u32>,
     /// Bounds of the padded triangle boxes.
@@ -136,6 +141,7 @@ impl Accel {
                 ids: ids.to_vec(),
                 verts: verts.to_vec(),
                 material: vec![0; ids.len()],
+                normals: Vec::new(),
             },
             magnitude,
         )
@@ -173,6 +179,11 @@ impl Accel {
         let verts = order.iter().map(|&p| set.verts[p as usize]).collect();
         let ids: Vec<u32> = order.iter().map(|&p| set.ids[p as usize]).collect();
         let material = order.iter().map(|&p| set.material[p as usize]).collect();
+        let normals = if set.normals.is_empty() {
+            Vec::new()
+        } else {
+            order.iter().map(|&p| set.normals[p as usize]).collect()
+        };
         drop(set);
         let mut by_id: Vec<u32> = (0..ids.len() as u32).collect();
         by_id.sort_unstable_by_key(|&p| ids[p as usize]);
@@ -181,6 +192,7 @@ impl Accel {
             verts,
             ids,
             material,
+            normals,
             by_id,
             bounds,
         }
@@ -208,6 +220,7 @@ impl Accel {
             + size_of_val(self.verts.as_slice())
             + size_of_val(self.ids.as_slice())
             + size_of_val(self.material.as_slice())
+            + size_of_val(self.normals.as_slice())
             + size_of_val(self.by_id.as_slice())
     }
 
@@ -222,14 +235,31 @@ impl Accel {
         (self.verts[prim as usize], self.material[prim as usize])
     }
 
+    /// The shading normals of the triangle at BVH position `prim`
+    /// ([`FLAT`] when it has none).
+    #[inline(always)]
+    pub fn shading(&self, prim: u32) -> [Vec3; 3] {
+        self.normals.get(prim as usize).copied().unwrap_or(FLAT)
+    }
+
+    /// Whether any triangle here has shading normals.
+    pub fn has_normals(&self) -> bool {
+        !self.normals.is_empty()
+    }
+
     /// The hit with its triangle.
     #[inline(always)]
     pub fn surface(&self, h: &AccelHit) -> Surface {
         let (verts, material) = self.triangle(h.prim);
+        let shading = match self.normals.get(h.prim as usize) {
+            Some(n) => crate::integrator::interpolate_normal(n, h.hit.b1, h.hit.b2),
+            None => Vec3::ZERO,
+        };
         Surface {
             hit: h.hit,
             verts,
             material,
+            shading,
         }
     }
 

@@ -192,11 +192,13 @@ impl AccelSet {
         self.parts[h.part as usize].accel.surface(&h.hit)
     }
 
-    /// Vertices and material of global triangle `id`, if a part holds it.
-    pub fn find(&self, id: u32) -> Option<([Vec3; 3], u32)> {
+    /// Vertices, material and shading normals of global triangle `id`, if
+    /// a part holds it.
+    pub fn find(&self, id: u32) -> Option<([Vec3; 3], u32, [Vec3; 3])> {
         self.parts.iter().find_map(|p| {
             let prim = p.accel.find(id)?;
-            Some(p.accel.triangle(prim))
+            let (v, m) = p.accel.triangle(prim);
+            Some((v, m, p.accel.shading(prim)))
         })
     }
 }
@@ -225,13 +227,13 @@ pub fn part_size_for(budget: u64, floor: usize) -> usize {
 
 /// Cuts `leaves` (ascending leaf ids, each with its triangle ids) into runs
 /// of at most `max_part` distinct triangles and builds one part per run.
-/// `triangle(id)` gives a triangle's vertices and material; a leaf larger
-/// than `max_part` is a part of its own.
+/// `triangle(id)` gives a triangle's vertices, material and shading normals;
+/// a leaf larger than `max_part` is a part of its own.
 pub fn build_parts(
     leaves: &[(u32, &[u32])],
     max_part: usize,
     magnitude: f32,
-    triangle: &dyn Fn(u32) -> ([Vec3; 3], u32),
+    triangle: &dyn Fn(u32) -> ([Vec3; 3], u32, [Vec3; 3]),
 ) -> Vec<Arc<Part>> {
     let mut parts = Vec::new();
     let mut ids: Vec<u32> = Vec::new();
@@ -244,8 +246,8 @@ pub fn build_parts(
         ids.dedup();
         let mut set = TriangleSet::with_capacity(ids.len());
         for &id in ids.iter() {
-            let (v, m) = triangle(id);
-            set.push(id, v, m);
+            let (v, m, n) = triangle(id);
+            set.push(id, v, m, n);
         }
         ids.clear();
         let accel = Accel::from_set(set, magnitude);
@@ -307,7 +309,7 @@ mod tests {
             .enumerate()
             .map(|(i, l)| (i as u32, l.tris.as_slice()))
             .collect();
-        let tri = |id: u32| (tris[id as usize], 0);
+        let tri = |id: u32| (tris[id as usize], 0, crate::geometry::FLAT);
         let mut st = TraceStats::default();
         for max_part in [40usize, 300, 1000, 1 << 20] {
             let set = AccelSet::from_parts(build_parts(&leaves, max_part, 12.0, &tri));

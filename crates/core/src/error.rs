@@ -95,4 +95,16 @@ impl SceneError {
             | SceneError::Invalid { file, .. } => file,
         }
     }
+
+    /// Where in the file, for every error but a file that cannot be read.
+    pub fn location(&self) -> Option<&Location> {
+        match self {
+            SceneError::Io { .. } => None,
+            SceneError::Syntax { location, .. }
+            | SceneError::MissingFile { location, .. }
+            | SceneError::NonFinite { location, .. }
+            | SceneError::IndexOutOfRange { location, .. }
+            | SceneError::Invalid { location, .. } => Some(location),
+        }
+    }
 }

@@ -107,13 +107,28 @@ impl Bounds {
 }
 
 /// Triangles with their global ids and materials: a worker's region, a
-/// fetched leaf, or a part of a chunked BVH. The three lists run in
-/// parallel.
+/// fetched leaf, or a part of a chunked BVH. The lists run in parallel;
+/// `normals` (each triangle's shading normals at its vertices, all zero for
+/// a flat triangle) is empty when no triangle of the set has any.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TriangleSet {
     pub ids: Vec<u32>,
     pub verts: Vec<[Vec3; 3]>,
     pub material: Vec<u32>,
+    pub normals: Vec<[Vec3; 3]>,
+}
+
+/// A flat triangle's shading normals: none.
+pub const FLAT: [Vec3; 3] = [Vec3::ZERO; 3];
+
+/// Bytes a triangle takes in a [`TriangleSet`] as shipped (id, vertices,
+/// material), and its shading normals besides when it has them.
+pub const TRIANGLE_BYTES: u64 = 4 + 36 + 4;
+pub const NORMALS_BYTES: u64 = 36;
+
+/// Bytes a triangle of a set with (or without) shading normals takes.
+pub fn triangle_bytes(normals: bool) -> u64 {
+    TRIANGLE_BYTES + if normals { NORMALS_BYTES } else { 0 }
 }
 
 impl TriangleSet {
@@ -128,20 +143,57 @@ impl TriangleSet {
             ids: Vec::with_capacity(n),
             verts: Vec::with_capacity(n),
             material: Vec::with_capacity(n),
+            normals: Vec::new(),
         }
     }
-    pub fn push(&mut self, id: u32, verts: [Vec3; 3], material: u32) {
+    /// Adds a triangle; `normals` is [`FLAT`] for one without shading
+    /// normals, which costs nothing while no triangle of the set has any.
+    pub fn push(&mut self, id: u32, verts: [Vec3; 3], material: u32, normals: [Vec3; 3]) {
+        if normals != FLAT || !self.normals.is_empty() {
+            self.normals.resize(self.ids.len(), FLAT);
+            self.normals.push(normals);
+        }
         self.ids.push(id);
         self.verts.push(verts);
         self.material.push(material);
     }
+    /// The shading normals of triangle `i` ([`FLAT`] when it has none).
+    #[inline]
+    pub fn normals_of(&self, i: usize) -> [Vec3; 3] {
+        self.normals.get(i).copied().unwrap_or(FLAT)
+    }
     /// Whether the lists agree in length.
     pub fn is_consistent(&self) -> bool {
-        self.ids.len() == self.verts.len() && self.ids.len() == self.material.len()
+        self.ids.len() == self.verts.len()
+            && self.ids.len() == self.material.len()
+            && (self.normals.is_empty() || self.normals.len() == self.ids.len())
     }
-    /// Heap bytes of the three lists (at their length, as shipped).
+    /// Heap bytes of the lists (at their length, as shipped).
     pub fn bytes(&self) -> usize {
-        self.len() * (4 + 36 + 4)
+        self.len() * TRIANGLE_BYTES as usize + self.normals.len() * NORMALS_BYTES as usize
+    }
+}
+
+#[cfg(test)]
+mod triangle_set_tests {
+    use super::*;
+
+    #[test]
+    fn normals_are_kept_from_the_first_shaded_triangle_on() {
+        let t = [Vec3::ZERO, Vec3::X, Vec3::Y];
+        let n = [Vec3::Z; 3];
+        let mut s = TriangleSet::default();
+        s.push(0, t, 0, FLAT);
+        assert!(s.normals.is_empty(), "flat triangles cost nothing");
+        s.push(1, t, 0, n);
+        s.push(2, t, 0, FLAT);
+        assert_eq!(s.normals, vec![FLAT, n, FLAT]);
+        assert!(s.is_consistent());
+        assert_eq!(s.normals_of(1), n);
+        let mut first = TriangleSet::default();
+        first.push(7, t, 0, n);
+        assert_eq!(first.normals, vec![n]);
+        assert_eq!(first.bytes(), 80);
     }
 }
 

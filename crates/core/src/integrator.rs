@@ -131,7 +131,43 @@ pub struct Shaded {
     pub cache_leaf: Option<u32>,
 }
 
+/// A triangle's shading normals interpolated at barycentrics `(b1, b2)`
+/// and normalised (pbrt's and Mitsuba's smooth shading); zero for a flat
+/// triangle ([`crate::geometry::FLAT`]) or one whose normals cancel there.
+#[inline]
+pub fn interpolate_normal(normals: &[Vec3; 3], b1: f32, b2: f32) -> Vec3 {
+    if *normals == crate::geometry::FLAT {
+        return Vec3::ZERO;
+    }
+    let b0 = 1.0 - b1 - b2;
+    (normals[0] * b0 + normals[1] * b1 + normals[2] * b2).normalize_or_zero()
+}
+
+/// The normal a hit is shaded with: `shading` (from
+/// [`interpolate_normal`]) turned to the side of `n`, the geometric normal
+/// facing the incoming ray; `n` itself, bit for bit, when `shading` is
+/// zero.
+#[inline(always)]
+pub fn shading_normal(shading: Vec3, n: Vec3) -> Vec3 {
+    if shading == Vec3::ZERO {
+        n
+    } else if shading.dot(n) < 0.0 {
+        -shading
+    } else {
+        shading
+    }
+}
+
 /// Shades the hit `h` of `q` on triangle `tri` with material `mat`.
+///
+/// With a shading normal (`shading`, interpolated at the hit; zero for a
+/// flat triangle) the reflection is computed about it: next-event
+/// estimation weighs a light by its cosine to it, and continuations are
+/// sampled about it. The geometric normal still decides which side a
+/// surface emits on, where rays leave from, and whether a direction is
+/// reflected at all: a light behind the triangle itself gets no next-event
+/// estimate, and a continuation sampled below it ends the path (it would
+/// pass through the surface). A flat triangle is shaded exactly as before.
 ///
 /// With directional caches on, `locality` is the octree and the locality
 /// radius: light is then split at the perimeter of the locality sphere of
@@ -144,10 +180,12 @@ pub struct Shaded {
 /// surface it hits first (`emit_within`). That quantity does not depend on
 /// where in the leaf the ray started, which is what lets the leaf's cache
 /// answer it (see [`crate::dircache`]).
+#[allow(clippy::too_many_arguments)]
 pub fn shade(
     q: &PathRay,
     h: &Hit,
     tri: &[Vec3; 3],
+    shading: Vec3,
     mat: &Material,
     lights: &LightSet,
     max_depth: u32,
@@ -184,6 +222,8 @@ pub fn shade(
     let key = q.key;
     let p = hit_point(tri, h.b1, h.b2);
     let n = if cos_o >= 0.0 { ng } else { -ng };
+    let shaded = shading != Vec3::ZERO;
+    let ns = shading_normal(shading, n);
     let origin = offset_point(p, ng, n, spawn_offset(tri));
     let base = vertex_dim(vertex);
     let f = mat.albedo / PI;
@@ -200,9 +240,10 @@ pub fn shade(
         let to = ls.point - p;
         let dist2 = to.length_squared();
         let wi = to / dist2.sqrt();
-        let cos_s = n.dot(wi);
+        let cos_s = ns.dot(wi);
         let cos_l = -ls.normal.dot(wi);
-        if cos_s > 0.0 && cos_l > 0.0 && ls.pdf_area > 0.0 && dist2 > 0.0 {
+        let in_front = !shaded || n.dot(wi) > 0.0;
+        if cos_s > 0.0 && cos_l > 0.0 && ls.pdf_area > 0.0 && dist2 > 0.0 && in_front {
             let seg = target - origin;
             let len = seg.length();
             if len > 0.0 {
@@ -220,9 +261,9 @@ pub fn shade(
     }
 
     // Continue by cosine sampling: f cos / pdf = albedo.
-    let wi = cosine_hemisphere(n, key.get2d(base + 3));
-    let pdf_b = n.dot(wi) / PI;
-    if pdf_b.is_nan() || pdf_b <= 0.0 {
+    let wi = cosine_hemisphere(ns, key.get2d(base + 3));
+    let pdf_b = ns.dot(wi) / PI;
+    if pdf_b.is_nan() || pdf_b <= 0.0 || (shaded && n.dot(wi) <= 0.0) {
         return out;
     }
     let mut scale = mat.albedo;

@@ -84,6 +84,9 @@ impl PixelSum {
 
 /// The value of one pixel whose samples `sample(s)` are evaluated here, in
 /// the passes of [`passes`]: the one definition both renderers reproduce.
+/// Never inlined, so that profiles (`bench/forward_cost.py`) can count a
+/// render's work by it; a call per pixel costs nothing next to its samples.
+#[inline(never)]
 pub fn pixel_mean(
     spp: u32,
     st: &mut TraceStats,

@@ -303,6 +303,7 @@ impl Kernel<'_> {
             q,
             &h.hit,
             &h.verts,
+            h.shading,
             mat,
             self.lights,
             self.max_depth,

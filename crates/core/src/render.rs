@@ -44,6 +44,7 @@ impl Prepared {
             ids: (0..scene.tris.len() as u32).collect(),
             verts: scene.tris.clone(),
             material: scene.tri_material.clone(),
+            normals: scene.tri_normals.clone(),
         };
         let accel = Accel::from_set(set, scene.magnitude());
         let bvh_s = t.elapsed().as_secs_f64();

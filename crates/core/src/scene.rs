@@ -8,7 +8,7 @@
 //! (zero-area) triangles are dropped and counted.
 
 use crate::error::{Location, SceneError};
-use crate::geometry::{Ray, tri_area_f64};
+use crate::geometry::{FLAT, Ray, tri_area_f64};
 use crate::mesh_io;
 use crate::octree::OctreeParams;
 use crate::sampler::Sampler;
@@ -85,6 +85,9 @@ pub struct LoadStats {
     pub meshes: usize,
     pub triangles_read: usize,
     pub degenerate_dropped: usize,
+    /// Triangles kept with shading normals from their mesh file.
+    #[serde(default)]
+    pub shaded: usize,
 }
 
 /// A loaded scene: triangles with global ids (their index here).
@@ -96,6 +99,10 @@ pub struct Scene {
     pub materials: Vec<Material>,
     pub tris: Vec<[Vec3; 3]>,
     pub tri_material: Vec<u32>,
+    /// Shading normals at each triangle's vertices, from its mesh file
+    /// ([`crate::geometry::FLAT`] for a triangle without); empty when no
+    /// triangle has any.
+    pub tri_normals: Vec<[Vec3; 3]>,
     pub load_stats: LoadStats,
 }
 
@@ -409,8 +416,8 @@ impl Scene {
                 Vec3::from(l.edge_a),
                 Vec3::from(l.edge_b),
             );
-            b.add_tri([p, p + ea, p + ea + eb], m);
-            b.add_tri([p, p + ea + eb, p + eb], m);
+            b.add_tri([p, p + ea, p + ea + eb], m, FLAT);
+            b.add_tri([p, p + ea + eb, p + eb], m, FLAT);
         }
         let dir = path.parent().unwrap_or(Path::new("."));
         for (i, m) in desc.mesh.iter().enumerate() {
@@ -468,13 +475,32 @@ impl Scene {
                     format!("mesh[{i}]: transform makes a vertex non-finite ({p})"),
                 ));
             }
-            for (t, fm) in data.triangles.iter().zip(&data.tri_material) {
+            // Normals go through the inverse transpose, and are kept only
+            // where every one of a triangle's survives it with a length.
+            let nxf = glam::Mat3::from_mat4(xf).inverse().transpose();
+            let nrm: Vec<Vec3> = data
+                .normals
+                .iter()
+                .map(|&n| (nxf * n).normalize_or_zero())
+                .collect();
+            for (k, (t, fm)) in data.triangles.iter().zip(&data.tri_material).enumerate() {
                 let mat = override_mat
                     .or(fm.map(|k| file_mats[k as usize]))
                     .unwrap_or(default_mat);
+                let shading = data
+                    .tri_normals
+                    .get(k)
+                    .and_then(|ix| {
+                        let n = ix.map(|i| nrm.get(i as usize).copied().unwrap_or(Vec3::ZERO));
+                        n.iter()
+                            .all(|v| v.is_finite() && *v != Vec3::ZERO)
+                            .then_some(n)
+                    })
+                    .unwrap_or(FLAT);
                 b.add_tri(
                     [pos[t[0] as usize], pos[t[1] as usize], pos[t[2] as usize]],
                     mat,
+                    shading,
                 );
             }
             b.stats.meshes += 1;
@@ -495,7 +521,7 @@ impl Scene {
             ..Default::default()
         };
         for (t, m) in tris {
-            b.add_tri(t, m);
+            b.add_tri(t, m, FLAT);
         }
         b.finish(&path, camera, settings)
     }
@@ -519,6 +545,12 @@ impl Scene {
                 *p = m.transform_point3(*p);
             }
         }
+        let nxf = glam::Mat3::from_mat4(m).inverse().transpose();
+        for t in &mut s.tri_normals {
+            for n in t.iter_mut() {
+                *n = (nxf * *n).normalize_or_zero();
+            }
+        }
         s.camera.position = m.transform_point3(s.camera.position);
         s.camera.look_at = m.transform_point3(s.camera.look_at);
         s
@@ -534,6 +566,7 @@ struct Builder {
     pinned: std::collections::BTreeSet<String>,
     tris: Vec<[Vec3; 3]>,
     tri_material: Vec<u32>,
+    tri_normals: Vec<[Vec3; 3]>,
     stats: LoadStats,
 }
 
@@ -570,7 +603,8 @@ impl Builder {
             ),
         }
     }
-    fn add_tri(&mut self, t: [Vec3; 3], m: u32) {
+    /// Adds a triangle with its shading normals ([`FLAT`] for none).
+    fn add_tri(&mut self, t: [Vec3; 3], m: u32, normals: [Vec3; 3]) {
         self.stats.triangles_read += 1;
         // Zero area in f64, or a normal that does not survive f32: neither
         // can be hit or sampled meaningfully.
@@ -578,6 +612,14 @@ impl Builder {
         if tri_area_f64(&t) == 0.0 || !n.is_finite() || n.length_squared() == 0.0 {
             self.stats.degenerate_dropped += 1;
             return;
+        }
+        if normals != FLAT {
+            self.stats.shaded += 1;
+        }
+        // Flat triangles cost nothing until the first shaded one.
+        if normals != FLAT || !self.tri_normals.is_empty() {
+            self.tri_normals.resize(self.tris.len(), FLAT);
+            self.tri_normals.push(normals);
         }
         self.tris.push(t);
         self.tri_material.push(m);
@@ -593,6 +635,7 @@ impl Builder {
             materials: self.materials,
             tris: self.tris,
             tri_material: self.tri_material,
+            tri_normals: self.tri_normals,
             load_stats: self.stats,
         }
     }

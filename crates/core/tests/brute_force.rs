@@ -273,7 +273,7 @@ fn processor_vector_chains_match_one_bvh() {
     let n = oct.leaf_count();
     let mut test_rays = rays(1500, 9);
     test_rays.extend(corner_and_face_rays(&oct, 1500));
-    let tri = |id: u32| (tris[id as usize], 0);
+    let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
     for workers in [1u16, 2, 3, 5, 8] {
         // Scattered owners stress forwarding; contiguous ones are what the
         // partitioners produce.

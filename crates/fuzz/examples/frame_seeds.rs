@@ -47,6 +47,7 @@ fn main() {
     put(postcard::to_allocvec(&TrianglePart {
         tris: vec![[glam::Vec3::ONE; 3]; 2],
         material: vec![0, 1],
+        normals: vec![[glam::Vec3::Z; 3]; 2],
     })
     .unwrap());
     put(postcard::to_allocvec(&SchedulerToWorker::Tile(tile)).unwrap());

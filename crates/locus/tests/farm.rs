@@ -160,8 +160,9 @@ fn an_image_larger_than_a_result_chunk_arrives_whole() {
 
 /// A request sent in parts (here of 7 triangles, so the Cornell box's 32
 /// take 5) renders the same bits as one machine; a part longer than
-/// announced, or with lists of different lengths, is refused with its
-/// reason, and the farm goes on.
+/// announced, with lists of different lengths, or with shading normals the
+/// request did not announce, is refused with its reason, and the farm goes
+/// on.
 #[test]
 fn a_request_in_parts_matches_and_bad_parts_are_refused() {
     use locus_protocol::control::Opening;
@@ -183,10 +184,17 @@ fn a_request_in_parts_matches_and_bad_parts_are_refused() {
             TrianglePart {
                 tris: vec![scene.tris[0]; 11],
                 material: vec![0; 11],
+                normals: Vec::new(),
             },
             TrianglePart {
                 tris: vec![scene.tris[0]; 3],
                 material: vec![0; 2],
+                normals: Vec::new(),
+            },
+            TrianglePart {
+                tris: vec![scene.tris[0]; 3],
+                material: vec![0; 3],
+                normals: vec![[glam::Vec3::Z; 3]; 3],
             },
         ];
         for part in bad_parts {
@@ -199,6 +207,7 @@ fn a_request_in_parts_matches_and_bad_parts_are_refused() {
             c.write_msg(&Opening::SubmitInParts {
                 request: Box::new(req),
                 triangles: 10,
+                normals: false,
             })
             .await
             .unwrap();
@@ -215,6 +224,70 @@ fn a_request_in_parts_matches_and_bad_parts_are_refused() {
             .await
             .expect("the farm goes on");
         assert_eq!(bits(&r), reference);
+        farm.stop().await.expect("clean stop");
+    });
+}
+
+/// Shading normals travel with their triangles: in the request (whole and
+/// in parts), in each worker's region, and in fetched leaves. A Cornell box
+/// whose triangles carry normals tilted a little from their faces renders
+/// on the farm bit for bit as on one machine, under every fetch policy,
+/// and differs from the box without them (so they were not dropped).
+#[test]
+fn shading_normals_travel_with_their_triangles() {
+    use glam::Vec3;
+    let flat = small_cornell();
+    let mut scene = flat.clone();
+    scene.tri_normals = scene
+        .tris
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let n = locus_core::geometry::tri_cross(t).normalize();
+            let tilt = |k: usize| {
+                let a = Vec3::new(1.0 + k as f32, (i % 5) as f32, 2.0 - k as f32).normalize();
+                (n + a.cross(n) * 0.2).normalize()
+            };
+            [tilt(0), tilt(1), tilt(2)]
+        })
+        .collect();
+    let reference = single_machine(&scene);
+    assert_ne!(
+        reference,
+        single_machine(&flat),
+        "the normals change the image"
+    );
+    let rt = runtime();
+    rt.block_on(async {
+        let farm = locus::farm::LocalFarm::start(3, 1).await.expect("farm");
+        for fetch in [
+            FetchPolicy::Forward,
+            FetchPolicy::Fetch,
+            FetchPolicy::Hybrid,
+            FetchPolicy::Adaptive,
+        ] {
+            let opts = JobOptions {
+                workers: 3,
+                tile_size: 8,
+                fetch,
+                // Too small to hold the scene: leaves are fetched one by
+                // one, normals and all.
+                fetch_budget: 4 << 10,
+                ..Default::default()
+            };
+            let req = locus_scheduler::client::request(&scene, opts);
+            let r = farm.render(req, &|_, _| {}).await.expect("job");
+            assert_eq!(bits(&r), reference, "{fetch:?}");
+            if fetch == FetchPolicy::Fetch {
+                assert!(r.report.totals.fetched_leaves > 0, "leaves were fetched");
+            }
+        }
+        let addr = farm.scheduler.to_string();
+        let req = locus_scheduler::client::request(&scene, JobOptions::default());
+        let r = locus_scheduler::client::submit_in_parts_of(&addr, &farm.token, req, &|_, _| {}, 7)
+            .await
+            .expect("a request with normals in parts renders");
+        assert_eq!(bits(&r), reference, "in parts");
         farm.stop().await.expect("clean stop");
     });
 }

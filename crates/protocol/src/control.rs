@@ -35,6 +35,8 @@ pub enum Opening {
     SubmitInParts {
         request: Box<JobRequest>,
         triangles: u64,
+        /// Whether every part carries its triangles' shading normals.
+        normals: bool,
     },
 }
 
@@ -180,6 +182,9 @@ pub struct JobSetup {
     /// Triangles the region's geometry shipment holds in all, so the
     /// worker refuses a longer shipment.
     pub region_triangles: u64,
+    /// Whether the scene's triangles carry shading normals (they ship and
+    /// are held with them).
+    pub normals: bool,
 }
 
 /// How a worker keeps to its memory budget in one job, as the scheduler

@@ -24,10 +24,6 @@ pub enum PeerMsg {
     Leaf(Box<LeafGeometry>),
 }
 
-/// Bytes a shipped triangle costs on the wire in a [`LeafGeometry`] (id,
-/// vertices, material), for the adaptive policy's rent-or-buy rule.
-pub const TRIANGLE_WIRE_BYTES: u64 = 44;
-
 /// A leaf's triangles as its owner holds them.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LeafGeometry {

@@ -117,9 +117,13 @@ impl Default for JobOptions {
 pub struct TrianglePart {
     pub tris: Vec<[Vec3; 3]>,
     pub material: Vec<u32>,
+    /// Each triangle's shading normals, when the request has them (every
+    /// part then carries them).
+    pub normals: Vec<[Vec3; 3]>,
 }
 
-/// Triangles per [`TrianglePart`]: 40 MiB, within the frame limit.
+/// Triangles per [`TrianglePart`]: 40 MiB, within the frame limit (76 MiB
+/// with shading normals, which travel in parts of half as many).
 pub const REQUEST_PART_TRIANGLES: usize = 1 << 20;
 
 /// A loaded scene: the client resolves mesh files, so the scheduler needs
@@ -132,6 +136,9 @@ pub struct JobRequest {
     pub materials: Vec<Material>,
     pub tris: Vec<[Vec3; 3]>,
     pub tri_material: Vec<u32>,
+    /// Shading normals at each triangle's vertices (all zero for a flat
+    /// one); empty when no triangle has any.
+    pub tri_normals: Vec<[Vec3; 3]>,
     pub options: JobOptions,
     /// Seconds the client took to read the scene, for the report.
     pub load_s: f64,

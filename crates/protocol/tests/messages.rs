@@ -155,7 +155,18 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
             cache_nodes: 1000,
         },
         region_triangles: n as u64,
+        normals: seed.is_multiple_of(2),
     }
+}
+
+/// Shading normals for `n` triangles (unit length, arbitrary directions).
+fn normals(n: usize, seed: u64) -> Vec<[Vec3; 3]> {
+    (0..n as u64)
+        .map(|i| {
+            let k = SampleKey::independent(i, 1, seed);
+            [0, 3, 6].map(|d| Vec3::new(k.get1d(d) - 0.5, k.get1d(d + 1) - 0.5, 1.0).normalize())
+        })
+        .collect()
 }
 
 proptest! {
@@ -188,6 +199,7 @@ proptest! {
             geometry: TriangleSet {
                 ids: (0..verts.len() as u32).collect(),
                 material: vec![0; verts.len()],
+                normals: if job.is_multiple_of(2) { normals(verts.len(), job) } else { Vec::new() },
                 verts,
             },
         })));
@@ -197,7 +209,7 @@ proptest! {
     fn control_messages_roundtrip(n in 1usize..40, seed in any::<u64>(), workers in 1u16..6, count in any::<u32>(), reason in ".{0,40}") {
         let s = setup(n, seed, workers);
         let t = tris(n, seed);
-        let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n] };
+        let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n], normals: normals(n, seed) };
         let tile = TileAssignment { job: seed, tile: count, pass: workers as u32 % 8, samples: [count / 2, count], x0: 0, y0: 0, x1: 4, y1: 3 };
         for m in [
             SchedulerToWorker::Welcome { worker: count, heartbeat_ms: count / 3 },
@@ -234,6 +246,7 @@ proptest! {
             settings: RenderSettings { seed, ..Default::default() },
             materials: vec![Material { name: reason.clone(), albedo: Vec3::splat(0.3), emission: Vec3::ZERO }],
             tri_material: vec![0; n],
+            tri_normals: normals(n, seed),
             tris: t,
             options: JobOptions { workers, partitioner: Partitioner::Morton, cost_model: CostModel::Analytic, ..Default::default() },
             load_s: 0.25,
@@ -241,8 +254,8 @@ proptest! {
         let req_again = req.clone();
         roundtrip(&Opening::Submit(Box::new(req)));
         roundtrip(&Opening::Attach { job: seed });
-        roundtrip(&Opening::SubmitInParts { request: Box::new(JobRequest { tris: Vec::new(), tri_material: Vec::new(), ..req_again.clone() }), triangles: seed });
-        roundtrip(&locus_protocol::submit::TrianglePart { tris: req_again.tris.clone(), material: req_again.tri_material.clone() });
+        roundtrip(&Opening::SubmitInParts { request: Box::new(JobRequest { tris: Vec::new(), tri_material: Vec::new(), tri_normals: Vec::new(), ..req_again.clone() }), triangles: seed, normals: true });
+        roundtrip(&locus_protocol::submit::TrianglePart { tris: req_again.tris.clone(), material: req_again.tri_material.clone(), normals: req_again.tri_normals.clone() });
         let report = FarmReport { scene: reason.clone(), seed, load_imbalance: n as f64, ..Default::default() };
         for m in [
             SchedulerToClient::Accepted { job: seed, workers },

@@ -20,6 +20,7 @@ pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobR
         materials: scene.materials,
         tris: std::mem::take(&mut scene.tris),
         tri_material: std::mem::take(&mut scene.tri_material),
+        tri_normals: std::mem::take(&mut scene.tri_normals),
         options,
         load_s,
     }
@@ -142,6 +143,7 @@ pub fn request(scene: &Scene, options: JobOptions) -> JobRequest {
         materials: scene.materials.clone(),
         tris: scene.tris.clone(),
         tri_material: scene.tri_material.clone(),
+        tri_normals: scene.tri_normals.clone(),
         options,
         load_s: 0.0,
     }
@@ -259,7 +261,12 @@ async fn send_request(
         .context("submit: connecting to the scheduler")?;
     let name = req.name.clone();
     let sending = || format!("submit: sending {name}");
-    let part = part.max(1);
+    // Shading normals nearly double a triangle: half as many per part.
+    let part = if req.tri_normals.is_empty() {
+        part.max(1)
+    } else {
+        (part / 2).max(1)
+    };
     if req.tris.len() <= part {
         conn.write_msg(&Opening::Submit(Box::new(req)))
             .await
@@ -268,16 +275,22 @@ async fn send_request(
     }
     let tris = std::mem::take(&mut req.tris);
     let material = std::mem::take(&mut req.tri_material);
+    let normals = std::mem::take(&mut req.tri_normals);
     conn.write_msg(&Opening::SubmitInParts {
         request: Box::new(req),
         triangles: tris.len() as u64,
+        normals: !normals.is_empty(),
     })
     .await
     .with_context(sending)?;
-    for (t, m) in tris.chunks(part).zip(material.chunks(part)) {
+    for (k, (t, m)) in tris.chunks(part).zip(material.chunks(part)).enumerate() {
         let p = TrianglePart {
             tris: t.to_vec(),
             material: m.to_vec(),
+            normals: normals
+                .chunks(part)
+                .nth(k)
+                .map_or_else(Vec::new, <[_]>::to_vec),
         };
         conn.write_msg(&p).await.with_context(sending)?;
     }

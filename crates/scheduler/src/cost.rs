@@ -15,7 +15,7 @@
 use locus_core::accel::{Accel, Hit};
 use locus_core::accel_set::AccelSet;
 use locus_core::geometry::Ray;
-use locus_core::integrator::{DIM_PIXEL, PathRay, shade};
+use locus_core::integrator::{DIM_PIXEL, PathRay, interpolate_normal, shade};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::sampler::SampleKey;
@@ -197,7 +197,18 @@ pub fn preview(
                         };
                         let i = hit.tri as usize;
                         let mat = &scene.materials[scene.tri_material[i] as usize];
-                        let s = shade(&q, &hit, &scene.tris[i], mat, lights, bounces, None);
+                        let s = shade(
+                            &q,
+                            &hit,
+                            &scene.tris[i],
+                            scene.tri_normals.get(i).map_or(glam::Vec3::ZERO, |n| {
+                                interpolate_normal(n, hit.b1, hit.b2)
+                            }),
+                            mat,
+                            lights,
+                            bounces,
+                            None,
+                        );
                         if let Some(sr) = s.shadow {
                             t.rays += 1;
                             leafwise(tree, accel, &sr.ray, sr.t_max, true, &mut t);

@@ -4,6 +4,7 @@
 //! neither side ever holds a second copy of a whole region.
 
 use crate::job::Prepared;
+use locus_core::geometry::FLAT;
 use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
 use locus_protocol::submit::JobRequest;
 use tokio::sync::mpsc;
@@ -57,6 +58,7 @@ pub fn ship(
             own_leaves: own,
             leaf_tris: prep.leaf_tris.clone(),
             region_triangles: prep.region_triangles[w],
+            normals: !prep.scene.tri_normals.is_empty(),
         };
         let scene = prep.scene.clone();
         tokio::spawn(async move {
@@ -77,7 +79,8 @@ pub fn ship(
                 let mut chunk = TriangleSet::with_capacity(ids.len());
                 for id in ids {
                     let i = id as usize;
-                    chunk.push(id, scene.tris[i], scene.tri_material[i]);
+                    let n = scene.tri_normals.get(i).copied().unwrap_or(FLAT);
+                    chunk.push(id, scene.tris[i], scene.tri_material[i], n);
                 }
                 tx.send(SchedulerToWorker::Geometry {
                     job: id,

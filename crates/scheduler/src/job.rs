@@ -5,6 +5,7 @@
 
 use crate::{cost, memory, partition};
 use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
+use locus_core::geometry::FLAT;
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
@@ -12,7 +13,6 @@ use locus_core::region::WorkerId;
 use locus_core::scene::{LoadStats, Scene};
 use locus_protocol::control::MemoryPlan;
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
-use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobRequest, Partitioner};
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -92,6 +92,20 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
             req.tris.len(),
             req.tri_material.len()
         ));
+    }
+    if !req.tri_normals.is_empty() && req.tri_normals.len() != req.tris.len() {
+        return Err(format!(
+            "{} triangles but {} sets of shading normals",
+            req.tris.len(),
+            req.tri_normals.len()
+        ));
+    }
+    if let Some(i) = req
+        .tri_normals
+        .iter()
+        .position(|t| t.iter().any(|n| !n.is_finite()))
+    {
+        return Err(format!("triangle {i} has a non-finite shading normal"));
     }
     if let Some(i) = req
         .tri_material
@@ -181,6 +195,7 @@ pub fn scene_of(req: &mut JobRequest) -> Arc<Scene> {
         materials: req.materials.clone(),
         tris: std::mem::take(&mut req.tris),
         tri_material: std::mem::take(&mut req.tri_material),
+        tri_normals: std::mem::take(&mut req.tri_normals),
         load_stats: LoadStats::default(),
     })
 }
@@ -201,13 +216,14 @@ pub fn prepare(
     let tree = octree_for(&scene, workers);
     let octree_s = t_oct.elapsed().as_secs_f64();
     let caches = options.cache.is_some();
+    let tb = memory::TriangleBytes::of(!scene.tri_normals.is_empty());
     let usable: Vec<Option<u64>> = members
         .iter()
         .map(|m| memory::usable(m.budget, m.resident))
         .collect();
     let caps: Vec<Option<u64>> = usable
         .iter()
-        .map(|&u| memory::region_cap(u, caches))
+        .map(|&u| memory::region_cap(u, caches, tb))
         .collect();
     let cores: f64 = members.iter().map(|m| m.cores.max(1) as f64).sum();
     let targets: Vec<f64> = members
@@ -223,7 +239,7 @@ pub fn prepare(
     // draw them); `adaptive` does when the preview predicts that the rays
     // would cost more bytes than the geometry (see [`buying_pays`]).
     let fits_everywhere = workers > 1
-        && all_refs * memory::REGION_BYTES_PER_TRIANGLE <= options.fetch_budget
+        && all_refs * tb.region <= options.fetch_budget
         && caps.iter().all(|c| c.is_none_or(|c| c >= all_refs));
     let replicate_now = options.fetch == FetchPolicy::Fetch && fits_everywhere;
     let t_pre = Instant::now();
@@ -239,7 +255,11 @@ pub fn prepare(
                 .enumerate()
                 .map(|(i, l)| (i as u32, l.tris.as_slice()))
                 .collect();
-            let tri = |id: u32| (scene.tris[id as usize], scene.tri_material[id as usize]);
+            let tri = |id: u32| {
+                let i = id as usize;
+                let n = scene.tri_normals.get(i).copied().unwrap_or(FLAT);
+                (scene.tris[i], scene.tri_material[i], n)
+            };
             let accel = AccelSet::from_parts(build_parts(
                 &leaves,
                 PREVIEW_PART.max(scene.tris.len().div_ceil(MAX_PARTS)),
@@ -278,7 +298,7 @@ pub fn prepare(
                 &crossings,
                 &owner,
                 workers,
-                all_refs,
+                all_refs * tb.shipped,
                 samples,
                 preview_paths,
             ));
@@ -329,6 +349,7 @@ pub fn prepare(
             held,
             options.cache.map(|c| c.max_nodes_total as u64),
             options.fetch_budget,
+            tb,
         );
         let (p, n) = cut_parts(held_leaves, plan.part_triangles as u64);
         plans.push(plan);
@@ -374,13 +395,14 @@ pub fn prepare(
 /// the preview: whether the queries the partition `owner` would forward
 /// (each preview crossing between two workers' leaves, scaled from the
 /// preview's `paths` to the job's `samples`) cost more bytes than shipping
-/// every worker the triangle references it lacks. Without a preview it
-/// cannot tell, and rents (the workers decide leaf by leaf as they go).
+/// every worker the triangle references it lacks (`scene_bytes`, all the
+/// references as shipped). Without a preview it cannot tell, and rents
+/// (the workers decide leaf by leaf as they go).
 pub fn buying_pays(
     crossings: &HashMap<(u32, u32), u32>,
     owner: &[WorkerId],
     workers: usize,
-    all_refs: u64,
+    scene_bytes: u64,
     samples: u64,
     paths: u64,
 ) -> bool {
@@ -394,7 +416,7 @@ pub fn buying_pays(
         .sum();
     let rent = cut as f64 * (samples as f64 / paths as f64) * TYPICAL_FORWARD_BYTES as f64;
     // Each worker lacks everything but its own references.
-    let buy = (workers.saturating_sub(1) as u64 * all_refs) as f64 * TRIANGLE_WIRE_BYTES as f64;
+    let buy = (workers.saturating_sub(1) as u64 * scene_bytes) as f64;
     rent >= buy
 }
 
@@ -435,6 +457,7 @@ pub fn part_triangles(run: &[(u32, Vec<u32>)]) -> Vec<u32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use locus_core::geometry::TRIANGLE_BYTES;
 
     /// Rent or buy for the whole scene: buying pays once the predicted
     /// forwards cost as many bytes as the references every worker lacks.
@@ -444,8 +467,8 @@ mod tests {
         // between 1 and 2 separates workers.
         let owner = [0u16, 0, 1];
         let crossings: HashMap<(u32, u32), u32> = [((0, 1), 1000), ((1, 2), 10)].into();
-        let refs = 3000u64;
-        let buy = refs * TRIANGLE_WIRE_BYTES;
+        let buy = 3000 * TRIANGLE_BYTES;
+        let refs = buy;
         // 10 preview crossings per 100 paths: the job forwards samples / 10.
         let samples_even = buy * 10 / TYPICAL_FORWARD_BYTES + 10;
         assert!(buying_pays(&crossings, &owner, 2, refs, samples_even, 100));

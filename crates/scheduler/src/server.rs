@@ -7,6 +7,7 @@
 //! client closing it cancels the job.
 
 use crate::actor::Event;
+use locus_core::geometry::NORMALS_BYTES;
 use locus_protocol::control::{
     HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
 };
@@ -61,18 +62,20 @@ pub(crate) async fn serve(
         None => Ok(()),
         Some(Opening::Register(reg)) => worker(conn, id, reg, sh).await,
         Some(Opening::Submit(req)) => submitted(conn, req, sh).await,
-        Some(Opening::SubmitInParts { request, triangles }) => {
-            match receive_parts(&mut conn, request, triangles).await {
-                Ok(req) => submitted(conn, req, sh).await,
-                Err(reason) => {
-                    info!(peer = %conn.peer(), "request refused: {reason}");
-                    let _ = conn
-                        .write_msg(&SchedulerToClient::Failed { job: 0, reason })
-                        .await;
-                    Ok(())
-                }
+        Some(Opening::SubmitInParts {
+            request,
+            triangles,
+            normals,
+        }) => match receive_parts(&mut conn, request, triangles, normals).await {
+            Ok(req) => submitted(conn, req, sh).await,
+            Err(reason) => {
+                info!(peer = %conn.peer(), "request refused: {reason}");
+                let _ = conn
+                    .write_msg(&SchedulerToClient::Failed { job: 0, reason })
+                    .await;
+                Ok(())
             }
-        }
+        },
         Some(Opening::Attach { job }) => {
             client(conn, |client| Event::Attach { job, client }, sh).await
         }
@@ -167,16 +170,19 @@ async fn read_worker(mut r: ConnReader, id: u32, sh: &Shared) -> String {
 /// How long the next part of a request may take to arrive.
 const PART_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// Reads the `triangles` triangles of a request sent in parts; refuses a
-/// request the memory available cannot hold (its triangles twice: the
-/// request, and the store's copy as it is written), a part longer than
-/// announced or whose lists differ in length, and a link that stalls.
+/// Reads the `triangles` triangles of a request sent in parts (each with
+/// its shading normals when `normals`); refuses a request the memory
+/// available cannot hold (its triangles twice: the request, and the
+/// store's copy as it is written), a part longer than announced or whose
+/// lists differ in length, and a link that stalls.
 async fn receive_parts(
     conn: &mut Connection,
     mut req: Box<JobRequest>,
     triangles: u64,
+    normals: bool,
 ) -> Result<Box<JobRequest>, String> {
-    let bytes = triangles.saturating_mul(2 * TRIANGLE_REQUEST_BYTES);
+    let each = TRIANGLE_REQUEST_BYTES + if normals { NORMALS_BYTES } else { 0 };
+    let bytes = triangles.saturating_mul(2 * each);
     if let Some(have) = locus_core::limits::available_memory()
         && bytes > have
     {
@@ -189,6 +195,7 @@ async fn receive_parts(
     }
     req.tris.clear();
     req.tri_material.clear();
+    req.tri_normals.clear();
     while (req.tris.len() as u64) < triangles {
         let part =
             tokio::time::timeout(PART_TIMEOUT, conn.read_msg::<TrianglePart>("request part"))
@@ -197,11 +204,18 @@ async fn receive_parts(
                 .map_err(|e| e.to_string())?
                 .ok_or("the client closed the connection within its request")?;
         let left = triangles - req.tris.len() as u64;
-        if part.tris.len() != part.material.len() || part.tris.len() as u64 > left {
+        let shading = if normals { part.tris.len() } else { 0 };
+        if part.tris.len() != part.material.len()
+            || part.normals.len() != shading
+            || part.tris.len() as u64 > left
+        {
             return Err(format!(
-                "a request part of {} triangles and {} materials, with {left} triangles left",
+                "a request part of {} triangles, {} materials and {} sets of normals \
+                 (announced: {}), with {left} triangles left",
                 part.tris.len(),
-                part.material.len()
+                part.material.len(),
+                part.normals.len(),
+                if normals { "with normals" } else { "without" }
             ));
         }
         if part.tris.is_empty() {
@@ -209,6 +223,7 @@ async fn receive_parts(
         }
         req.tris.extend_from_slice(&part.tris);
         req.tri_material.extend_from_slice(&part.material);
+        req.tri_normals.extend_from_slice(&part.normals);
     }
     Ok(req)
 }

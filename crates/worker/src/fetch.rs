@@ -17,12 +17,11 @@
 //! are forwarded. Nothing is evicted, so a leaf once held stays for the job.
 
 use locus_core::accel::Accel;
-use locus_core::geometry::TriangleSet;
+use locus_core::geometry::{NORMALS_BYTES, TriangleSet, triangle_bytes};
 use locus_core::path::RayKind;
 use locus_core::region::WorkerId;
 use locus_protocol::control::JobSetup;
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
-use locus_protocol::rays::TRIANGLE_WIRE_BYTES;
 use locus_protocol::submit::FetchPolicy;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering::Relaxed};
 
@@ -38,10 +37,11 @@ pub struct FetchedLeaf {
 impl FetchedLeaf {
     pub fn build(leaf: u32, geometry: TriangleSet, magnitude: f32) -> Self {
         let ids = geometry.ids.clone();
+        let normals = !geometry.normals.is_empty();
         let accel = Accel::from_set(geometry, magnitude);
         let bytes = (accel.bytes() + ids.len() * 4 + std::mem::size_of::<Self>()) as u64;
         debug_assert!(
-            bytes <= ids.len() as u64 * TRIANGLE_HELD_BYTES + LEAF_HELD_BYTES,
+            bytes <= ids.len() as u64 * held_bytes(normals) + LEAF_HELD_BYTES,
             "the held estimate must bound what a leaf holds"
         );
         Self {
@@ -63,8 +63,14 @@ impl FetchedLeaf {
 const FORWARD_COST: u64 = TYPICAL_FORWARD_BYTES;
 /// At most the bytes a fetched triangle holds in memory: vertices, id,
 /// material and index entry (48), a BVH node at worst (80), and its place
-/// in the leaf's id list (4).
+/// in the leaf's id list (4); its shading normals (36) besides when the
+/// scene has them.
 pub const TRIANGLE_HELD_BYTES: u64 = 132;
+
+/// [`TRIANGLE_HELD_BYTES`] for a scene with or without shading normals.
+pub fn held_bytes(normals: bool) -> u64 {
+    TRIANGLE_HELD_BYTES + if normals { NORMALS_BYTES } else { 0 }
+}
 /// At most the bytes a fetched leaf holds besides its triangles.
 pub const LEAF_HELD_BYTES: u64 = 512;
 
@@ -78,6 +84,10 @@ pub struct Locality {
     forwards: Vec<AtomicU32>,
     /// Wire bytes of each leaf's geometry (adaptive).
     leaf_cost: Vec<u64>,
+    /// Bytes a triangle takes on the wire and held, with the scene's
+    /// shading normals if it has them.
+    wire_bytes: u64,
+    held_bytes: u64,
     /// Leaves this worker will not fetch (no room left): always forwarded.
     refused: Vec<AtomicBool>,
 }
@@ -103,8 +113,13 @@ impl Locality {
             near,
             forwards: (0..n).map(|_| AtomicU32::new(0)).collect(),
             leaf_cost: (0..n)
-                .map(|l| setup.leaf_tris.get(l).copied().unwrap_or(0) as u64 * TRIANGLE_WIRE_BYTES)
+                .map(|l| {
+                    setup.leaf_tris.get(l).copied().unwrap_or(0) as u64
+                        * triangle_bytes(setup.normals)
+                })
                 .collect(),
+            wire_bytes: triangle_bytes(setup.normals),
+            held_bytes: held_bytes(setup.normals),
             refused: (0..n).map(|_| AtomicBool::new(false)).collect(),
         }
     }
@@ -137,8 +152,7 @@ impl Locality {
     /// At most the bytes `leaf` will hold here once fetched: what its
     /// request reserves, so that what a worker holds never passes its plan.
     pub fn held_estimate(&self, leaf: u32) -> u64 {
-        self.leaf_cost.get(leaf as usize).copied().unwrap_or(0) / TRIANGLE_WIRE_BYTES
-            * TRIANGLE_HELD_BYTES
+        self.leaf_cost.get(leaf as usize).copied().unwrap_or(0) / self.wire_bytes * self.held_bytes
             + LEAF_HELD_BYTES
     }
 }

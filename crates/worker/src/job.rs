@@ -74,6 +74,9 @@ impl Building {
         if chunk.verts.iter().flatten().any(|p| !p.is_finite()) {
             bail!("region geometry has a non-finite vertex");
         }
+        if chunk.normals.iter().flatten().any(|n| !n.is_finite()) {
+            bail!("region geometry has a non-finite shading normal");
+        }
         if !chunk.ids.is_sorted_by(|a, b| a < b) {
             bail!("a region part's triangle ids are not ascending and distinct");
         }

@@ -105,20 +105,21 @@ pub struct LeafSource<'a> {
 /// each kept once.
 fn build_run(run: &[LeafSource], magnitude: f32) -> Arc<Part> {
     let n: usize = run.iter().map(|s| s.ids.len()).sum();
-    let mut tris: Vec<(u32, [glam::Vec3; 3], u32)> = Vec::with_capacity(n);
+    type Tri = (u32, [glam::Vec3; 3], u32, [glam::Vec3; 3]);
+    let mut tris: Vec<Tri> = Vec::with_capacity(n);
     for s in run {
         for &id in s.ids {
             if let Some(p) = s.accel.find(id) {
                 let (v, m) = s.accel.triangle(p);
-                tris.push((id, v, m));
+                tris.push((id, v, m, s.accel.shading(p)));
             }
         }
     }
     tris.sort_unstable_by_key(|t| t.0);
     tris.dedup_by_key(|t| t.0);
     let mut set = TriangleSet::with_capacity(tris.len());
-    for (id, v, m) in tris {
-        set.push(id, v, m);
+    for (id, v, m, sn) in tris {
+        set.push(id, v, m, sn);
     }
     let leaves = run.iter().map(|s| s.leaf).collect();
     Arc::new(Part::new(Accel::from_set(set, magnitude), leaves))
@@ -263,6 +264,7 @@ mod tests {
                 ids: ids.clone(),
                 verts: ids.iter().map(|&i| tris[i as usize]).collect(),
                 material: vec![0; ids.len()],
+                normals: Vec::new(),
             };
             Arc::new(FetchedLeaf::build(l, set, 12.0))
         };
@@ -271,7 +273,7 @@ mod tests {
             .filter(|l| l % 3 == 0)
             .map(|l| (l, oct.leaves[l as usize].tris.as_slice()))
             .collect();
-        let tri = |id: u32| (tris[id as usize], 0);
+        let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
         let mut parts = locus_core::accel_set::build_parts(&own, 150, 12.0, &tri);
         let first = parts.len();
         // Fetch the rest in two rounds.

@@ -75,6 +75,7 @@ fn fetched_leaves(tris: &[[Vec3; 3]], tree: &Octree, magnitude: f32) -> Vec<Arc<
                 ids: l.tris.clone(),
                 verts: l.tris.iter().map(|&t| tris[t as usize]).collect(),
                 material: vec![0; l.tris.len()],
+                normals: Vec::new(),
             };
             Arc::new(FetchedLeaf::build(i as u32, g, magnitude))
         })

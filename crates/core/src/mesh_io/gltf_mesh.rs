@@ -187,12 +187,47 @@ fn add_primitive(
             });
         }
     }
+    // Normals, when the primitive has them: one per position, through the
+    // inverse transpose of the node's matrix.
+    let normals: Option<Vec<Vec3>> = match prim.get(&gltf::Semantic::Normals) {
+        None => None,
+        Some(a) => {
+            check_accessor(&a, &[DataType::F32], Dimensions::Vec3, buffers)
+                .map_err(|why| invalid(format!("{} NORMAL", elem()), why))?;
+            if a.count() != pos.len() {
+                return Err(invalid(
+                    format!("{} NORMAL", elem()),
+                    format!("{} normals for {} positions", a.count(), pos.len()),
+                ));
+            }
+            let nxf = glam::Mat3::from_mat4(world).inverse().transpose();
+            let n: Vec<Vec3> = reader
+                .read_normals()
+                .ok_or_else(|| invalid(elem(), "NORMAL cannot be read".into()))?
+                .map(Vec3::from)
+                .collect();
+            if let Some((i, v)) = n.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+                return Err(SceneError::NonFinite {
+                    file: file(),
+                    location: Location::Element(format!("{} NORMAL[{i}]", elem())),
+                    what: format!("{v}"),
+                });
+            }
+            Some(n.into_iter().map(|v| nxf * v).collect())
+        }
+    };
     let idx: Vec<u32> = match (indices, reader.read_indices()) {
         (None, _) => (0..pos.len() as u32).collect(),
         (Some(_), Some(r)) => r.into_u32().collect(),
         (Some(_), None) => return Err(invalid(elem(), "indices cannot be read".into())),
     };
     let base = out.positions.len() as u32;
+    let nbase = out.normals.len() as u32;
+    if normals.is_some() && out.tri_normals.len() < out.triangles.len() {
+        // Earlier primitives had none.
+        out.tri_normals
+            .resize(out.triangles.len(), super::NO_NORMAL);
+    }
     for (k, t) in idx.chunks_exact(3).enumerate() {
         for &i in t {
             if i as usize >= pos.len() {
@@ -207,8 +242,15 @@ fn add_primitive(
         out.triangles.push([base + t[0], base + t[1], base + t[2]]);
         out.tri_material
             .push(prim.material().index().map(|i| i as u32));
+        if normals.is_some() {
+            out.tri_normals
+                .push([nbase + t[0], nbase + t[1], nbase + t[2]]);
+        } else if !out.tri_normals.is_empty() {
+            out.tri_normals.push(super::NO_NORMAL);
+        }
     }
     out.positions.extend(pos);
+    out.normals.extend(normals.unwrap_or_default());
     Ok(())
 }
 

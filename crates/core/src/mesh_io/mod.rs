@@ -1,11 +1,13 @@
 //! Mesh file loaders: OBJ/MTL (tobj), PLY (ply-rs-bw) and glTF 2.0 (gltf).
 //!
 //! Each returns a [`MeshData`]: shared vertex positions, triangles as
-//! vertex indices, and per-triangle file material. Positions stay shared
-//! so that neighbouring triangles carry bit-identical vertices, which the
-//! watertight triangle test relies on. Every loader checks coordinates
-//! for NaN/inf and indices for range, and reports the line (OBJ, ASCII
-//! PLY) or element (binary PLY, glTF) of the first offence.
+//! vertex indices, per-triangle file material, and the file's vertex
+//! normals where it has them (OBJ `vn`, PLY `nx ny nz`, glTF `NORMAL`),
+//! which become shading normals. Positions stay shared so that
+//! neighbouring triangles carry bit-identical vertices, which the
+//! watertight triangle test relies on. Every loader checks coordinates and
+//! normals for NaN/inf and indices for range, and reports the line (OBJ,
+//! ASCII PLY) or element (binary PLY, glTF) of the first offence.
 
 mod gltf_check;
 mod gltf_mesh;
@@ -42,6 +44,29 @@ pub struct MeshData {
     /// Index into `materials` per triangle, if the file assigns one.
     pub tri_material: Vec<Option<u32>>,
     pub materials: Vec<FileMaterial>,
+    /// Vertex normals as the file gives them (not normalised).
+    pub normals: Vec<Vec3>,
+    /// Per triangle, its vertices' indices into `normals` ([`NO_NORMAL`]
+    /// for a triangle without); empty when no triangle has normals.
+    pub tri_normals: Vec<[u32; 3]>,
+}
+
+/// A triangle's entry in [`MeshData::tri_normals`] when it has no normals.
+pub const NO_NORMAL: [u32; 3] = [u32::MAX; 3];
+
+/// The three components of a normal or a position, parsed and checked.
+fn finite3(comps: &[&str]) -> Result<[f32; 3], String> {
+    if comps.len() < 3 {
+        return Err(format!("needs 3 components, found {}", comps.len()));
+    }
+    let mut v = [0f32; 3];
+    for (c, x) in comps[..3].iter().zip(&mut v) {
+        *x = c.parse().map_err(|_| format!("'{c}' is not a number"))?;
+        if !x.is_finite() {
+            return Err(format!("{c} is not finite"));
+        }
+    }
+    Ok(v)
 }
 
 pub fn load(path: &Path) -> Result<MeshData, SceneError> {
@@ -105,11 +130,14 @@ fn check_refs(v: &str, counts: [i64; 3]) -> Result<(), (Option<i64>, usize)> {
 /// a user can make: unparsable or non-finite positions, face (line, point)
 /// indices of positions, texture coordinates or normals that are malformed
 /// or out of range, and missing material libraries.
-fn validate_obj(path: &Path, text: &str) -> Result<(), SceneError> {
+/// Returns whether every face gives a normal at every vertex: only then
+/// are the file's normals used (tobj makes up the missing ones).
+fn validate_obj(path: &Path, text: &str) -> Result<bool, SceneError> {
     let file = || path.to_path_buf();
     // Positions, texture coordinates and normals so far: what a face may
     // refer to.
     let mut counts = [0i64; 3];
+    let mut every_face_has_normals = true;
     for (i, raw) in text.lines().enumerate() {
         let loc = || Location::line(i + 1);
         let line = raw.split('#').next().unwrap_or("").trim();
@@ -143,6 +171,9 @@ fn validate_obj(path: &Path, text: &str) -> Result<(), SceneError> {
             Some(kind @ ("f" | "l" | "p")) => {
                 let mut count = 0;
                 for v in it {
+                    if kind == "f" && v.split('/').nth(2).is_none_or(str::is_empty) {
+                        every_face_has_normals = false;
+                    }
                     check_refs(v, counts).map_err(|(index, count)| match index {
                         Some(index) => SceneError::IndexOutOfRange {
                             file: file(),
@@ -172,8 +203,15 @@ fn validate_obj(path: &Path, text: &str) -> Result<(), SceneError> {
                     });
                 }
             }
-            Some(kind @ ("vt" | "vn")) => {
-                counts[if kind == "vt" { 1 } else { 2 }] += 1;
+            Some("vt") => counts[1] += 1,
+            Some("vn") => {
+                let comps: Vec<&str> = it.collect();
+                finite3(&comps).map_err(|message| SceneError::Syntax {
+                    file: file(),
+                    location: loc(),
+                    message: format!("normal {message}"),
+                })?;
+                counts[2] += 1;
             }
             Some("mtllib") => {
                 let name = line["mtllib".len()..].trim();
@@ -189,12 +227,15 @@ fn validate_obj(path: &Path, text: &str) -> Result<(), SceneError> {
             _ => {}
         }
     }
-    Ok(())
+    Ok(every_face_has_normals && counts[2] > 0)
 }
 
 fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
     let text = read_text(path)?;
-    validate_obj(path, &text)?;
+    let normals = validate_obj(path, &text)?;
+    if !normals && text.lines().any(|l| l.trim_start().starts_with("vn")) {
+        tracing::info!(file = %path.display(), "some faces give no normals: the file is shaded flat");
+    }
     let opts = tobj::LoadOptions {
         triangulate: true,
         single_index: false,
@@ -249,9 +290,24 @@ fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
             .material_id
             .map(|i| i as u32)
             .filter(|&i| (i as usize) < out.materials.len());
-        for t in m.mesh.indices.chunks_exact(3) {
+        let nbase = out.normals.len() as u32;
+        let with_normals = normals && m.mesh.normal_indices.len() == m.mesh.indices.len();
+        if with_normals {
+            for n in m.mesh.normals.chunks_exact(3) {
+                out.normals.push(Vec3::new(n[0], n[1], n[2]));
+            }
+        }
+        for (k, t) in m.mesh.indices.chunks_exact(3).enumerate() {
             out.triangles.push([base + t[0], base + t[1], base + t[2]]);
             out.tri_material.push(mat);
+            if normals {
+                out.tri_normals.push(if with_normals {
+                    let n = &m.mesh.normal_indices[3 * k..3 * k + 3];
+                    [nbase + n[0], nbase + n[1], nbase + n[2]]
+                } else {
+                    NO_NORMAL
+                });
+            }
         }
     }
     Ok(out)
@@ -445,6 +501,29 @@ fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
             c[k] = x;
         }
         out.positions.push(Vec3::from(c));
+        // Normals are used when the vertices carry all three components.
+        let comps: Vec<Option<f32>> = ["nx", "ny", "nz"]
+            .iter()
+            .map(|name| v.get(*name).and_then(Property::to_f32_lossy))
+            .collect();
+        if let [Some(x), Some(y), Some(z)] = comps[..] {
+            let nv = Vec3::new(x, y, z);
+            if !nv.is_finite() {
+                return Err(SceneError::NonFinite {
+                    file: file(),
+                    location: Location::Element(format!("vertex {i}")),
+                    what: format!("normal {nv}"),
+                });
+            }
+            if out.normals.len() == i {
+                out.normals.push(nv);
+            }
+        }
+    }
+    // All or nothing: a file whose vertices do not all carry normals is
+    // shaded flat.
+    if out.normals.len() != out.positions.len() {
+        out.normals.clear();
     }
     let n = out.positions.len();
     for (i, f) in faces.iter().enumerate() {
@@ -483,9 +562,12 @@ fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
             }
         }
         for j in 1..idx.len() - 1 {
-            out.triangles
-                .push([idx[0] as u32, idx[j] as u32, idx[j + 1] as u32]);
+            let t = [idx[0] as u32, idx[j] as u32, idx[j + 1] as u32];
+            out.triangles.push(t);
             out.tri_material.push(None);
+            if !out.normals.is_empty() {
+                out.tri_normals.push(t);
+            }
         }
     }
     Ok(out)

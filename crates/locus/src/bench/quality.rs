@@ -15,6 +15,7 @@
 //! time, log-log).
 
 use anyhow::{Context, Result, bail};
+use locus_core::geometry::FLAT;
 use locus_core::image_io::Image;
 use locus_core::metrics::compare;
 use locus_core::render::{Prepared, RenderOptions, render};
@@ -162,9 +163,15 @@ fn content_hash(scene: &Scene) -> u64 {
                 .flat_map(|v| v.to_array())
                 .chain([f32::from_bits(m)])
         });
+    let normals = scene
+        .tri_normals
+        .iter()
+        .flatten()
+        .flat_map(|n| n.to_array());
     camera
         .chain(materials)
         .chain(tris)
+        .chain(normals)
         .fold(scene.tris.len() as u64, |h, x| {
             mix64(h ^ x.to_bits() as u64)
         })
@@ -336,33 +343,45 @@ struct Spec {
 }
 
 /// The scene for Mitsuba: one binary PLY of unshared triangles per
-/// material, and the spec the script reads.
+/// material (with vertex normals when the scene has shading normals; a flat
+/// triangle's are its face normal), and the spec the script reads.
 fn export(scene: &Scene, dir: &Path, plan: &Plan, mi: &Mitsuba) -> Result<Spec> {
     let mut meshes = Vec::new();
+    let shaded = !scene.tri_normals.is_empty();
     for (m, mat) in scene.materials.iter().enumerate() {
-        let tris: Vec<_> = scene
-            .tris
-            .iter()
-            .zip(&scene.tri_material)
-            .filter(|(_, k)| **k as usize == m)
-            .map(|(t, _)| t)
+        let tris: Vec<usize> = (0..scene.tris.len())
+            .filter(|&i| scene.tri_material[i] as usize == m)
             .collect();
         if tris.is_empty() {
             continue;
         }
         let name = format!("mesh{m}.ply");
+        let normal_props = if shaded {
+            "property float nx\nproperty float ny\nproperty float nz\n"
+        } else {
+            ""
+        };
         let mut b = format!(
             "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\n\
-             property float y\nproperty float z\nelement face {}\n\
+             property float y\nproperty float z\n{normal_props}element face {}\n\
              property list uchar int vertex_indices\nend_header\n",
             tris.len() * 3,
             tris.len()
         )
         .into_bytes();
-        for t in &tris {
-            for v in t.iter() {
+        for &i in &tris {
+            let t = &scene.tris[i];
+            let face = locus_core::geometry::tri_cross(t).normalize();
+            let n = scene.tri_normals.get(i).copied().unwrap_or(FLAT);
+            for (k, v) in t.iter().enumerate() {
                 for c in v.to_array() {
                     b.extend_from_slice(&c.to_le_bytes());
+                }
+                if shaded {
+                    let nv = if n == FLAT { face } else { n[k] };
+                    for c in nv.to_array() {
+                        b.extend_from_slice(&c.to_le_bytes());
+                    }
                 }
             }
         }

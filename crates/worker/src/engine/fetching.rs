@@ -187,11 +187,15 @@ impl<'a> Engine<'a> {
                 .find(|p| p.leaves.binary_search(&leaf).is_ok());
             let mut g = TriangleSet::with_capacity(ids.len());
             for &id in ids {
-                let found = part.and_then(|p| Some(p.accel.triangle(p.accel.find(id)?)));
-                let Some((v, m)) = found else {
+                let found = part.and_then(|p| {
+                    let prim = p.accel.find(id)?;
+                    let (v, m) = p.accel.triangle(prim);
+                    Some((v, m, p.accel.shading(prim)))
+                });
+                let Some((v, m, n)) = found else {
                     return Err(EngineError::NotMyLeaf { from, leaf });
                 };
-                g.push(id, v, m);
+                g.push(id, v, m, n);
             }
             self.stats.leaves_served += 1;
             let msg = PeerMsg::Leaf(Box::new(LeafGeometry { leaf, geometry: g }));
@@ -242,6 +246,14 @@ impl<'a> Engine<'a> {
         }
         if g.verts.iter().flatten().any(|p| !p.is_finite()) {
             return Err(bad("it has a non-finite vertex"));
+        }
+        if !g.normals.is_empty() && !job.setup.normals {
+            return Err(bad(
+                "it carries shading normals, which the job's scene has none of",
+            ));
+        }
+        if g.normals.iter().flatten().any(|n| !n.is_finite()) {
+            return Err(bad("it has a non-finite shading normal"));
         }
         if !self.waiting.contains_key(&leaf) {
             return Err(bad("it was not asked for"));
