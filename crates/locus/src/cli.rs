@@ -309,6 +309,12 @@ pub(crate) struct SubmitArgs {
     /// image (the scheduler keeps the last 4 results).
     #[arg(long)]
     pub(crate) detach: bool,
+    /// What the farm computes: a path-traced render, or a radiosity
+    /// solution (the scheduler coordinates, the workers are its nodes).
+    #[arg(long, value_enum, default_value_t = JobKindArg::Render)]
+    pub(crate) kind: JobKindArg,
+    #[command(flatten)]
+    pub(crate) radiosity: RadiositySolveArgs,
     #[command(flatten)]
     pub(crate) farm: FarmArgs,
     #[command(flatten)]
@@ -390,6 +396,31 @@ pub(crate) struct RadiosityArgs {
     pub(crate) scene: PathBuf,
     #[arg(short, long, default_value = "radiosity.exr")]
     pub(crate) output: PathBuf,
+    #[command(flatten)]
+    pub(crate) solve: RadiositySolveArgs,
+    /// Camera rays per pixel of the image (antialiasing only: the solution
+    /// itself is noise-free).
+    #[arg(long, default_value_t = 16)]
+    pub(crate) spp: u32,
+    /// Compute threads (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) threads: usize,
+    /// A converged EXR (a path-traced render) to measure the error against.
+    #[arg(long)]
+    pub(crate) reference: Option<PathBuf>,
+    /// Exposure multiplier for the PNG preview and the PLY's colours.
+    #[arg(long, default_value_t = 1.0)]
+    pub(crate) exposure: f32,
+    /// Solve on a farm of this many nodes in this process (0: on this
+    /// machine's pool); the solution is the same bits.
+    #[arg(long, default_value_t = 0)]
+    pub(crate) workers: u32,
+}
+
+/// How a radiosity solution is computed and laid out on a farm: shared by
+/// `locus radiosity` and `locus submit --kind radiosity`.
+#[derive(clap::Args)]
+pub(crate) struct RadiositySolveArgs {
     /// Patches (the shooters): edges at most the scene's largest extent
     /// divided by this.
     #[arg(long, default_value_t = RADIOSITY.patches)]
@@ -416,23 +447,6 @@ pub(crate) struct RadiosityArgs {
     pub(crate) max_iterations: u64,
     #[arg(long, default_value_t = RADIOSITY.max_elements)]
     pub(crate) max_elements: u64,
-    /// Camera rays per pixel of the image (antialiasing only: the solution
-    /// itself is noise-free).
-    #[arg(long, default_value_t = 16)]
-    pub(crate) spp: u32,
-    /// Compute threads (0: all cores).
-    #[arg(long, default_value_t = 0)]
-    pub(crate) threads: usize,
-    /// A converged EXR (a path-traced render) to measure the error against.
-    #[arg(long)]
-    pub(crate) reference: Option<PathBuf>,
-    /// Exposure multiplier for the PNG preview and the PLY's colours.
-    #[arg(long, default_value_t = 1.0)]
-    pub(crate) exposure: f32,
-    /// Solve on a farm of this many nodes in this process (0: on this
-    /// machine's pool); the solution is the same bits.
-    #[arg(long, default_value_t = 0)]
-    pub(crate) workers: u32,
     /// Nodes per ring: each ring holds the scene once, one region per
     /// node (default: one ring of all nodes).
     #[arg(long)]
@@ -440,6 +454,32 @@ pub(crate) struct RadiosityArgs {
     /// Load balancing on the farm.
     #[arg(long, value_enum, default_value_t = BalanceArg::Both)]
     pub(crate) balance: BalanceArg,
+}
+
+impl RadiositySolveArgs {
+    pub(crate) fn params(&self) -> locus_core::radiosity::RadiosityParams {
+        locus_core::radiosity::RadiosityParams {
+            patches: self.patches,
+            mesh: self.mesh,
+            subdivide: self.subdivide,
+            threshold: self.threshold,
+            shooter_parts: self.parts,
+            stop: self.stop,
+            max_iterations: self.max_iterations,
+            max_elements: self.max_elements,
+        }
+    }
+}
+
+/// What `locus submit` asks the farm for.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum JobKindArg {
+    /// A path-traced image.
+    #[default]
+    Render,
+    /// A progressive refinement radiosity solution, its image from the
+    /// scene's camera and its mesh (PLY).
+    Radiosity,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]

@@ -226,7 +226,7 @@ impl LocalFarm {
         if req.options.workers == 0 {
             req.options.workers = self.workers as u32;
         }
-        let mut collect = client::Collector::new(req.camera.width, req.camera.height);
+        let mut collect = client::Collector::for_request(&req);
         let mut rx = self.handle.submit(req).await?;
         loop {
             if let Some(r) = collect.take(rx.recv().await, progress) {

@@ -77,6 +77,11 @@ pub enum WorkerToScheduler {
     },
     /// The worker is alive, whatever its engine is doing.
     Heartbeat,
+    /// A radiosity node's message to the coordinator.
+    Node {
+        job: u64,
+        msg: Box<crate::radiosity::ToCoordinator>,
+    },
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -115,6 +120,14 @@ pub enum SchedulerToWorker {
     ///
     /// [`Welcome`]: SchedulerToWorker::Welcome
     Heartbeat,
+    /// Be a node of a radiosity job: link to the other nodes, then wait for
+    /// the coordinator's shots.
+    StartNode(Box<crate::radiosity::NodeJob>),
+    /// The coordinator's message to a radiosity node (a shot, `Finish`).
+    Node {
+        job: u64,
+        msg: Box<crate::radiosity::ToNode>,
+    },
 }
 
 /// Heartbeats a link may miss before the other side counts it lost: a

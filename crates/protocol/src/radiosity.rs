@@ -10,9 +10,125 @@
 //! that routes it, which is its origin's ring or, when an idle node took
 //! it by random polling, the helper's.
 
+use locus_core::geometry::TriangleSet;
+use locus_core::radiosity::mesh::Patch;
 use locus_core::radiosity::shoot::{Receipt, Refine, ShotSpec, VisSample};
+use locus_core::radiosity::{Ledger, RadiosityParams, Record};
+use locus_core::region::ProcessorMap;
 use locus_core::stats::TraceStats;
 use serde::{Deserialize, Serialize};
+
+/// Which of the paper's load balancing schemes a farm uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Balance {
+    /// Equal numbers of patches per node, regions of equal leaf counts.
+    None,
+    /// Equal numbers of elements per node (section 4.1), regions of equal
+    /// predicted tracing cost (section 4.2).
+    Static,
+    /// Random polling for sample packets (section 5.2) only.
+    Dynamic,
+    /// Static and dynamic together.
+    Both,
+}
+
+impl Balance {
+    pub const ALL: [Balance; 4] = [
+        Balance::None,
+        Balance::Static,
+        Balance::Dynamic,
+        Balance::Both,
+    ];
+
+    pub fn is_static(self) -> bool {
+        matches!(self, Balance::Static | Balance::Both)
+    }
+
+    pub fn is_dynamic(self) -> bool {
+        matches!(self, Balance::Dynamic | Balance::Both)
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Balance::None => "none",
+            Balance::Static => "static",
+            Balance::Dynamic => "dynamic",
+            Balance::Both => "both",
+        }
+    }
+}
+
+/// A radiosity job as a client asks for it (`locus submit --kind
+/// radiosity`): the scheduler coordinates, the job's workers are its nodes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RadiosityJob {
+    pub params: RadiosityParams,
+    /// Ring length R (0: one ring of all the job's workers).
+    pub ring: u32,
+    pub balance: Balance,
+    /// Samples per pixel of the image rendered from the solution.
+    pub spp: u32,
+}
+
+/// How a radiosity job on the farm went, beside its image and mesh.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RadiosityReport {
+    pub params: RadiosityParams,
+    pub nodes: u32,
+    pub ring: u32,
+    pub balance: Balance,
+    pub patches: u64,
+    pub elements: u64,
+    pub vertices: u64,
+    pub iterations: u64,
+    /// Why iteration stopped.
+    pub stopped: String,
+    pub unshot_fraction: f64,
+    pub ledger: Ledger,
+    pub convergence: Vec<Record>,
+    pub visibility_rays: u64,
+    /// Packets sent around rings, and those routed by a helper's ring.
+    pub packets: u64,
+    pub helped: u64,
+    /// Per node, summed over shots: CPU seconds working, of which helping
+    /// other rings, and seconds waiting or idle.
+    pub node_times: Vec<NodeTime>,
+    pub mesh_s: f64,
+    pub solve_s: f64,
+    pub image_s: f64,
+    /// The meshed solution (each corner's position and radiance): it
+    /// travels in [`crate::submit::SchedulerToClient::Mesh`] runs, not in
+    /// the report, and the client puts it here.
+    #[serde(skip)]
+    pub mesh: Vec<[(glam::Vec3, glam::Vec3); 3]>,
+}
+
+/// A worker's part in a radiosity job: it is node `me` of `nodes`, in
+/// rings of `ring`, holding the region of its ring position and the
+/// patches it computes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NodeJob {
+    /// The run id the job's messages carry.
+    pub job: u64,
+    pub me: NodeId,
+    /// Every node's listen address, by node id.
+    pub peers: Vec<String>,
+    pub ring: u32,
+    /// The octree top with each leaf's ring position as its owner.
+    pub map: ProcessorMap,
+    /// The triangles of this node's ring position.
+    pub region: TriangleSet,
+    /// Largest coordinate of the scene, for BVH padding.
+    pub magnitude: f32,
+    /// The patches this node computes, by global index, as meshed.
+    pub patches: Vec<(u32, Patch)>,
+    pub part_levels: u32,
+    /// Random polling for packets of other rings.
+    pub dynamic: bool,
+    pub seed: u64,
+    /// A node with no message for this long gives up.
+    pub stall_ms: u64,
+}
 
 /// Node index in the farm.
 pub type NodeId = u32;
@@ -107,7 +223,7 @@ pub struct NodeDone {
 }
 
 /// To the coordinator.
-#[derive(Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum ToCoordinator {
     Done(Box<NodeDone>),
     /// The time a node spent in an iteration, sent when the next shot (or
@@ -120,5 +236,13 @@ pub enum ToCoordinator {
     Failed {
         node: NodeId,
         reason: String,
+    },
+    /// After `Finish`, a node's patches as they are now and (in the last
+    /// run) its snapshots: in runs, so that no message outgrows a frame.
+    End {
+        node: NodeId,
+        patches: Vec<(u32, Patch)>,
+        snapshots: Vec<Vec<(u32, [f32; 2])>>,
+        last: bool,
     },
 }

@@ -22,6 +22,8 @@ pub enum PeerMsg {
     Fetch(Vec<u32>),
     /// The answer to `Fetch`: one leaf's triangles.
     Leaf(Box<LeafGeometry>),
+    /// A radiosity job's message between nodes (sample packets, polls).
+    Node(Box<crate::radiosity::ToNode>),
 }
 
 /// A leaf's triangles as its owner holds them.

@@ -142,6 +142,18 @@ pub struct JobRequest {
     pub options: JobOptions,
     /// Seconds the client took to read the scene, for the report.
     pub load_s: f64,
+    pub kind: JobKind,
+}
+
+/// What a job computes from its scene.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub enum JobKind {
+    /// Path-traced image (paper 000's farm).
+    #[default]
+    Render,
+    /// Progressive refinement radiosity (paper 003's farm), and the image
+    /// rendered from its solution.
+    Radiosity(Box<crate::radiosity::RadiosityJob>),
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -179,7 +191,17 @@ pub enum SchedulerToClient {
         job: u64,
         ahead: u32,
     },
+    /// A run of a radiosity solution's meshed triangles, in order from
+    /// `offset`, before `Done`: each corner's position and radiance.
+    Mesh {
+        job: u64,
+        offset: u64,
+        tris: Vec<[(Vec3, Vec3); 3]>,
+    },
 }
+
+/// Triangles per [`SchedulerToClient::Mesh`] message: 18 MiB.
+pub const RESULT_CHUNK_TRIANGLES: usize = 1 << 18;
 
 /// Pixels per [`SchedulerToClient::Pixels`] message: 12 MiB, well within
 /// the frame limit.
@@ -192,4 +214,7 @@ pub struct JobResult {
     pub height: u32,
     pub pixels: Vec<[f32; 3]>,
     pub report: FarmReport,
+    /// A radiosity job's solution report (its mesh came in
+    /// [`SchedulerToClient::Mesh`] runs).
+    pub radiosity: Option<Box<crate::radiosity::RadiosityReport>>,
 }

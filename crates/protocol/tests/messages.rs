@@ -7,10 +7,13 @@ use locus_core::geometry::Ray;
 use locus_core::integrator::{PathRay, ShadowRay};
 use locus_core::light::LightSet;
 use locus_core::octree::{Octree, OctreeParams};
+use locus_core::radiosity::RadiosityParams;
+use locus_core::radiosity::mesh::Patch;
 use locus_core::region::{ProcessorMap, Resume};
 use locus_core::sampler::SampleKey;
 use locus_core::scene::{Camera, Material, RenderSettings};
 use locus_protocol::control::*;
+use locus_protocol::radiosity::{Balance, NodeJob, RadiosityJob, ToCoordinator, ToNode};
 use locus_protocol::rays::*;
 use locus_protocol::report::{FarmReport, WorkerStats};
 use locus_protocol::submit::*;
@@ -250,6 +253,11 @@ proptest! {
             tris: t,
             options: JobOptions { workers, partitioner: Partitioner::Morton, cost_model: CostModel::Analytic, ..Default::default() },
             load_s: 0.25,
+            kind: if seed % 2 == 0 {
+                JobKind::Render
+            } else {
+                JobKind::Radiosity(Box::new(RadiosityJob { params: RadiosityParams { mesh: workers, ..Default::default() }, ring: workers / 7, balance: Balance::ALL[n % 4], spp: workers / 3 }))
+            },
         };
         let req_again = req.clone();
         roundtrip(&Opening::Submit(Box::new(req)));
@@ -260,13 +268,39 @@ proptest! {
         for m in [
             SchedulerToClient::Accepted { job: seed, workers },
             SchedulerToClient::Progress { job: seed, samples_done: seed / 2, samples: seed, pass: workers / 3, passes: workers },
-            SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report })),
+            SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report, radiosity: None })),
+            SchedulerToClient::Mesh { job: seed, offset: seed / 5, tris: vec![[(Vec3::X, Vec3::splat(n as f32)); 3]; n % 7] },
             SchedulerToClient::Failed { job: seed, reason: reason.clone() },
             SchedulerToClient::Pixels { job: seed, offset: seed, pixels: vec![[f32::MIN_POSITIVE, -1e30, f32::INFINITY]; workers as usize % 5] },
             SchedulerToClient::Queued { job: seed, ahead: workers },
         ] {
             roundtrip(&m);
         }
+    }
+
+    #[test]
+    fn radiosity_messages_roundtrip(n in 0usize..20, seed in any::<u64>(), initial in 0u32..3) {
+        let t = tris(n.max(1), seed);
+        let patch = Patch::new(t[0], Vec3::splat(0.5), Vec3::ONE, initial, initial + 2);
+        let setup = NodeJob {
+            job: seed,
+            me: (n % 3) as u32,
+            peers: vec!["127.0.0.1:1".into(); 3],
+            ring: 3,
+            map: ProcessorMap::new(&Octree::build(&t, OctreeParams::default()), vec![0; Octree::build(&t, OctreeParams::default()).leaves.len()]),
+            region: TriangleSet { ids: (0..t.len() as u32).collect(), material: vec![0; t.len()], verts: t.clone(), normals: Vec::new() },
+            magnitude: 4.0,
+            patches: vec![(n as u32, patch.clone())],
+            part_levels: 2,
+            dynamic: seed % 2 == 0,
+            seed,
+            stall_ms: 1000,
+        };
+        roundtrip(&SchedulerToWorker::StartNode(Box::new(setup)));
+        roundtrip(&SchedulerToWorker::Node { job: seed, msg: Box::new(ToNode::Finish) });
+        let end = ToCoordinator::End { node: n as u32, patches: vec![(3, patch)], snapshots: vec![vec![(3, [0.5, 1.0])]], last: true };
+        roundtrip(&WorkerToScheduler::Node { job: seed, msg: Box::new(end) });
+        roundtrip(&PeerMsg::Node(Box::new(ToNode::Idle { iteration: seed, from: 2, idle: vec![1, 2] })));
     }
 
     #[test]

@@ -2,11 +2,13 @@
 //! [`locus_protocol::submit`], used by `locus submit` and the embedded farm.
 
 use anyhow::{Context, bail};
+use glam::Vec3;
 use locus_core::scene::Scene;
 use locus_protocol::control::Opening;
 use locus_protocol::handshake::Credentials;
 use locus_protocol::submit::{
-    JobOptions, JobRequest, JobResult, REQUEST_PART_TRIANGLES, SchedulerToClient, TrianglePart,
+    JobKind, JobOptions, JobRequest, JobResult, REQUEST_PART_TRIANGLES, SchedulerToClient,
+    TrianglePart,
 };
 use locus_protocol::{MAX_FRAME_LEN, handshake};
 use std::time::Duration;
@@ -23,6 +25,7 @@ pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobR
         tri_normals: std::mem::take(&mut scene.tri_normals),
         options,
         load_s,
+        kind: JobKind::Render,
     }
 }
 
@@ -41,7 +44,15 @@ pub struct Collector {
     expected: Option<usize>,
     /// The job's id, once the scheduler has said it.
     pub job: Option<u64>,
+    /// A radiosity job's meshed solution, as its runs arrive.
+    pub mesh: Vec<[(Vec3, Vec3); 3]>,
+    /// The most mesh triangles the job may send.
+    mesh_bound: usize,
 }
+
+/// Mesh triangles a client accepts when it does not know the job's
+/// element limit (attaching by id): 64 M, 4.5 GiB.
+const MAX_MESH_TRIANGLES: usize = 1 << 26;
 
 impl Collector {
     /// For a job of `width` x `height` pixels.
@@ -50,7 +61,19 @@ impl Collector {
             pixels: Vec::new(),
             expected: Some(width as usize * height as usize),
             job: None,
+            mesh: Vec::new(),
+            mesh_bound: MAX_MESH_TRIANGLES,
         }
+    }
+
+    /// For `req`: its image size, and for a radiosity job its element
+    /// limit as the bound on the mesh.
+    pub fn for_request(req: &JobRequest) -> Self {
+        let mut c = Self::new(req.camera.width, req.camera.height);
+        if let JobKind::Radiosity(r) = &req.kind {
+            c.mesh_bound = r.params.max_elements.min(MAX_MESH_TRIANGLES as u64) as usize;
+        }
+        c
     }
 
     /// For a job attached to by id, whose size the client does not know.
@@ -59,6 +82,8 @@ impl Collector {
             pixels: Vec::new(),
             expected: None,
             job: None,
+            mesh: Vec::new(),
+            mesh_bound: MAX_MESH_TRIANGLES,
         }
     }
 
@@ -66,6 +91,7 @@ impl Collector {
     /// whole image again.
     pub fn reattached(&mut self) {
         self.pixels = Vec::new();
+        self.mesh = Vec::new();
     }
 
     pub fn take(
@@ -108,10 +134,25 @@ impl Collector {
                 self.pixels.extend_from_slice(&pixels);
                 None
             }
+            Some(SchedulerToClient::Mesh { job, offset, tris }) => {
+                let bound = self.mesh_bound;
+                if offset != self.mesh.len() as u64 || self.mesh.len() + tris.len() > bound {
+                    return Some(Err(anyhow::anyhow!(
+                        "job {job}: mesh triangles {offset}..{} arrived after {} of at most {bound}",
+                        offset + tris.len() as u64,
+                        self.mesh.len(),
+                    )));
+                }
+                self.mesh.extend_from_slice(&tris);
+                None
+            }
             Some(SchedulerToClient::Done(r)) => {
                 let mut r = *r;
                 if r.pixels.is_empty() {
                     r.pixels = std::mem::take(&mut self.pixels);
+                }
+                if let Some(rad) = r.radiosity.as_mut() {
+                    rad.mesh = std::mem::take(&mut self.mesh);
                 }
                 let want = self
                     .expected
@@ -146,6 +187,7 @@ pub fn request(scene: &Scene, options: JobOptions) -> JobRequest {
         tri_normals: scene.tri_normals.clone(),
         options,
         load_s: 0.0,
+        kind: JobKind::Render,
     }
 }
 
@@ -227,7 +269,7 @@ pub async fn submit_in_parts_of(
     part: usize,
 ) -> anyhow::Result<JobResult> {
     let creds = &creds.into();
-    let mut collect = Collector::new(req.camera.width, req.camera.height);
+    let mut collect = Collector::for_request(&req);
     let mut conn = send_request(scheduler, creds, req, part).await?;
     loop {
         let broke = match follow(&mut conn, &mut collect, progress).await {
@@ -361,6 +403,7 @@ mod tests {
             height: 2,
             pixels: Vec::new(),
             report: FarmReport::default(),
+            radiosity: None,
         })))
     }
 

@@ -13,7 +13,9 @@ use locus_core::region::WorkerId;
 use locus_core::scene::{LoadStats, Scene};
 use locus_protocol::control::MemoryPlan;
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
-use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobRequest, Partitioner};
+use locus_protocol::submit::{
+    CostModel, FetchPolicy, JobKind, JobOptions, JobRequest, Partitioner,
+};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -142,6 +144,16 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     // them (a preview being encoded, or the result).
     locus_core::limits::check_film(c.width, c.height, 3, "the scheduler")?;
     let o = &req.options;
+    if let JobKind::Radiosity(r) = &req.kind {
+        r.params.check().map_err(|e| format!("radiosity: {e}"))?;
+        locus_core::limits::check_settings(r.spp.max(1), 1)?;
+        if r.ring > 64 || (r.ring > 0 && o.workers > 0 && !o.workers.is_multiple_of(r.ring)) {
+            return Err(format!(
+                "radiosity rings of {} cannot be cut from {} workers: the worker count must be                  a multiple of the ring length (1 to 64)",
+                r.ring, o.workers
+            ));
+        }
+    }
     if let Some(c) = &o.cache {
         c.check().map_err(|e| format!("cache parameters: {e}"))?;
     }

@@ -30,6 +30,7 @@ pub mod job;
 pub mod memory;
 pub mod metrics;
 pub mod partition;
+pub mod radiosity;
 pub mod report;
 mod server;
 pub mod status;

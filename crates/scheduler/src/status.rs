@@ -133,6 +133,46 @@ pub(crate) fn push_history(h: &mut VecDeque<EndedJob>, e: EndedJob) {
 }
 
 impl Actor {
+    /// A running radiosity job as the status shows it: its phase is
+    /// "radiosity", and it has no tiles.
+    fn radiosity_status(&self, now: Instant) -> Option<RunningJob> {
+        let r = self.radiosity.as_ref()?;
+        Some(RunningJob {
+            id: r.id,
+            scene: r.req.name.clone(),
+            width: r.req.camera.width,
+            height: r.req.camera.height,
+            spp: 0,
+            policy: "radiosity".into(),
+            phase: "radiosity".into(),
+            attempt: 1,
+            lost: Vec::new(),
+            elapsed_s: now.duration_since(r.started).as_secs_f64(),
+            tiles: 0,
+            passes: 0,
+            pass: 0,
+            tile_passes: 0,
+            tile_passes_done: 0,
+            samples: 0,
+            samples_done: 0,
+            eta_s: None,
+            members: r
+                .members
+                .iter()
+                .map(|m| Member {
+                    worker: *m,
+                    listen: self
+                        .workers
+                        .get(m)
+                        .map(|e| e.reg.listen.clone())
+                        .unwrap_or_default(),
+                    predicted_share: None,
+                    tile_passes_done: 0,
+                })
+                .collect(),
+        })
+    }
+
     pub(crate) fn status(&self) -> Status {
         let now = Instant::now();
         let workers = self
@@ -199,6 +239,7 @@ impl Actor {
                 })
                 .collect(),
         });
+        let running = running.or_else(|| self.radiosity_status(now));
         Status {
             version: env!("CARGO_PKG_VERSION").to_string(),
             uptime_s: now.duration_since(self.started).as_secs_f64(),

@@ -3,13 +3,14 @@
 //! every peer, and starting the [`crate::engine`] on its own thread.
 
 use crate::engine::{self, EngineError, EngineJob, Event, Links};
-use crate::peers::{self, JobLink, Traffic};
+use crate::peers::{self, Inbox, JobLink, Traffic};
 use crate::sys;
 use anyhow::{Context, bail};
 use locus_core::accel::Accel;
 use locus_core::accel_set::Part;
 use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
 use locus_protocol::handshake::Credentials;
+use locus_protocol::rays::PeerMsg;
 use locus_protocol::report::WorkerStats;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -174,38 +175,14 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
     let (events_tx, events_rx) = flume::bounded::<Event>(EVENTS);
     let link = Arc::new(JobLink {
         job,
-        inbox: events_tx.clone(),
+        inbox: Inbox::Engine(events_tx.clone()),
         traffic: traffic.clone(),
         cancel: cancel.clone(),
     });
     // Publish before dialing: peers dial us at the same time.
     env.links.send_replace(Some(link.clone()));
 
-    let mut outs = Vec::with_capacity(n);
-    let mut writers = Vec::with_capacity(n);
-    for (w, addr) in setup.peers.iter().enumerate() {
-        if w == me as usize {
-            outs.push(None);
-            continue;
-        }
-        let (tx, rx) = flume::bounded(PEER_OUT);
-        let dial = peers::dial(
-            addr,
-            &env.creds,
-            job,
-            me,
-            w as u16,
-            rx,
-            traffic.clone(),
-            cancel.clone(),
-        );
-        let h = tokio::select! {
-            _ = cancel.cancelled() => bail!("the job was aborted while linking to its peers"),
-            h = dial => h.with_context(|| format!("linking to peer {w} at {addr}"))?,
-        };
-        writers.push(h);
-        outs.push(Some(tx));
-    }
+    let (outs, writers) = link_peers(&setup.peers, job, me, &env, &traffic).await?;
 
     let ej = Arc::new(EngineJob::new(*setup));
     let links = Links {
@@ -271,6 +248,51 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         .await
         .context("scheduler link closed")?;
     Ok(link)
+}
+
+/// Outgoing peer channels (none for this worker itself) and the tasks
+/// writing them.
+pub type PeerLinks = (
+    Vec<Option<flume::Sender<PeerMsg>>>,
+    Vec<tokio::task::JoinHandle<()>>,
+);
+
+/// Dials every peer of a job (whose links go up as their jobs start: each
+/// side publishes its job before dialing), giving up when the job is
+/// aborted.
+pub async fn link_peers(
+    peers: &[String],
+    job: u64,
+    me: u16,
+    env: &Env,
+    traffic: &Arc<Traffic>,
+) -> anyhow::Result<PeerLinks> {
+    let mut outs = Vec::with_capacity(peers.len());
+    let mut writers = Vec::with_capacity(peers.len());
+    for (w, addr) in peers.iter().enumerate() {
+        if w == me as usize {
+            outs.push(None);
+            continue;
+        }
+        let (tx, rx) = flume::bounded(PEER_OUT);
+        let dial = peers::dial(
+            addr,
+            &env.creds,
+            job,
+            me,
+            w as u16,
+            rx,
+            traffic.clone(),
+            env.cancel.clone(),
+        );
+        let h = tokio::select! {
+            _ = env.cancel.cancelled() => bail!("the job was aborted while linking to its peers"),
+            h = dial => h.with_context(|| format!("linking to peer {w} at {addr}"))?,
+        };
+        writers.push(h);
+        outs.push(Some(tx));
+    }
+    Ok((outs, writers))
 }
 
 fn add_traffic(stats: &mut WorkerStats, t: &Traffic) {

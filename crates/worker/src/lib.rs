@@ -31,7 +31,7 @@ use locus_protocol::control::{
 use locus_protocol::handshake::Credentials;
 use locus_protocol::tls::Tls;
 use locus_protocol::{Backoff, ConnWriter, MAX_FRAME_LEN, handshake};
-use peers::JobLink;
+use peers::{Inbox, JobLink};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
@@ -236,6 +236,22 @@ impl Session<'_> {
         Ok(end)
     }
 
+    /// What starting a job needs, for a job cancelled by `cancel`.
+    fn env(
+        &self,
+        ctl_tx: &flume::Sender<WorkerToScheduler>,
+        cancel: CancellationToken,
+    ) -> job::Env {
+        job::Env {
+            creds: self.creds.clone(),
+            pool: self.pool.clone(),
+            control: ctl_tx.clone(),
+            links: self.links.clone(),
+            dedicated: self.cfg.dedicated,
+            cancel,
+        }
+    }
+
     /// One message from the scheduler.
     async fn handle(
         &self,
@@ -275,14 +291,7 @@ impl Session<'_> {
                     // served meanwhile (an abort must get through).
                     let b = jobs.building.take().expect("checked above");
                     let cancel = CancellationToken::new();
-                    let env = job::Env {
-                        creds: self.creds.clone(),
-                        pool: self.pool.clone(),
-                        control: ctl_tx.clone(),
-                        links: self.links.clone(),
-                        dedicated: self.cfg.dedicated,
-                        cancel: cancel.clone(),
-                    };
+                    let env = self.env(ctl_tx, cancel.clone());
                     jobs.starting = Some(Starting {
                         job,
                         cancel,
@@ -290,6 +299,17 @@ impl Session<'_> {
                     });
                 }
             }
+            SchedulerToWorker::StartNode(s) => {
+                jobs.cancel_all();
+                let cancel = CancellationToken::new();
+                let job = s.job;
+                jobs.starting = Some(Starting {
+                    job,
+                    cancel: cancel.clone(),
+                    task: tokio::spawn(radiosity::daemon::start(s, self.env(ctl_tx, cancel))),
+                });
+            }
+            SchedulerToWorker::Node { job, msg } => jobs.forward_node(job, *msg, ctl_tx).await,
             SchedulerToWorker::Tile(t) => jobs.forward(t.job, Input::Tile(t), ctl_tx).await,
             SchedulerToWorker::NoMoreTiles { job } => {
                 jobs.forward(job, Input::NoMoreTiles, ctl_tx).await
@@ -363,18 +383,46 @@ impl Jobs {
     /// tiles as soon as it runs, a moment before its start has settled
     /// here: a message for the starting job waits for the start.
     async fn forward(&mut self, job: u64, input: Input, ctl: &flume::Sender<WorkerToScheduler>) {
+        match self.running(job, ctl).await.map(|j| &j.inbox) {
+            Some(Inbox::Engine(tx)) => {
+                if tx.send_async(Event::Input(input)).await.is_err() {
+                    warn!(job, "the job's engine has stopped; message dropped");
+                }
+            }
+            Some(Inbox::Node(_)) => warn!(job, "a render message for a radiosity job; ignored"),
+            None => warn!(job, "message for a job not running here; ignored"),
+        }
+    }
+
+    /// Hands the coordinator's message to the job's radiosity node.
+    async fn forward_node(
+        &mut self,
+        job: u64,
+        msg: locus_protocol::radiosity::ToNode,
+        ctl: &flume::Sender<WorkerToScheduler>,
+    ) {
+        match self.running(job, ctl).await.map(|j| &j.inbox) {
+            Some(Inbox::Node(tx)) => {
+                if tx.send_async(msg).await.is_err() {
+                    warn!(job, "the job's node has stopped; message dropped");
+                }
+            }
+            Some(Inbox::Engine(_)) => warn!(job, "a radiosity message for a render job; ignored"),
+            None => warn!(job, "message for a job not running here; ignored"),
+        }
+    }
+
+    /// Job `job` once it runs here (waiting for its start), if it does.
+    async fn running(
+        &mut self,
+        job: u64,
+        ctl: &flume::Sender<WorkerToScheduler>,
+    ) -> Option<&Arc<JobLink>> {
         if self.starting.as_ref().is_some_and(|s| s.job == job) {
             let r = self.started().await;
             self.settle(r, ctl).await;
         }
-        match &self.current {
-            Some(j) if j.job == job => {
-                if j.inbox.send_async(Event::Input(input)).await.is_err() {
-                    warn!(job, "the job's engine has stopped; message dropped");
-                }
-            }
-            _ => warn!(job, "message for a job not running here; ignored"),
-        }
+        self.current.as_ref().filter(|j| j.job == job)
     }
 }
 

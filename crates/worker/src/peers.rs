@@ -5,6 +5,7 @@
 
 use crate::engine::{Event, Input};
 use locus_protocol::handshake::Credentials;
+use locus_protocol::radiosity::ToNode;
 use locus_protocol::rays::PeerMsg;
 use locus_protocol::report::PeerTraffic;
 use locus_protocol::{MAX_FRAME_LEN, ProtocolError, handshake};
@@ -19,9 +20,15 @@ use tracing::{debug, warn};
 /// What incoming links of the running job feed.
 pub struct JobLink {
     pub job: u64,
-    pub inbox: flume::Sender<Event>,
+    pub inbox: Inbox,
     pub traffic: Arc<Traffic>,
     pub cancel: CancellationToken,
+}
+
+/// A render job's engine, or a radiosity job's node.
+pub enum Inbox {
+    Engine(flume::Sender<Event>),
+    Node(flume::Sender<ToNode>),
 }
 
 #[derive(Default)]
@@ -173,7 +180,20 @@ async fn serve_peer(
         };
         c.msgs_recv.fetch_add(1, Relaxed);
         c.bytes_recv.fetch_add(n as u64, Relaxed);
+        let engine = match &link.inbox {
+            Inbox::Engine(tx) => tx,
+            Inbox::Node(tx) => {
+                let PeerMsg::Node(msg) = m else {
+                    anyhow::bail!("{}: a render message in a radiosity job", r.peer());
+                };
+                if tx.send_async(*msg).await.is_err() {
+                    return Ok(());
+                }
+                continue;
+            }
+        };
         let input = match m {
+            PeerMsg::Node(_) => anyhow::bail!("{}: a radiosity message in a render job", r.peer()),
             PeerMsg::Packet(packet) => Input::Packet { from, packet },
             PeerMsg::Fetch(leaves) => Input::Fetch { from, leaves },
             PeerMsg::Leaf(leaf) => Input::Leaf {
@@ -183,7 +203,7 @@ async fn serve_peer(
             },
             PeerMsg::Hello { .. } => anyhow::bail!("{}: a second Hello", r.peer()),
         };
-        if link.inbox.send_async(Event::Input(input)).await.is_err() {
+        if engine.send_async(Event::Input(input)).await.is_err() {
             return Ok(());
         }
     }

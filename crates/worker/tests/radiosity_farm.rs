@@ -9,7 +9,8 @@ use locus_core::radiosity::{RadiosityParams, Solver, solve, solve_with};
 use locus_core::render::Prepared;
 use locus_core::scene::Scene;
 use locus_worker::radiosity::assign_patches;
-use locus_worker::radiosity::farm::{Farm, FarmConfig, FarmTimes};
+use locus_worker::radiosity::coordinator::FarmTimes;
+use locus_worker::radiosity::farm::{self, FarmConfig};
 use locus_worker::radiosity::node::Layout;
 use std::path::Path;
 use std::time::Duration;
@@ -63,7 +64,7 @@ fn on_farm(
         seed: 7,
         stall: Duration::from_secs(60),
     };
-    let mut farm = Farm::start(&mut solver, scene, &tree, &positions, &owner, cfg);
+    let mut farm = farm::start(&mut solver, scene, &tree, &positions, &owner, cfg);
     solve_with(&mut solver, &mut farm, &mut |_| {});
     assert_eq!(farm.error, None, "{nodes} nodes, rings of {ring}");
     (solver, farm.measured)

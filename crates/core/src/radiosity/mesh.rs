@@ -15,13 +15,14 @@
 //! `(v1 - v0) x (v2 - v0)`) emits, as in the path tracer.
 
 use glam::{DVec3, Vec3};
+use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 
 /// No children: the element is a leaf.
 pub const LEAF: u32 = u32::MAX;
 
 /// A corner shared by the elements of one patch.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Vertex {
     /// Barycentric lattice coordinates over the patch's divisions.
     pub lattice: [u32; 2],
@@ -30,7 +31,7 @@ pub struct Vertex {
     pub b: [Vec3; 2],
 }
 
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Element {
     pub corners: [u32; 3],
     /// Index of the first of four children, or [`LEAF`].
@@ -39,7 +40,7 @@ pub struct Element {
 }
 
 /// One patch (a scene triangle), its element tree and its corners.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Patch {
     pub tri: [Vec3; 3],
     /// Unit normal of the front side.
@@ -277,6 +278,55 @@ impl Patch {
         }
     }
 
+    /// Rebuilds a patch from its fields as they travel (a farm's node
+    /// sends its patches to the coordinator), checking that the element
+    /// tree and the lattice hold together, so that no later lookup can
+    /// index out of bounds or loop.
+    fn from_parts(p: PatchParts) -> Result<Self, String> {
+        if p.levels > super::MAX_LEVELS {
+            return Err(format!("a patch has {} lattice levels", p.levels));
+        }
+        if !(p.area.is_finite() && p.area > 0.0) {
+            return Err("a patch has no positive area".into());
+        }
+        let d = 1u64 << p.levels;
+        let mut lattice = HashMap::with_capacity(p.vertices.len());
+        for (i, v) in p.vertices.iter().enumerate() {
+            if v.lattice.iter().map(|&x| x as u64).sum::<u64>() > d {
+                return Err(format!("patch vertex {i} lies off its lattice"));
+            }
+            if lattice.insert(key(v.lattice), i as u32).is_some() {
+                return Err(format!("patch vertex {i} repeats a lattice point"));
+            }
+        }
+        if p.elements.is_empty() {
+            return Err("a patch has no elements".into());
+        }
+        let (nv, ne) = (p.vertices.len(), p.elements.len());
+        for (i, e) in p.elements.iter().enumerate() {
+            // Children after their parent: the tree cannot loop.
+            let tree =
+                e.children == LEAF || (e.children as usize > i && e.children as usize + 4 <= ne);
+            if !tree || e.corners.iter().any(|&c| c as usize >= nv) || e.level as u32 > p.levels {
+                return Err(format!(
+                    "patch element {i} is not part of a valid element tree"
+                ));
+            }
+        }
+        Ok(Self {
+            tri: p.tri,
+            normal: p.normal,
+            area: p.area,
+            albedo: p.albedo,
+            emitted: p.emitted,
+            unshot: p.unshot,
+            levels: p.levels,
+            vertices: p.vertices,
+            elements: p.elements,
+            lattice,
+        })
+    }
+
     /// Bytes held by this patch's mesh.
     pub fn bytes(&self) -> usize {
         std::mem::size_of::<Self>()
@@ -286,9 +336,84 @@ impl Patch {
     }
 }
 
+/// A patch as it travels: every field but the lattice index, which is
+/// rebuilt on arrival.
+#[derive(Serialize, Deserialize)]
+struct PatchParts {
+    tri: [Vec3; 3],
+    normal: Vec3,
+    area: f64,
+    albedo: Vec3,
+    emitted: Vec3,
+    unshot: [DVec3; 2],
+    levels: u32,
+    vertices: Vec<Vertex>,
+    elements: Vec<Element>,
+}
+
+/// [`PatchParts`] borrowed, so a patch is encoded without a copy.
+#[derive(Serialize)]
+struct PatchRef<'a> {
+    tri: &'a [Vec3; 3],
+    normal: &'a Vec3,
+    area: f64,
+    albedo: &'a Vec3,
+    emitted: &'a Vec3,
+    unshot: &'a [DVec3; 2],
+    levels: u32,
+    vertices: &'a [Vertex],
+    elements: &'a [Element],
+}
+
+impl Serialize for Patch {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        PatchRef {
+            tri: &self.tri,
+            normal: &self.normal,
+            area: self.area,
+            albedo: &self.albedo,
+            emitted: &self.emitted,
+            unshot: &self.unshot,
+            levels: self.levels,
+            vertices: &self.vertices,
+            elements: &self.elements,
+        }
+        .serialize(s)
+    }
+}
+
+impl<'de> Deserialize<'de> for Patch {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        Patch::from_parts(PatchParts::deserialize(d)?).map_err(serde::de::Error::custom)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_patch_travels_whole_and_a_broken_one_is_refused() {
+        let mut p = Patch::new(tri(), Vec3::splat(0.5), Vec3::ONE, 2, 5);
+        let leaf = p.leaves()[5];
+        p.split(leaf, [Vec3::X, Vec3::Y]);
+        let json = serde_json::to_string(&p).unwrap();
+        let q: Patch = serde_json::from_str(&json).unwrap();
+        assert_eq!(q.leaves(), p.leaves());
+        assert_eq!(q.vertex_id([4, 4]), p.vertex_id([4, 4]));
+        assert_eq!(serde_json::to_string(&q).unwrap(), json);
+        // A child index pointing back up the tree would loop.
+        let mut bad = p.clone();
+        bad.elements[1].children = 0;
+        let e = serde_json::from_str::<Patch>(&serde_json::to_string(&bad).unwrap());
+        assert!(e.unwrap_err().to_string().contains("element 1"));
+        let mut bad = p.clone();
+        bad.elements[2].corners[0] = 9999;
+        assert!(serde_json::from_str::<Patch>(&serde_json::to_string(&bad).unwrap()).is_err());
+        let mut bad = p;
+        bad.vertices[3].lattice = [1 << 6, 0];
+        assert!(serde_json::from_str::<Patch>(&serde_json::to_string(&bad).unwrap()).is_err());
+    }
 
     fn tri() -> [Vec3; 3] {
         [

@@ -83,12 +83,15 @@ fn srgb8(linear: f32) -> u8 {
     (s * 255.0 + 0.5) as u8
 }
 
-/// Writes every element as a triangle of its own three vertices (so an
-/// element beside a finer neighbour keeps its own interpolation), with the
-/// radiance of the brighter side as float properties and, scaled by
-/// `exposure`, as sRGB vertex colours.
-pub fn write_ply(solver: &Solver, path: &Path, exposure: f32) -> std::io::Result<()> {
-    let mut tris: Vec<[(Vec3, Vec3); 3]> = Vec::new();
+/// A corner of the meshed solution: its position and the radiance
+/// (W/sr/m^2) of the element's brighter side there.
+pub type MeshCorner = (Vec3, Vec3);
+
+/// Every element as a triangle of its own three corners (so an element
+/// beside a finer neighbour keeps its own interpolation): what the PLY
+/// holds, and what a farm sends its client.
+pub fn mesh_triangles(solver: &Solver) -> Vec<[MeshCorner; 3]> {
+    let mut tris: Vec<[MeshCorner; 3]> = Vec::new();
     for p in &solver.patches {
         for e in p.leaves() {
             let c = p.elements[e as usize].corners;
@@ -109,6 +112,17 @@ pub fn write_ply(solver: &Solver, path: &Path, exposure: f32) -> std::io::Result
             }));
         }
     }
+    tris
+}
+
+/// Writes the solution's [`mesh_triangles`] with the radiance as float
+/// properties and, scaled by `exposure`, as sRGB vertex colours.
+pub fn write_ply(solver: &Solver, path: &Path, exposure: f32) -> std::io::Result<()> {
+    write_mesh_ply(&mesh_triangles(solver), path, exposure)
+}
+
+/// Writes triangles of [`MeshCorner`]s as a binary PLY.
+pub fn write_mesh_ply(tris: &[[MeshCorner; 3]], path: &Path, exposure: f32) -> std::io::Result<()> {
     let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
     write!(
         out,
@@ -120,7 +134,7 @@ pub fn write_ply(solver: &Solver, path: &Path, exposure: f32) -> std::io::Result
         tris.len() * 3,
         tris.len()
     )?;
-    for t in &tris {
+    for t in tris {
         for (pos, l) in t {
             for x in pos.to_array().into_iter().chain(l.to_array()) {
                 out.write_all(&x.to_le_bytes())?;

@@ -12,12 +12,12 @@ use super::{MAX_LEVELS, RadiosityError, RadiosityParams};
 use crate::scene::Scene;
 use crate::stats::TraceStats;
 use glam::{DVec3, Vec3};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// Where the emitted power went, per channel (W): the identity
 /// `emitted = absorbed + unshot + escaped` holds to rounding.
-#[derive(Clone, Copy, Debug, Default, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Ledger {
     pub emitted: [f64; 3],
     pub absorbed: [f64; 3],
@@ -46,7 +46,7 @@ pub struct Solver {
 }
 
 /// One measured point of the convergence.
-#[derive(Clone, Copy, Debug, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Record {
     pub iteration: u64,
     pub seconds: f64,

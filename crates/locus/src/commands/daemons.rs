@@ -8,6 +8,8 @@ use crate::runtime;
 use anyhow::{Context, Result};
 use locus_core::image_io::Image;
 use locus_protocol::handshake::Credentials;
+use locus_protocol::radiosity::RadiosityJob;
+use locus_protocol::submit::JobKind;
 use locus_scheduler::{Scheduler, SchedulerConfig};
 use locus_worker::{Worker, WorkerConfig};
 use tokio_util::sync::CancellationToken;
@@ -106,7 +108,17 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
         },
     )?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
-    let req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
+    let mut req = locus_scheduler::client::request(&scene, a.farm.job_options(a.workers));
+    if a.kind == JobKindArg::Radiosity {
+        let params = a.radiosity.params();
+        params.check()?;
+        req.kind = JobKind::Radiosity(Box::new(RadiosityJob {
+            params,
+            ring: a.radiosity.ring.unwrap_or(0),
+            balance: a.radiosity.balance.balance(),
+            spp: a.spp.unwrap_or(16),
+        }));
+    }
     if a.detach {
         let job = runtime()?.block_on(locus_scheduler::client::submit_detached(
             &scheduler, creds, req,
@@ -130,7 +142,24 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
     if let Some(pb) = pb {
         pb.finish_and_clear();
     }
-    write_farm_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
+    write_result(&a.scene, &a.output, a.exposure, &result, reference.as_ref())
+}
+
+/// Writes a job's result: a render's image and report, or a radiosity
+/// job's image, mesh, convergence plot and report.
+fn write_result(
+    scene: &std::path::Path,
+    output: &std::path::Path,
+    exposure: f32,
+    r: &locus_protocol::submit::JobResult,
+    reference: Option<&Image>,
+) -> Result<()> {
+    match &r.radiosity {
+        Some(rad) => crate::commands::radiosity::write_farm_solution(
+            scene, output, exposure, r, rad, reference,
+        ),
+        None => write_farm_result(scene, output, exposure, r, reference),
+    }
 }
 
 pub(crate) fn cmd_attach(a: AttachArgs) -> Result<()> {
@@ -150,7 +179,7 @@ pub(crate) fn cmd_attach(a: AttachArgs) -> Result<()> {
         pb.finish_and_clear();
     }
     let scene = std::path::PathBuf::from(&result.report.scene);
-    write_farm_result(&scene, &a.output, a.exposure, &result, None)
+    write_result(&scene, &a.output, a.exposure, &result, None)
 }
 
 pub(crate) fn cmd_status(http: &str, json: bool) -> Result<()> {

@@ -7,7 +7,7 @@ use crate::commands::render::progress_bar;
 use crate::output::{Written, sibling, write_image};
 use anyhow::{Context, Result};
 use locus_core::image_io::Image;
-use locus_core::radiosity::output::{render_image, write_ply};
+use locus_core::radiosity::output::{render_image, write_mesh_ply, write_ply};
 use locus_core::radiosity::shoot::BvhVisibility;
 use locus_core::radiosity::{Convergence, Ledger, RadiosityParams, Record, Solver, solve};
 use locus_core::render::Prepared;
@@ -55,21 +55,8 @@ struct RadiosityReport {
     error_vs_reference: Option<locus_core::metrics::ErrorMetrics>,
 }
 
-fn params(a: &RadiosityArgs) -> RadiosityParams {
-    RadiosityParams {
-        patches: a.patches,
-        mesh: a.mesh,
-        subdivide: a.subdivide,
-        threshold: a.threshold,
-        shooter_parts: a.parts,
-        stop: a.stop,
-        max_iterations: a.max_iterations,
-        max_elements: a.max_elements,
-    }
-}
-
 pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
-    let p = params(&a);
+    let p = a.solve.params();
     p.check()?;
     let t = Instant::now();
     let scene = Scene::load(&a.scene)?;
@@ -79,7 +66,7 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
         .map_err(anyhow::Error::msg)?;
     locus_core::limits::check_settings(a.spp.max(1), 1).map_err(anyhow::Error::msg)?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
-    if a.ring.is_some() && a.workers == 0 {
+    if a.solve.ring.is_some() && a.workers == 0 {
         anyhow::bail!("--ring needs --workers: rings are a farm's layout");
     }
     let mut solver =
@@ -109,8 +96,8 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
     let conv: Convergence = match a.workers {
         0 => pool.install(|| solve(&mut solver, &vis, &mut show)),
         workers => {
-            let ring = a.ring.unwrap_or(workers);
-            let balance = a.balance.balance();
+            let ring = a.solve.ring.unwrap_or(workers);
+            let balance = a.solve.balance.balance();
             let (conv, measured) =
                 run_farm(&mut solver, &prep.scene, workers, ring, balance, &mut show)?;
             farm = Some(FarmReport {
@@ -197,8 +184,73 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
     Ok(())
 }
 
+/// Writes a radiosity job's result from the farm: the image (EXR, PNG),
+/// the meshed solution (PLY), the convergence plot (SVG) and the report
+/// (JSON), as `locus radiosity` does.
+pub(crate) fn write_farm_solution(
+    scene: &Path,
+    output: &Path,
+    exposure: f32,
+    r: &locus_protocol::submit::JobResult,
+    rad: &locus_protocol::radiosity::RadiosityReport,
+    reference: Option<&Image>,
+) -> Result<()> {
+    let image = Image {
+        width: r.width,
+        height: r.height,
+        pixels: r.pixels.clone(),
+    };
+    let Written { png, json, error } = write_image(&image, output, exposure, reference)?;
+    let ply = sibling(output, "ply");
+    write_mesh_ply(&rad.mesh, &ply, exposure)
+        .with_context(|| format!("writing {}", ply.display()))?;
+    let svg = output.with_extension("convergence.svg");
+    plot(&svg, scene, &rad.convergence)?;
+    #[derive(serde::Serialize)]
+    struct Out<'a> {
+        scene: String,
+        image: String,
+        mesh: String,
+        plot: String,
+        radiosity: &'a locus_protocol::radiosity::RadiosityReport,
+        error_vs_reference: Option<locus_core::metrics::ErrorMetrics>,
+    }
+    let out = Out {
+        scene: scene.display().to_string(),
+        image: output.display().to_string(),
+        mesh: ply.display().to_string(),
+        plot: svg.display().to_string(),
+        radiosity: rad,
+        error_vs_reference: error,
+    };
+    std::fs::write(&json, serde_json::to_string_pretty(&out)?)
+        .with_context(|| format!("writing {}", json.display()))?;
+    println!(
+        "wrote {} with {}, {}, {} and {}\n  {} nodes in rings of {} ({} balancing): {} patches, {} elements, {} iterations ({}), unshot {:.2e} of emitted\n  mesh {:.3}s  solve {:.3}s  image {:.3}s  {} packets, {} by polling",
+        output.display(),
+        png.display(),
+        json.display(),
+        ply.display(),
+        svg.display(),
+        rad.nodes,
+        rad.ring,
+        rad.balance.name(),
+        rad.patches,
+        rad.elements,
+        rad.iterations,
+        rad.stopped,
+        rad.unshot_fraction,
+        rad.mesh_s,
+        rad.solve_s,
+        rad.image_s,
+        rad.packets,
+        rad.helped,
+    );
+    Ok(())
+}
+
 /// Unshot power and the error against the final solution, against time.
-fn plot(path: &Path, scene: &Path, records: &[Record]) -> Result<()> {
+pub(crate) fn plot(path: &Path, scene: &Path, records: &[Record]) -> Result<()> {
     use locus::plot::{Axes, Series, lines};
     let unshot = Series {
         label: "unshot power / emitted".into(),

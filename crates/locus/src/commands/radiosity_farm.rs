@@ -4,14 +4,13 @@
 
 use crate::cli::RadiosityBenchArgs;
 use anyhow::{Context, Result, bail};
-use locus_core::octree::{Octree, OctreeParams};
 use locus_core::radiosity::{Convergence, RadiosityParams, Solver, solve_with};
 use locus_core::scene::Scene;
 use locus_protocol::radiosity::NodeTime;
-use locus_scheduler::{cost, partition};
-use locus_worker::radiosity::farm::{Farm, FarmConfig, FarmTimes};
+use locus_worker::radiosity::Balance;
+use locus_worker::radiosity::coordinator::FarmTimes;
+use locus_worker::radiosity::farm::{self, FarmConfig};
 use locus_worker::radiosity::node::Layout;
-use locus_worker::radiosity::{Balance, assign_patches};
 use std::fmt::Write as _;
 use std::time::Duration;
 
@@ -28,43 +27,16 @@ pub(crate) fn run_farm(
     balance: Balance,
     progress: &mut dyn FnMut(&Solver),
 ) -> Result<(Convergence, FarmTimes)> {
-    if nodes == 0 || ring == 0 || ring > 64 || !nodes.is_multiple_of(ring) {
-        bail!(
-            "{nodes} nodes cannot form rings of {ring}: the node count (--workers) must be a \
-             multiple of the ring length (--ring, 1 to 64)"
-        );
-    }
-    // Leaves small enough that every ring position gets a region.
-    let tree = Octree::build(
-        &scene.tris,
-        OctreeParams {
-            max_leaf_tris: (scene.tris.len() / (8 * ring as usize)).clamp(2, 512),
-            max_depth: 7,
-        },
-    );
-    let refs: Vec<u64> = tree.leaves.iter().map(|l| l.tris.len() as u64).collect();
-    // Regions of equal predicted tracing cost (static balancing of
-    // visibility) or of equal numbers of leaves.
-    let leaf_cost = if balance.is_static() {
-        cost::analytic(&tree)
-    } else {
-        vec![1.0; tree.leaves.len()]
-    };
-    let (targets, caps) = partition::even(ring as usize);
-    let limits = partition::Limits {
-        targets: &targets,
-        caps: &caps,
-        refs: &refs,
-    };
-    let positions = partition::morton(&leaf_cost, &limits).map_err(anyhow::Error::msg)?;
-    let owner = assign_patches(solver, nodes, balance.is_static());
+    let rings = locus_scheduler::radiosity::plan(scene, solver, nodes, ring, balance)
+        .map_err(anyhow::Error::msg)?;
     let cfg = FarmConfig {
         layout: Layout { nodes, ring },
         dynamic: balance.is_dynamic(),
         seed: scene.settings.seed,
         stall: STALL,
     };
-    let mut farm = Farm::start(solver, scene, &tree, &positions, &owner, cfg);
+    let (tree, positions, owner) = (&rings.tree, &rings.positions, &rings.owner);
+    let mut farm = farm::start(solver, scene, tree, positions, owner, cfg);
     let conv = solve_with(solver, &mut farm, progress);
     if let Some(e) = farm.error {
         bail!("the radiosity farm failed: {e}");

@@ -106,6 +106,9 @@ impl Actor {
     }
 
     pub(super) fn on_worker(&mut self, id: u32, msg: WorkerToScheduler) {
+        let Some(msg) = self.radiosity_message(id, msg) else {
+            return;
+        };
         // A report of an aborted attempt of this job: its work is counted
         // in the job's recovery, not in the last attempt's totals.
         if let WorkerToScheduler::Report { job: run, stats } = &msg
@@ -120,7 +123,8 @@ impl Actor {
             WorkerToScheduler::Ready { job }
             | WorkerToScheduler::NeedTiles { job, .. }
             | WorkerToScheduler::Report { job, .. }
-            | WorkerToScheduler::Failed { job, .. } => *job,
+            | WorkerToScheduler::Failed { job, .. }
+            | WorkerToScheduler::Node { job, .. } => *job,
             WorkerToScheduler::TileDone(t) => t.job,
             WorkerToScheduler::Heartbeat => return,
         };
@@ -181,6 +185,10 @@ impl Actor {
                     Setback::Failed { w },
                     format!("worker {w} ({addr}): {reason}"),
                 );
+            }
+            WorkerToScheduler::Node { .. } => {
+                let why = format!("worker {w} sent a radiosity message in a render job");
+                self.recover(Setback::Failed { w }, why);
             }
             WorkerToScheduler::Heartbeat => {}
         }

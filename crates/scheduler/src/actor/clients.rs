@@ -6,8 +6,12 @@
 use super::Actor;
 use crate::store::Write;
 use locus_core::image_io::Image;
+use locus_core::radiosity::output::MeshCorner;
+use locus_protocol::radiosity::RadiosityReport;
 use locus_protocol::report::FarmReport;
-use locus_protocol::submit::{JobResult, RESULT_CHUNK_PIXELS, SchedulerToClient};
+use locus_protocol::submit::{
+    JobResult, RESULT_CHUNK_PIXELS, RESULT_CHUNK_TRIANGLES, SchedulerToClient,
+};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::{mpsc, oneshot};
@@ -51,6 +55,11 @@ impl Client {
     pub(crate) fn take(self) -> Option<mpsc::Sender<SchedulerToClient>> {
         self.0
     }
+
+    /// A copy of the link, for a task that reports progress.
+    pub(crate) fn sender(&self) -> Option<mpsc::Sender<SchedulerToClient>> {
+        self.0.clone()
+    }
 }
 
 /// A finished job's result.
@@ -70,6 +79,22 @@ pub(crate) fn send_result(
     job: u64,
     stored: Option<oneshot::Receiver<()>>,
 ) {
+    send_result_with(client, image, report, job, stored, None)
+}
+
+/// A radiosity job's meshed solution and report, sent with its image.
+pub(crate) type RadiosityPart = (Vec<[MeshCorner; 3]>, Box<RadiosityReport>);
+
+/// [`send_result`], with a radiosity job's mesh (in runs after the image)
+/// and report.
+pub(crate) fn send_result_with(
+    client: mpsc::Sender<SchedulerToClient>,
+    image: Arc<Image>,
+    report: Arc<FarmReport>,
+    job: u64,
+    stored: Option<oneshot::Receiver<()>>,
+    radiosity: Option<RadiosityPart>,
+) {
     tokio::spawn(async move {
         for (k, run) in image.pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
             let chunk = SchedulerToClient::Pixels {
@@ -81,12 +106,27 @@ pub(crate) fn send_result(
                 return;
             }
         }
+        let mut part = None;
+        if let Some((mesh, r)) = radiosity {
+            for (k, run) in mesh.chunks(RESULT_CHUNK_TRIANGLES).enumerate() {
+                let chunk = SchedulerToClient::Mesh {
+                    job,
+                    offset: (k * RESULT_CHUNK_TRIANGLES) as u64,
+                    tris: run.to_vec(),
+                };
+                if client.send(chunk).await.is_err() {
+                    return;
+                }
+            }
+            part = Some(r);
+        }
         let result = JobResult {
             job,
             width: image.width,
             height: image.height,
             pixels: Vec::new(),
             report: (*report).clone(),
+            radiosity: part,
         };
         drop(image);
         // `Done` tells the client the job is over: not before the result

@@ -18,6 +18,7 @@
 
 mod attempt;
 mod clients;
+mod radiosity;
 
 pub use clients::FINISHED_KEPT;
 mod ending;
@@ -35,7 +36,7 @@ use locus_core::image_io::Image;
 use locus_core::scene::Scene;
 use locus_protocol::control::{Registration, SchedulerToWorker, WorkerToScheduler};
 use locus_protocol::report::{Recovery, WorkerStats};
-use locus_protocol::submit::{JobRequest, SchedulerToClient};
+use locus_protocol::submit::{JobKind, JobRequest, SchedulerToClient};
 use std::collections::{BTreeMap, VecDeque};
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -76,6 +77,11 @@ pub enum Event {
     Prepared {
         run: u64,
         prep: Result<Box<job::Prepared>, String>,
+    },
+    /// A radiosity job's coordinator returned; `run` names the job's run.
+    RadiosityEnded {
+        run: u64,
+        outcome: Result<Box<crate::radiosity::Solved>, String>,
     },
     /// `/status`: the farm now.
     Status(oneshot::Sender<Status>),
@@ -243,6 +249,8 @@ pub struct Actor {
     pub workers: BTreeMap<u32, WorkerEntry>,
     pub(crate) queue: VecDeque<Queued>,
     pub(crate) job: Option<Running>,
+    /// The running radiosity job (never beside a running render job).
+    pub(crate) radiosity: Option<radiosity::RadiosityRunning>,
     next_job: u64,
     /// Run ids, one per attempt of any job: never reused, so a message of
     /// an aborted attempt can never be taken for the current one's.
@@ -265,6 +273,7 @@ impl Actor {
             workers: BTreeMap::new(),
             queue: VecDeque::new(),
             job: None,
+            radiosity: None,
             next_job: 1,
             next_run: 1,
             max_queue,
@@ -318,8 +327,13 @@ impl Actor {
             self.workers.len() - busy,
             busy,
             self.queue.len(),
-            self.job.is_some(),
+            self.busy(),
         );
+    }
+
+    /// Whether a job (of either kind) is running.
+    fn busy(&self) -> bool {
+        self.job.is_some() || self.radiosity.is_some()
     }
 
     fn preview(&self, id: u64) -> Option<Image> {
@@ -365,6 +379,7 @@ impl Actor {
                 } => self.submit(req, client, encoded),
                 Event::Attach { job, client } => self.attach(job, client),
                 Event::Prepared { run, prep } => self.on_prepared(run, prep),
+                Event::RadiosityEnded { run, outcome } => self.radiosity_ended(run, outcome),
                 Event::FromWorker { id, msg } => self.on_worker(id, msg),
                 Event::Status(reply) => {
                     let _ = reply.send(self.status());
@@ -382,6 +397,7 @@ impl Actor {
         } else if self.job.is_some() {
             self.fail("the scheduler is shutting down".into());
         }
+        self.fail_radiosity("the scheduler is shutting down".into());
     }
 
     /// A worker's connection ended: it leaves the registry, and the
@@ -392,6 +408,12 @@ impl Actor {
         };
         info!(worker = id, addr = %w.addr, %reason, "worker left");
         self.metrics.worker_left(&w.reg.listen);
+        if self.radiosity_member(id) {
+            self.metrics.worker_lost();
+            let why = format!("node worker {} was lost ({reason})", w.reg.listen);
+            self.fail_radiosity(why);
+            return;
+        }
         if let Some(m) = self.member(id) {
             self.metrics.worker_lost();
             let lost = recovery::Setback::Lost {
@@ -414,6 +436,13 @@ impl Actor {
         {
             self.fail("the client disconnected".into());
         }
+        if self
+            .radiosity
+            .as_ref()
+            .is_some_and(|r| r.client_left() && !r.req.options.detached)
+        {
+            self.fail_radiosity("the client disconnected".into());
+        }
         self.restart();
         let (keep, gone): (VecDeque<Queued>, VecDeque<Queued>) = std::mem::take(&mut self.queue)
             .into_iter()
@@ -428,7 +457,7 @@ impl Actor {
                 self.forget(q.id);
             }
         }
-        if self.job.is_none()
+        if !self.busy()
             && let Some(q) = self.queue.front()
             && q.since.elapsed() >= WORKER_WAIT
         {
@@ -471,7 +500,7 @@ impl Actor {
             self.next_job += 1;
             let _ = client.try_send(SchedulerToClient::Queued {
                 job: id,
-                ahead: self.queue.len() as u32 + self.job.is_some() as u32,
+                ahead: self.queue.len() as u32 + self.busy() as u32,
             });
             if let Some(s) = &self.store {
                 match encoded.map_or_else(|| postcard::to_allocvec(&*req), Ok) {
@@ -503,7 +532,7 @@ impl Actor {
 
     /// Starts the next queued job once the workers it asks for are idle.
     fn try_start(&mut self) {
-        if self.job.is_some() {
+        if self.busy() {
             return;
         }
         let Some(q) = self.queue.front() else { return };
@@ -523,6 +552,11 @@ impl Actor {
             job: id,
             workers: want as u32,
         });
+        if let JobKind::Radiosity(rj) = &q.req.kind {
+            let rj = (**rj).clone();
+            self.start_radiosity(q, rj, idle[..want].to_vec());
+            return;
+        }
         let cam = q.req.camera.clone();
         // Tiles in a shuffled order: at any moment the tiles in flight are
         // spread over the image, so every region sees its share of the work

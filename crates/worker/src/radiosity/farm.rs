@@ -1,25 +1,19 @@
 //! A radiosity farm in one process: one thread per node, bounded channels
-//! for links, and the coordinator on the caller's thread as the
+//! for links, and the [`Coordinator`] on the caller's thread as the
 //! [`Shots`] of the core's solve loop.
 //!
-//! The coordinator keeps each patch's shell (area, albedo, unshot power),
-//! chooses the shooter, tells every node, waits for every node's receipts
-//! and books them in patch order, exactly as one machine does; so the
-//! solution is the one machine's, bit for bit, whatever the layout and
-//! balancing. Every node finishing its own packets ends a shot: a packet in
-//! flight belongs to a node that has not finished (it waits for it), so
-//! when all have, none is left anywhere.
+//! [`Shots`]: locus_core::radiosity::Shots
 
+use super::coordinator::{Coordinator, NodeLinks};
 use super::node::{Layout, Node, NodeSetup, Outbox, WINDOW};
-use crate::sys::thread_cpu_s;
+use super::runner::run_node;
 use locus_core::accel::Accel;
 use locus_core::accel_set::AccelSet;
 use locus_core::octree::Octree;
-use locus_core::radiosity::shoot::Receipt;
-use locus_core::radiosity::{Shots, Solver};
+use locus_core::radiosity::Solver;
 use locus_core::region::{ProcessorMap, Route};
 use locus_core::scene::Scene;
-use locus_protocol::radiosity::{NodeId, NodeTime, ToCoordinator, ToNode};
+use locus_protocol::radiosity::{NodeId, ToCoordinator, ToNode};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -34,29 +28,64 @@ pub struct FarmConfig {
     pub stall: Duration,
 }
 
-/// What the farm measured, per shot and node.
-#[derive(Clone, Debug, Default, serde::Serialize)]
-pub struct FarmTimes {
-    /// `times[shot][node]`.
-    pub times: Vec<Vec<NodeTime>>,
-    /// Packets sent around rings, and those routed by a helper's ring.
-    pub packets: u64,
-    pub helped: u64,
-    /// Seconds from each shot's announcement to its last receipt.
-    pub shot_s: Vec<f64>,
-}
-
-/// The coordinator side: the nodes' links and threads.
-pub struct Farm {
+/// The coordinator's side of the threads: their inboxes, its own, and the
+/// threads themselves (a thread that ends with an error or a panic ends
+/// the farm at once, not after a stall).
+pub struct ThreadLinks {
     to_nodes: Vec<flume::Sender<ToNode>>,
     from_nodes: flume::Receiver<ToCoordinator>,
-    threads: Vec<JoinHandle<Result<Node, String>>>,
-    stall: Duration,
-    iteration: u64,
-    pub measured: FarmTimes,
-    /// Why the farm stopped early, if it did.
-    pub error: Option<String>,
+    threads: Vec<Option<JoinHandle<Result<(), String>>>>,
 }
+
+impl NodeLinks for ThreadLinks {
+    fn nodes(&self) -> usize {
+        self.to_nodes.len()
+    }
+
+    fn send(&mut self, n: NodeId, msg: ToNode) -> bool {
+        self.to_nodes[n as usize].send(msg).is_ok()
+    }
+
+    fn recv(&mut self, wait: Duration) -> Result<ToCoordinator, String> {
+        let until = Instant::now() + wait;
+        loop {
+            let slice = until
+                .saturating_duration_since(Instant::now())
+                .min(Duration::from_millis(100));
+            match self.from_nodes.recv_timeout(slice) {
+                Ok(m) => return Ok(m),
+                Err(flume::RecvTimeoutError::Disconnected) => return Err("every node ended".into()),
+                Err(flume::RecvTimeoutError::Timeout) => {}
+            }
+            for (id, slot) in self.threads.iter_mut().enumerate() {
+                if slot.as_ref().is_some_and(|t| t.is_finished()) {
+                    let t = slot.take().expect("checked");
+                    match t.join() {
+                        Ok(Ok(())) => {}
+                        Ok(Err(why)) => return Err(format!("node {id}: {why}")),
+                        Err(_) => return Err(format!("node {id} panicked")),
+                    }
+                }
+            }
+            if Instant::now() >= until {
+                return Err(format!("no word for {:.0} s", wait.as_secs_f64()));
+            }
+        }
+    }
+}
+
+impl Drop for ThreadLinks {
+    fn drop(&mut self) {
+        // Closing the inboxes ends any node still waiting.
+        self.to_nodes.clear();
+        for t in self.threads.iter_mut().filter_map(Option::take) {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The in-process farm.
+pub type Farm = Coordinator<ThreadLinks>;
 
 /// The regions: ring position `k` holds the triangles of the leaves
 /// `positions` gives `k`.
@@ -69,208 +98,65 @@ fn regions(scene: &Scene, tree: &Octree, positions: &[u16], ring: u32) -> Vec<Ac
         .collect()
 }
 
-impl Farm {
-    /// Hands `solver`'s patches to nodes (`patch_owner[patch]`) and starts
-    /// them, each with its ring position's region of `tree` (leaf `l` in
-    /// position `positions[l]`).
-    pub fn start(
-        solver: &mut Solver,
-        scene: &Scene,
-        tree: &Octree,
-        positions: &[u16],
-        patch_owner: &[u32],
-        cfg: FarmConfig,
-    ) -> Self {
-        let l = cfg.layout;
-        assert!(
-            l.ring >= 1 && l.ring <= 64 && l.nodes.is_multiple_of(l.ring),
-            "whole rings of 1 to 64"
-        );
-        let n = l.nodes as usize;
-        let route = Route::new(tree, positions);
-        let regions = regions(scene, tree, positions, l.ring);
-        let part_levels = solver.params.part_levels();
-        let mut patches = solver.hand_out(patch_owner, n);
-        // Every packet is some node's, at most WINDOW each; each node has
-        // at most one poll out and one answer due; one shot at a time.
-        let inbox = n * (WINDOW + 2) + 8;
-        let (to_coord, from_nodes) = flume::bounded(3 * n + 8);
-        let (txs, rxs): (Vec<_>, Vec<_>) = (0..n).map(|_| flume::bounded(inbox)).unzip();
-        let mut threads = Vec::with_capacity(n);
-        for (id, rx) in rxs.into_iter().enumerate().rev() {
-            let setup = NodeSetup {
-                id: id as NodeId,
-                layout: l,
-                route: route.clone(),
-                region: regions[l.position(id as NodeId) as usize].clone(),
-                patches: patches.pop().unwrap_or_default(),
-                part_levels,
-                dynamic: cfg.dynamic,
-                seed: cfg.seed,
-            };
-            let links = Links {
-                peers: txs.clone(),
-                coordinator: to_coord.clone(),
-            };
-            let stall = cfg.stall;
-            threads.push(std::thread::spawn(move || {
-                run_node(Node::new(setup), rx, links, stall)
-            }));
-        }
-        threads.reverse();
-        Self {
-            to_nodes: txs,
-            from_nodes,
-            threads,
-            stall: cfg.stall,
-            iteration: 0,
-            measured: FarmTimes::default(),
-            error: None,
-        }
-    }
-
-    fn fail(&mut self, why: String) -> bool {
-        self.error.get_or_insert(why);
-        false
-    }
-
-    fn record_time(&mut self, node: NodeId, iteration: u64, time: NodeTime) {
-        let shot = iteration as usize - 1;
-        let nodes = self.to_nodes.len();
-        while self.measured.times.len() <= shot {
-            self.measured.times.push(vec![NodeTime::default(); nodes]);
-        }
-        self.measured.times[shot][node as usize] = time;
-    }
-}
-
-/// Whether candidate `a` beats `b`: more power, then the lower patch and
-/// side, the order in which one machine scans patches.
-fn better(a: (u32, u8, f64), b: Option<(u32, u8, f64)>) -> bool {
-    b.is_none_or(|b| a.2 > b.2 || (a.2 == b.2 && (a.0, a.1) < (b.0, b.1)))
-}
-
-impl Shots for Farm {
-    fn shoot(&mut self, solver: &mut Solver, snapshot: bool) -> bool {
-        if self.error.is_some() {
-            return false;
-        }
-        let Some(shooter) = solver.take_shooter() else {
-            return false;
+/// Hands `solver`'s patches to nodes (`patch_owner[patch]`) and starts
+/// them on threads, each with its ring position's region of `tree` (leaf
+/// `l` in position `positions[l]`).
+pub fn start(
+    solver: &mut Solver,
+    scene: &Scene,
+    tree: &Octree,
+    positions: &[u16],
+    patch_owner: &[u32],
+    cfg: FarmConfig,
+) -> Farm {
+    let l = cfg.layout;
+    assert!(
+        l.ring >= 1 && l.ring <= 64 && l.nodes.is_multiple_of(l.ring),
+        "whole rings of 1 to 64"
+    );
+    let n = l.nodes as usize;
+    let route = Route::new(tree, positions);
+    let regions = regions(scene, tree, positions, l.ring);
+    let part_levels = solver.params.part_levels();
+    let mut patches = solver.hand_out(patch_owner, n);
+    let inbox = inbox_capacity(n);
+    let (to_coord, from_nodes) = flume::bounded(4 * n + 8);
+    let (txs, rxs): (Vec<_>, Vec<_>) = (0..n).map(|_| flume::bounded(inbox)).unzip();
+    let mut threads = Vec::with_capacity(n);
+    for (id, rx) in rxs.into_iter().enumerate().rev() {
+        let setup = NodeSetup {
+            id: id as NodeId,
+            layout: l,
+            route: route.clone(),
+            region: regions[l.position(id as NodeId) as usize].clone(),
+            patches: patches.pop().unwrap_or_default(),
+            part_levels,
+            dynamic: cfg.dynamic,
+            seed: cfg.seed,
         };
-        let refine = solver.refine();
-        self.iteration += 1;
-        let started = Instant::now();
-        for tx in &self.to_nodes {
-            let msg = ToNode::Shoot {
-                iteration: self.iteration,
-                spec: shooter.spec(),
-                refine,
-                snapshot,
-            };
-            if tx.send(msg).is_err() {
-                return self.fail("a node stopped before the shot".into());
-            }
-        }
-        let mut receipts = vec![Receipt::default(); solver.patches.len()];
-        let mut best = None;
-        let mut done = 0;
-        while done < self.to_nodes.len() {
-            match self.from_nodes.recv_timeout(self.stall) {
-                Ok(ToCoordinator::Done(d)) if d.iteration == self.iteration => {
-                    for (i, r) in d.receipts {
-                        receipts[i as usize] = r;
-                    }
-                    if let Some(c) = d.candidate
-                        && better(c, best)
-                    {
-                        best = Some(c);
-                    }
-                    solver.stats += d.stats;
-                    self.measured.packets += d.packets;
-                    self.measured.helped += d.helped;
-                    done += 1;
-                }
-                Ok(ToCoordinator::Done(d)) => {
-                    let why = format!(
-                        "node {} answered shot {} in {}",
-                        d.node, d.iteration, self.iteration
-                    );
-                    return self.fail(why);
-                }
-                Ok(ToCoordinator::Time {
-                    node,
-                    iteration,
-                    time,
-                }) => self.record_time(node, iteration, time),
-                Ok(ToCoordinator::Failed { node, reason }) => {
-                    return self.fail(format!("node {node}: {reason}"));
-                }
-                Err(_) => {
-                    let why = format!(
-                        "shot {}: {} of {} nodes answered within {:.0} s",
-                        self.iteration,
-                        done,
-                        self.to_nodes.len(),
-                        self.stall.as_secs_f64()
-                    );
-                    return self.fail(why);
-                }
-            }
-        }
-        self.measured.shot_s.push(started.elapsed().as_secs_f64());
-        solver.book(&shooter, &receipts);
-        // The nodes' candidates and the coordinator's shells saw the same
-        // arithmetic: a disagreement is a bug, not a choice.
-        let mine = solver.next_shooter().map(|(i, s, w)| (i, s as u8, w));
-        if mine.map(|c| (c.0, c.1, c.2.to_bits())) != best.map(|c| (c.0, c.1, c.2.to_bits())) {
-            return self.fail(format!(
-                "shot {}: the nodes' next shooter {best:?} is not the coordinator's {mine:?}",
-                self.iteration
-            ));
-        }
-        true
+        let mut links = Links {
+            peers: txs.clone(),
+            coordinator: to_coord.clone(),
+        };
+        let stall = cfg.stall;
+        threads.push(Some(std::thread::spawn(move || {
+            run_node(Node::new(setup), &rx, &mut links, stall)
+        })));
     }
+    threads.reverse();
+    let links = ThreadLinks {
+        to_nodes: txs,
+        from_nodes,
+        threads,
+    };
+    Coordinator::new(links, cfg.stall)
+}
 
-    fn finish(&mut self, solver: &mut Solver) -> Vec<Vec<f32>> {
-        for tx in &self.to_nodes {
-            let _ = tx.send(ToNode::Finish);
-        }
-        let mut snapshots: Vec<Vec<f32>> = Vec::new();
-        for (id, t) in std::mem::take(&mut self.threads).into_iter().enumerate() {
-            match t.join() {
-                Ok(Ok(node)) => {
-                    let (patches, snaps) = node.into_patches();
-                    solver.take_back(patches);
-                    for (j, snap) in snaps.into_iter().enumerate() {
-                        if snapshots.len() <= j {
-                            snapshots.push(vec![0.0; 2 * solver.patches.len()]);
-                        }
-                        for (i, lv) in snap {
-                            snapshots[j][2 * i as usize..2 * i as usize + 2].copy_from_slice(&lv);
-                        }
-                    }
-                }
-                Ok(Err(why)) => {
-                    self.fail(format!("node {id}: {why}"));
-                }
-                Err(_) => {
-                    self.fail(format!("node {id} panicked"));
-                }
-            }
-        }
-        while let Ok(m) = self.from_nodes.try_recv() {
-            if let ToCoordinator::Time {
-                node,
-                iteration,
-                time,
-            } = m
-            {
-                self.record_time(node, iteration, time);
-            }
-        }
-        snapshots
-    }
+/// A node inbox that holds every message that can be in flight to it:
+/// every packet is some node's, at most [`WINDOW`] each; each node has at
+/// most one poll out and one answer due; one shot at a time.
+pub fn inbox_capacity(nodes: usize) -> usize {
+    nodes * (WINDOW + 2) + 8
 }
 
 /// A node's links: every node's inbox and the coordinator's.
@@ -288,73 +174,5 @@ impl Outbox for Links {
 
     fn to_coordinator(&mut self, msg: ToCoordinator) {
         let _ = self.coordinator.send(msg);
-    }
-}
-
-/// A node's thread: handle messages until `Finish`, stepping through
-/// local visibility when none waits, and time each shot.
-fn run_node(
-    mut node: Node,
-    inbox: flume::Receiver<ToNode>,
-    mut links: Links,
-    stall: Duration,
-) -> Result<Node, String> {
-    let mut time = NodeTime::default();
-    loop {
-        let msg = if node.has_local_work() {
-            match inbox.try_recv() {
-                Ok(m) => Some(m),
-                Err(flume::TryRecvError::Empty) => None,
-                Err(flume::TryRecvError::Disconnected) => return Err("the farm closed".into()),
-            }
-        } else {
-            let waited = Instant::now();
-            let m = match inbox.recv_timeout(stall) {
-                Ok(m) => m,
-                Err(flume::RecvTimeoutError::Timeout) => {
-                    let reason = format!("no message for {:.0} s", stall.as_secs_f64());
-                    links.to_coordinator(ToCoordinator::Failed {
-                        node: node.id(),
-                        reason: reason.clone(),
-                    });
-                    return Err(reason);
-                }
-                Err(flume::RecvTimeoutError::Disconnected) => {
-                    return Err("the farm closed".into());
-                }
-            };
-            let blocked = waited.elapsed().as_secs_f64();
-            if node.finished {
-                time.idle_s += blocked;
-            } else {
-                time.waiting_s += blocked;
-            }
-            Some(m)
-        };
-        let Some(msg) = msg else {
-            let help = node.next_step_helps();
-            let cpu = thread_cpu_s();
-            node.step(&mut links);
-            let spent = thread_cpu_s() - cpu;
-            time.work_s += spent;
-            if help {
-                time.helping_s += spent;
-            }
-            continue;
-        };
-        let ends_shot = matches!(msg, ToNode::Shoot { .. } | ToNode::Finish);
-        if ends_shot && node.iteration() > 0 {
-            links.to_coordinator(ToCoordinator::Time {
-                node: node.id(),
-                iteration: node.iteration(),
-                time: std::mem::take(&mut time),
-            });
-        }
-        if msg == ToNode::Finish {
-            return Ok(node);
-        }
-        let cpu = thread_cpu_s();
-        node.handle(msg, &mut links);
-        time.work_s += thread_cpu_s() - cpu;
     }
 }

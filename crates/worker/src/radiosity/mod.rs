@@ -5,55 +5,24 @@
 //! region per ring position, and every node computes the patches it is
 //! given. [`node`] is one node as a state machine (its patches' rounds of
 //! sample packets, the ring that computes their visibility, random polling
-//! for packets of other rings when it is idle); [`farm`] runs nodes on
-//! threads in one process with the coordinator on the caller's thread.
+//! for packets of other rings when it is idle) and [`runner`] its loop;
+//! [`coordinator`] chooses shooters and books receipts over any
+//! [`coordinator::NodeLinks`]. [`farm`] runs nodes on threads in one
+//! process with the coordinator on the caller's thread; [`daemon`] runs a
+//! worker daemon's node, linked to the other workers' nodes, for a
+//! coordinator in the scheduler.
 //! This module spreads patches over nodes: equal numbers of patches (no
 //! balancing) or equal numbers of elements (static balancing).
 
+pub mod coordinator;
+pub mod daemon;
 pub mod farm;
 pub mod node;
+pub mod runner;
 
 use locus_core::radiosity::Solver;
 
-/// Which of the paper's load balancing schemes a farm uses.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub enum Balance {
-    /// Equal numbers of patches per node, regions of equal leaf counts.
-    None,
-    /// Equal numbers of elements per node (section 4.1), regions of equal
-    /// predicted tracing cost (section 4.2).
-    Static,
-    /// Random polling for sample packets (section 5.2) only.
-    Dynamic,
-    /// Static and dynamic together.
-    Both,
-}
-
-impl Balance {
-    pub const ALL: [Balance; 4] = [
-        Balance::None,
-        Balance::Static,
-        Balance::Dynamic,
-        Balance::Both,
-    ];
-
-    pub fn is_static(self) -> bool {
-        matches!(self, Balance::Static | Balance::Both)
-    }
-
-    pub fn is_dynamic(self) -> bool {
-        matches!(self, Balance::Dynamic | Balance::Both)
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Balance::None => "none",
-            Balance::Static => "static",
-            Balance::Dynamic => "dynamic",
-            Balance::Both => "both",
-        }
-    }
-}
+pub use locus_protocol::radiosity::Balance;
 
 /// Each patch's node: contiguous runs of patches (in index order, which
 /// keeps a scene triangle's patches together) cut so that each node gets

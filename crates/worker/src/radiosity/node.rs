@@ -27,7 +27,7 @@ use std::ops::ControlFlow;
 pub const PACKET_SAMPLES: usize = 50;
 
 /// A node's own packets away at once (in its ring or handed to a helper).
-pub const WINDOW: usize = 2;
+pub const WINDOW: usize = 8;
 
 /// Where a node's messages go.
 pub trait Outbox {
