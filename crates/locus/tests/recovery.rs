@@ -409,3 +409,86 @@ fn a_detached_job_runs_on_and_attach_fetches_it() {
         String::from_utf8_lossy(&none.stderr)
     );
 }
+
+/// A radiosity job that loses one of its three node workers to `kill -9`
+/// mid-solve starts again on the two left and ends with the one machine's
+/// solution, bit for bit, naming the worker it lost.
+#[test]
+fn a_radiosity_job_survives_a_killed_node() {
+    use locus_core::radiosity::output::mesh_triangles;
+    use locus_core::radiosity::shoot::BvhVisibility;
+    use locus_core::radiosity::{RadiosityParams, Solver, solve};
+    use locus_protocol::radiosity::{Balance, RadiosityJob};
+    use locus_protocol::submit::JobKind;
+    let mut scene = common::small_cornell(32, 24, 3);
+    scene.settings.spp = 1;
+    let params = RadiosityParams {
+        mesh: 4,
+        stop: 1e-2,
+        ..Default::default()
+    };
+    let mut solver = Solver::new(&scene, params).unwrap();
+    let prep = locus_core::render::Prepared::new(scene.clone());
+    solve(&mut solver, &BvhVisibility(&prep.accel), &mut |_| {});
+    let bits = |m: &[[(glam::Vec3, glam::Vec3); 3]]| -> Vec<u32> {
+        m.iter()
+            .flatten()
+            .flat_map(|(p, l)| p.to_array().into_iter().chain(l.to_array()))
+            .map(f32::to_bits)
+            .collect()
+    };
+    let want = bits(&mesh_triangles(&solver));
+    let (_sched, addr) = Daemon::scheduler("2");
+    let mut workers: Vec<Daemon> = (0..3).map(|_| Daemon::worker(&addr)).collect();
+    let run = |addr: &str| {
+        let mut req = locus_scheduler::client::request(
+            &scene,
+            JobOptions {
+                workers: 3,
+                ..Default::default()
+            },
+        );
+        req.kind = JobKind::Radiosity(Box::new(RadiosityJob {
+            params,
+            ring: 0,
+            balance: Balance::Both,
+            spp: 1,
+        }));
+        let (tx, rx) = mpsc::channel();
+        let addr = addr.to_string();
+        std::thread::spawn(move || {
+            let rt = common::runtime();
+            let r = rt.block_on(locus_scheduler::client::submit(
+                &addr,
+                TOKEN,
+                req,
+                &|_, _| {},
+            ));
+            let _ = tx.send(r);
+        });
+        rx
+    };
+    let t = Instant::now();
+    let calm = wait(&run(&addr));
+    let span = t.elapsed();
+    let rad = calm.radiosity.as_ref().expect("radiosity");
+    assert_eq!(bits(&rad.mesh), want);
+    assert_eq!(rad.attempts, 1);
+    let rx = run(&addr);
+    std::thread::sleep(span / 2);
+    workers[1].signal("-KILL");
+    let r = wait(&rx);
+    let rad = r.radiosity.as_ref().expect("radiosity");
+    eprintln!(
+        "undisturbed {:.2} s; after the kill: {} attempts, lost {:?}, {} nodes",
+        span.as_secs_f64(),
+        rad.attempts,
+        rad.lost,
+        rad.nodes
+    );
+    assert_eq!(bits(&rad.mesh), want, "the solution after a lost node");
+    assert_eq!(rad.attempts, 2, "the kill landed mid-solve: {:?}", rad.lost);
+    assert_eq!(rad.lost.len(), 1);
+    assert_eq!(rad.nodes, 2);
+    workers.remove(1);
+}

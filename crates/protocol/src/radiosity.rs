@@ -96,6 +96,10 @@ pub struct RadiosityReport {
     pub mesh_s: f64,
     pub solve_s: f64,
     pub image_s: f64,
+    /// Attempts the job took (one more per worker lost), and the workers
+    /// lost; the solution is the same bits either way.
+    pub attempts: u32,
+    pub lost: Vec<String>,
     /// The meshed solution (each corner's position and radiance): it
     /// travels in [`crate::submit::SchedulerToClient::Mesh`] runs, not in
     /// the report, and the client puts it here.

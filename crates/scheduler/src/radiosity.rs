@@ -238,6 +238,8 @@ pub fn solve(
         mesh_s,
         solve_s,
         image_s,
+        attempts: 1,
+        lost: Vec::new(),
         mesh: Vec::new(),
     };
     Ok(Solved {

@@ -166,9 +166,13 @@ impl Patch {
         (first, created)
     }
 
-    /// Indices of the leaf elements, in tree order.
+    /// Indices of the leaf elements, in tree order (none for a
+    /// [`Self::shell`], whose mesh is on a farm's node).
     pub fn leaves(&self) -> Vec<u32> {
         let mut out = Vec::new();
+        if self.elements.is_empty() {
+            return out;
+        }
         let mut stack = vec![0u32];
         while let Some(e) = stack.pop() {
             let c = self.elements[e as usize].children;
@@ -402,6 +406,10 @@ mod tests {
         assert_eq!(q.leaves(), p.leaves());
         assert_eq!(q.vertex_id([4, 4]), p.vertex_id([4, 4]));
         assert_eq!(serde_json::to_string(&q).unwrap(), json);
+        // A shell (the mesh away on a node) has no leaves and no radiosity,
+        // and asking is no error.
+        assert!(p.shell().leaves().is_empty());
+        assert_eq!(p.shell().mean_radiosity(0), DVec3::ZERO);
         // A child index pointing back up the tree would loop.
         let mut bad = p.clone();
         bad.elements[1].children = 0;

@@ -410,8 +410,7 @@ impl Actor {
         self.metrics.worker_left(&w.reg.listen);
         if self.radiosity_member(id) {
             self.metrics.worker_lost();
-            let why = format!("node worker {} was lost ({reason})", w.reg.listen);
-            self.fail_radiosity(why);
+            self.radiosity_lost(w.reg.listen, reason);
             return;
         }
         if let Some(m) = self.member(id) {

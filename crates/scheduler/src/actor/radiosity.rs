@@ -1,16 +1,17 @@
 //! A radiosity job in the actor: it starts on idle workers like a render
 //! job, but its coordinator runs on a blocking thread
 //! ([`crate::radiosity::solve`]) and the actor only passes the members'
-//! messages to it and delivers what it returns. A radiosity job does not
-//! recover: a lost member fails it, with a reason naming the worker, and
-//! the client may submit it again (the solution is deterministic, so it
-//! comes out the same).
+//! messages to it and delivers what it returns. A lost member ends the
+//! attempt, and the job starts again from the start on the workers there
+//! are, in whole rings: the solution is deterministic, so it comes out the
+//! same bits.
 
 use super::clients::{Client, Finished, send_result_with};
 use super::{Actor, Event, Queued};
 use crate::job;
 use crate::radiosity::{self, FromMember, Members, Solved};
 use crate::status::{self, EndedJob};
+use locus_core::scene::Scene;
 use locus_protocol::control::{SchedulerToWorker, WorkerToScheduler};
 use locus_protocol::radiosity::RadiosityJob;
 use locus_protocol::report::FarmReport;
@@ -32,7 +33,27 @@ pub(crate) struct RadiosityRunning {
     /// the coordinator's wait.
     to_coordinator: flume::Sender<FromMember>,
     pub started: Instant,
+    scene: Arc<Scene>,
+    rj: RadiosityJob,
+    /// Attempts so far, and the workers lost in them.
+    pub attempts: u32,
+    pub lost: Vec<String>,
 }
+
+/// What outlives a radiosity job's attempts.
+struct Restartable {
+    id: u64,
+    req: Box<JobRequest>,
+    scene: Arc<Scene>,
+    rj: RadiosityJob,
+    client: Client,
+    started: Instant,
+    attempts: u32,
+    lost: Vec<String>,
+}
+
+/// Attempts a radiosity job may take (each after a lost worker).
+const MAX_ATTEMPTS: u32 = 3;
 
 /// Messages of the members the coordinator may not have taken yet: per
 /// shot each node sends at most a `Done`, a `Time` and a `Failed`, and at
@@ -48,6 +69,24 @@ impl RadiosityRunning {
 impl Actor {
     /// Starts queued radiosity job `q` on `members` (idle registry ids).
     pub(super) fn start_radiosity(&mut self, q: Queued, rj: RadiosityJob, members: Vec<u32>) {
+        let mut req = q.req;
+        let scene = job::scene_of(&mut req);
+        let job = Restartable {
+            id: q.id,
+            req,
+            scene,
+            rj,
+            client: q.client,
+            started: Instant::now(),
+            attempts: 0,
+            lost: Vec::new(),
+        };
+        self.launch_radiosity(job, members);
+    }
+
+    /// Runs an attempt of `j` on `members` under a fresh run id: the
+    /// coordinator on a blocking thread, the members marked busy.
+    fn launch_radiosity(&mut self, j: Restartable, members: Vec<u32>) {
         let run = self.next_run;
         self.next_run += 1;
         let (mut links, mut addrs) = (Vec::new(), Vec::new());
@@ -58,13 +97,12 @@ impl Actor {
             addrs.push(w.reg.listen.clone());
         }
         let (tx, rx) = flume::bounded(BACKLOG + 4 * members.len());
-        let mut req = q.req;
-        let scene = job::scene_of(&mut req);
-        let (id, events, progress_to) = (q.id, self.events.clone(), q.client.sender());
+        let (id, events, progress_to) = (j.id, self.events.clone(), j.client.sender());
         info!(
             job = id,
             run,
             nodes = members.len(),
+            attempt = j.attempts + 1,
             "radiosity job starting"
         );
         let m = Members {
@@ -73,6 +111,7 @@ impl Actor {
             links,
             from: rx,
         };
+        let (scene, rj) = (j.scene.clone(), j.rj.clone());
         tokio::task::spawn_blocking(move || {
             let progress = |f: f64| {
                 if let Some(c) = &progress_to {
@@ -93,11 +132,95 @@ impl Actor {
             id,
             run,
             members,
-            req,
-            client: q.client,
+            req: j.req,
+            scene: j.scene,
+            rj: j.rj,
+            client: j.client,
             to_coordinator: tx,
-            started: Instant::now(),
+            started: j.started,
+            attempts: j.attempts + 1,
+            lost: j.lost,
         });
+    }
+
+    /// A member of the running radiosity job was lost: the attempt is
+    /// dropped and the job starts again from the start on the workers
+    /// there are (the solution is deterministic, so it comes out the same
+    /// bits), in whole rings; with none, or after [`MAX_ATTEMPTS`], it
+    /// fails naming the workers lost.
+    pub(super) fn radiosity_lost(&mut self, addr: String, reason: String) {
+        let Some(r) = self.radiosity.take() else {
+            return;
+        };
+        warn!(job = r.id, worker = %addr, %reason, "radiosity node lost; starting again");
+        for m in &r.members {
+            if let Some(w) = self.workers.get_mut(m) {
+                w.busy = false;
+                let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
+                    job: r.run,
+                    reason: format!("node worker {addr} was lost"),
+                });
+            }
+        }
+        let RadiosityRunning {
+            id,
+            req,
+            scene,
+            rj,
+            client,
+            started,
+            attempts,
+            mut lost,
+            ..
+        } = r;
+        lost.push(addr);
+        let idle = self.idle();
+        let n = match rj.ring {
+            0 => idle.len(),
+            ring => idle.len() - idle.len() % ring as usize,
+        };
+        let j = Restartable {
+            id,
+            req,
+            scene,
+            rj,
+            client,
+            started,
+            attempts,
+            lost,
+        };
+        if n == 0 || attempts >= MAX_ATTEMPTS {
+            let why = format!(
+                "lost node workers {:?} ({reason}) in {attempts} attempts, and {} idle workers \
+                 left to form rings of {}",
+                j.lost,
+                idle.len(),
+                j.rj.ring
+            );
+            // Put it back as running so that it fails the one way.
+            self.launch_radiosity_failed(j, why);
+            return;
+        }
+        self.launch_radiosity(j, idle[..n].to_vec());
+    }
+
+    /// Fails job `j`, which has no attempt running.
+    fn launch_radiosity_failed(&mut self, j: Restartable, why: String) {
+        let (tx, _) = flume::bounded(1);
+        self.radiosity = Some(RadiosityRunning {
+            id: j.id,
+            run: 0,
+            members: Vec::new(),
+            req: j.req,
+            scene: j.scene,
+            rj: j.rj,
+            client: j.client,
+            to_coordinator: tx,
+            started: j.started,
+            attempts: j.attempts,
+            lost: j.lost,
+        });
+        self.fail_radiosity(why);
     }
 
     /// Passes a member's message to the running radiosity job; gives it
@@ -173,8 +296,8 @@ impl Actor {
             traffic: Vec::new(),
             forwarded_fraction: None,
             load_imbalance: None,
-            attempts: 1,
-            lost: Vec::new(),
+            attempts: r.attempts,
+            lost: r.lost.clone(),
         };
         status::push_history(&mut self.history, ended);
         self.forget(r.id);
@@ -215,8 +338,10 @@ impl Actor {
         let Solved {
             image,
             mesh,
-            report,
+            mut report,
         } = *solved;
+        report.attempts = r.attempts;
+        report.lost = r.lost.clone();
         info!(
             job = r.id,
             iterations = report.iterations,
