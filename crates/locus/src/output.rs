@@ -55,6 +55,15 @@ pub(crate) struct FarmOutput<'a> {
     pub(crate) error_vs_reference: Option<locus_core::metrics::ErrorMetrics>,
 }
 
+/// A farm job's image.
+pub(crate) fn image_of(r: &JobResult) -> Image {
+    Image {
+        width: r.width,
+        height: r.height,
+        pixels: r.pixels.clone(),
+    }
+}
+
 pub(crate) fn write_farm_result(
     scene: &Path,
     output: &Path,
@@ -62,12 +71,7 @@ pub(crate) fn write_farm_result(
     r: &JobResult,
     reference: Option<&Image>,
 ) -> Result<()> {
-    let image = Image {
-        width: r.width,
-        height: r.height,
-        pixels: r.pixels.clone(),
-    };
-    let Written { png, json, error } = write_image(&image, output, exposure, reference)?;
+    let Written { png, json, error } = write_image(&image_of(r), output, exposure, reference)?;
     let out = FarmOutput {
         scene: scene.display().to_string(),
         image: output.display().to_string(),

@@ -12,14 +12,9 @@ use locus_core::render::Prepared;
 use locus_core::scene::{Material, Scene};
 use locus_protocol::radiosity::{Balance, RadiosityJob};
 use locus_protocol::submit::{JobKind, JobOptions, JobRequest};
-use std::path::PathBuf;
 
 fn cornell() -> Scene {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let mut s = Scene::load(&root.join("scenes/cornell-box/cornell.toml")).expect("cornell");
-    s.camera.width = 32;
-    s.camera.height = 24;
-    s
+    common::small_cornell(32, 24, 1)
 }
 
 fn params() -> RadiosityParams {

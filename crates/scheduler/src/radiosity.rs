@@ -49,8 +49,8 @@ pub fn plan(
 ) -> Result<Rings, String> {
     if nodes == 0 || ring == 0 || ring > 64 || !nodes.is_multiple_of(ring) {
         return Err(format!(
-            "{nodes} nodes cannot form rings of {ring}: the node count (workers) must be a \
-             multiple of the ring length (1 to 64)"
+            "{nodes} nodes cannot form rings of {ring}: the node count (--workers) must be a \
+             multiple of the ring length (--ring, 1 to 64)"
         ));
     }
     let tree = Octree::build(
@@ -157,7 +157,6 @@ pub struct Solved {
 pub fn solve(
     scene: &Scene,
     job: &RadiosityJob,
-    balance_seed: u64,
     members: Members,
     progress: &(dyn Fn(f64) + Sync),
 ) -> Result<Solved, String> {
@@ -168,15 +167,7 @@ pub fn solve(
     let ring = if job.ring == 0 { nodes } else { job.ring };
     let rings = plan(scene, &solver, nodes, ring, job.balance)?;
     let mesh_s = t.elapsed().as_secs_f64();
-    start_nodes(
-        scene,
-        job,
-        balance_seed,
-        &mut solver,
-        &rings,
-        ring,
-        &members,
-    )?;
+    start_nodes(scene, job, &mut solver, &rings, ring, &members)?;
     // Every node linked to every other before the first shot.
     let mut ready = vec![false; nodes as usize];
     while ready.iter().any(|r| !r) {
@@ -254,7 +245,6 @@ pub fn solve(
 fn start_nodes(
     scene: &Scene,
     job: &RadiosityJob,
-    seed: u64,
     solver: &mut Solver,
     rings: &Rings,
     ring: u32,
@@ -286,7 +276,7 @@ fn start_nodes(
             patches: std::mem::take(&mut patches[n]),
             part_levels: job.params.part_levels(),
             dynamic: job.balance.is_dynamic(),
-            seed,
+            seed: scene.settings.seed,
             stall_ms: STALL.as_millis() as u64,
         };
         let size = postcard::experimental::serialized_size(&setup).unwrap_or(usize::MAX);

@@ -133,6 +133,14 @@ pub(crate) fn push_history(h: &mut VecDeque<EndedJob>, e: EndedJob) {
 }
 
 impl Actor {
+    /// Registry worker `m`'s peer address (empty once it has left).
+    fn listen_of(&self, m: u32) -> String {
+        self.workers
+            .get(&m)
+            .map(|e| e.reg.listen.clone())
+            .unwrap_or_default()
+    }
+
     /// A running radiosity job as the status shows it: its phase is
     /// "radiosity", and it has no tiles.
     fn radiosity_status(&self, now: Instant) -> Option<RunningJob> {
@@ -161,11 +169,7 @@ impl Actor {
                 .iter()
                 .map(|m| Member {
                     worker: *m,
-                    listen: self
-                        .workers
-                        .get(m)
-                        .map(|e| e.reg.listen.clone())
-                        .unwrap_or_default(),
+                    listen: self.listen_of(*m),
                     predicted_share: None,
                     tile_passes_done: 0,
                 })
@@ -224,11 +228,7 @@ impl Actor {
                 .enumerate()
                 .map(|(w, m)| Member {
                     worker: *m,
-                    listen: self
-                        .workers
-                        .get(m)
-                        .map(|e| e.reg.listen.clone())
-                        .unwrap_or_default(),
+                    listen: self.listen_of(*m),
                     predicted_share: j.attempt.prep.as_ref().map(|p| {
                         match j.req.options.cost_model {
                             CostModel::Analytic => p.analytic_share[w],

@@ -309,12 +309,20 @@ impl Session<'_> {
                     task: tokio::spawn(radiosity::daemon::start(s, self.env(ctl_tx, cancel))),
                 });
             }
-            SchedulerToWorker::Node { job, msg } => jobs.forward_node(job, *msg, ctl_tx).await,
-            SchedulerToWorker::Tile(t) => jobs.forward(t.job, Input::Tile(t), ctl_tx).await,
-            SchedulerToWorker::NoMoreTiles { job } => {
-                jobs.forward(job, Input::NoMoreTiles, ctl_tx).await
+            SchedulerToWorker::Node { job, msg } => {
+                jobs.forward(job, Inbound::Node(*msg), ctl_tx).await
             }
-            SchedulerToWorker::EndJob { job } => jobs.forward(job, Input::End, ctl_tx).await,
+            SchedulerToWorker::Tile(t) => {
+                jobs.forward(t.job, Inbound::Engine(Input::Tile(t)), ctl_tx)
+                    .await
+            }
+            SchedulerToWorker::NoMoreTiles { job } => {
+                jobs.forward(job, Inbound::Engine(Input::NoMoreTiles), ctl_tx)
+                    .await
+            }
+            SchedulerToWorker::EndJob { job } => {
+                jobs.forward(job, Inbound::Engine(Input::End), ctl_tx).await
+            }
             SchedulerToWorker::AbortJob { job, reason } => {
                 if jobs.job() == Some(job) {
                     warn!(job, %reason, "job aborted by the scheduler");
@@ -323,6 +331,13 @@ impl Session<'_> {
             }
         }
     }
+}
+
+/// A scheduler message for a running job: to a render job's engine or a
+/// radiosity job's node.
+enum Inbound {
+    Engine(Input),
+    Node(locus_protocol::radiosity::ToNode),
 }
 
 /// The job a worker is receiving, starting (linking to its peers) or
@@ -379,36 +394,22 @@ impl Jobs {
         }
     }
 
-    /// Hands a scheduler message to the job's engine. The engine asks for
+    /// Hands a scheduler message to the job's engine or node. The engine asks for
     /// tiles as soon as it runs, a moment before its start has settled
     /// here: a message for the starting job waits for the start.
-    async fn forward(&mut self, job: u64, input: Input, ctl: &flume::Sender<WorkerToScheduler>) {
-        match self.running(job, ctl).await.map(|j| &j.inbox) {
-            Some(Inbox::Engine(tx)) => {
-                if tx.send_async(Event::Input(input)).await.is_err() {
-                    warn!(job, "the job's engine has stopped; message dropped");
-                }
+    async fn forward(&mut self, job: u64, msg: Inbound, ctl: &flume::Sender<WorkerToScheduler>) {
+        let sent = match (self.running(job, ctl).await.map(|j| &j.inbox), msg) {
+            (Some(Inbox::Engine(tx)), Inbound::Engine(input)) => {
+                tx.send_async(Event::Input(input)).await.is_ok()
             }
-            Some(Inbox::Node(_)) => warn!(job, "a render message for a radiosity job; ignored"),
-            None => warn!(job, "message for a job not running here; ignored"),
-        }
-    }
-
-    /// Hands the coordinator's message to the job's radiosity node.
-    async fn forward_node(
-        &mut self,
-        job: u64,
-        msg: locus_protocol::radiosity::ToNode,
-        ctl: &flume::Sender<WorkerToScheduler>,
-    ) {
-        match self.running(job, ctl).await.map(|j| &j.inbox) {
-            Some(Inbox::Node(tx)) => {
-                if tx.send_async(msg).await.is_err() {
-                    warn!(job, "the job's node has stopped; message dropped");
-                }
+            (Some(Inbox::Node(tx)), Inbound::Node(m)) => tx.send_async(m).await.is_ok(),
+            (Some(_), _) => {
+                return warn!(job, "a message for the other kind of job; ignored");
             }
-            Some(Inbox::Engine(_)) => warn!(job, "a radiosity message for a render job; ignored"),
-            None => warn!(job, "message for a job not running here; ignored"),
+            (None, _) => return warn!(job, "message for a job not running here; ignored"),
+        };
+        if !sent {
+            warn!(job, "the job has stopped; message dropped");
         }
     }
 

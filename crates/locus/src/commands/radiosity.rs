@@ -4,7 +4,7 @@
 use crate::cli::RadiosityArgs;
 use crate::commands::radiosity_farm::{ShotSummary, run_farm, summarize};
 use crate::commands::render::progress_bar;
-use crate::output::{Written, sibling, write_image};
+use crate::output::{Written, image_of, sibling, write_image};
 use anyhow::{Context, Result};
 use locus_core::image_io::Image;
 use locus_core::radiosity::output::{render_image, write_mesh_ply, write_ply};
@@ -195,12 +195,7 @@ pub(crate) fn write_farm_solution(
     rad: &locus_protocol::radiosity::RadiosityReport,
     reference: Option<&Image>,
 ) -> Result<()> {
-    let image = Image {
-        width: r.width,
-        height: r.height,
-        pixels: r.pixels.clone(),
-    };
-    let Written { png, json, error } = write_image(&image, output, exposure, reference)?;
+    let Written { png, json, error } = write_image(&image_of(r), output, exposure, reference)?;
     let ply = sibling(output, "ply");
     write_mesh_ply(&rad.mesh, &ply, exposure)
         .with_context(|| format!("writing {}", ply.display()))?;

@@ -96,27 +96,23 @@ pub(crate) fn send_result_with(
     radiosity: Option<RadiosityPart>,
 ) {
     tokio::spawn(async move {
-        for (k, run) in image.pixels.chunks(RESULT_CHUNK_PIXELS).enumerate() {
-            let chunk = SchedulerToClient::Pixels {
-                job,
-                offset: (k * RESULT_CHUNK_PIXELS) as u64,
-                pixels: run.to_vec(),
-            };
-            if client.send(chunk).await.is_err() {
-                return;
-            }
+        let pixels = |offset, run: &[[f32; 3]]| SchedulerToClient::Pixels {
+            job,
+            offset,
+            pixels: run.to_vec(),
+        };
+        if !send_runs(&client, &image.pixels, RESULT_CHUNK_PIXELS, pixels).await {
+            return;
         }
         let mut part = None;
         if let Some((mesh, r)) = radiosity {
-            for (k, run) in mesh.chunks(RESULT_CHUNK_TRIANGLES).enumerate() {
-                let chunk = SchedulerToClient::Mesh {
-                    job,
-                    offset: (k * RESULT_CHUNK_TRIANGLES) as u64,
-                    tris: run.to_vec(),
-                };
-                if client.send(chunk).await.is_err() {
-                    return;
-                }
+            let tris = |offset, run: &[[MeshCorner; 3]]| SchedulerToClient::Mesh {
+                job,
+                offset,
+                tris: run.to_vec(),
+            };
+            if !send_runs(&client, &mesh, RESULT_CHUNK_TRIANGLES, tris).await {
+                return;
             }
             part = Some(r);
         }
@@ -141,6 +137,22 @@ pub(crate) fn send_result_with(
         }
         let _ = client.send(SchedulerToClient::Done(Box::new(result))).await;
     });
+}
+
+/// Sends `all` in runs of `per`, each made by `msg(offset, run)`; false
+/// when the client has gone.
+async fn send_runs<T>(
+    client: &mpsc::Sender<SchedulerToClient>,
+    all: &[T],
+    per: usize,
+    msg: impl Fn(u64, &[T]) -> SchedulerToClient,
+) -> bool {
+    for (k, run) in all.chunks(per).enumerate() {
+        if client.send(msg((k * per) as u64, run)).await.is_err() {
+            return false;
+        }
+    }
+    true
 }
 
 impl Actor {

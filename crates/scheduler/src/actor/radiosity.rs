@@ -15,41 +15,31 @@ use locus_core::scene::Scene;
 use locus_protocol::control::{SchedulerToWorker, WorkerToScheduler};
 use locus_protocol::radiosity::RadiosityJob;
 use locus_protocol::report::FarmReport;
-use locus_protocol::submit::{JobKind, JobRequest, SchedulerToClient};
+use locus_protocol::submit::{JobRequest, SchedulerToClient};
 use std::sync::Arc;
 use std::time::Instant;
 use tracing::{info, warn};
 
-/// A running radiosity job.
+/// A running radiosity job: what outlives its attempts, and the attempt
+/// running now.
 pub(crate) struct RadiosityRunning {
     pub id: u64,
-    pub run: u64,
-    /// Registry ids; the position is the node id.
-    pub members: Vec<u32>,
-    /// The request without its triangles.
+    /// The request without its triangles (the scene holds them).
     pub req: Box<JobRequest>,
-    client: Client,
-    /// Where members' messages go; dropped when the job ends, which ends
-    /// the coordinator's wait.
-    to_coordinator: flume::Sender<FromMember>,
-    pub started: Instant,
     scene: Arc<Scene>,
     rj: RadiosityJob,
+    client: Client,
+    pub started: Instant,
     /// Attempts so far, and the workers lost in them.
     pub attempts: u32,
     pub lost: Vec<String>,
-}
-
-/// What outlives a radiosity job's attempts.
-struct Restartable {
-    id: u64,
-    req: Box<JobRequest>,
-    scene: Arc<Scene>,
-    rj: RadiosityJob,
-    client: Client,
-    started: Instant,
-    attempts: u32,
-    lost: Vec<String>,
+    /// The attempt's run id and members (registry ids; the position is
+    /// the node id).
+    pub run: u64,
+    pub members: Vec<u32>,
+    /// Where members' messages go; dropped when the attempt ends, which
+    /// ends the coordinator's wait.
+    to_coordinator: Option<flume::Sender<FromMember>>,
 }
 
 /// Attempts a radiosity job may take (each after a lost worker).
@@ -71,7 +61,7 @@ impl Actor {
     pub(super) fn start_radiosity(&mut self, q: Queued, rj: RadiosityJob, members: Vec<u32>) {
         let mut req = q.req;
         let scene = job::scene_of(&mut req);
-        let job = Restartable {
+        self.radiosity = Some(RadiosityRunning {
             id: q.id,
             req,
             scene,
@@ -80,13 +70,16 @@ impl Actor {
             started: Instant::now(),
             attempts: 0,
             lost: Vec::new(),
-        };
-        self.launch_radiosity(job, members);
+            run: 0,
+            members: Vec::new(),
+            to_coordinator: None,
+        });
+        self.launch_radiosity(members);
     }
 
-    /// Runs an attempt of `j` on `members` under a fresh run id: the
-    /// coordinator on a blocking thread, the members marked busy.
-    fn launch_radiosity(&mut self, j: Restartable, members: Vec<u32>) {
+    /// Runs an attempt of the radiosity job on `members` under a fresh run
+    /// id: the coordinator on a blocking thread, the members marked busy.
+    fn launch_radiosity(&mut self, members: Vec<u32>) {
         let run = self.next_run;
         self.next_run += 1;
         let (mut links, mut addrs) = (Vec::new(), Vec::new());
@@ -96,13 +89,19 @@ impl Actor {
             links.push(w.tx.clone());
             addrs.push(w.reg.listen.clone());
         }
+        let events = self.events.clone();
+        let j = self.radiosity.as_mut().expect("a radiosity job");
         let (tx, rx) = flume::bounded(BACKLOG + 4 * members.len());
-        let (id, events, progress_to) = (j.id, self.events.clone(), j.client.sender());
+        j.attempts += 1;
+        j.run = run;
+        j.members = members;
+        j.to_coordinator = Some(tx);
+        let (id, progress_to) = (j.id, j.client.sender());
         info!(
             job = id,
             run,
-            nodes = members.len(),
-            attempt = j.attempts + 1,
+            nodes = j.members.len(),
+            attempt = j.attempts,
             "radiosity job starting"
         );
         let m = Members {
@@ -124,23 +123,29 @@ impl Actor {
                     });
                 }
             };
-            let seed = scene.settings.seed;
-            let outcome = radiosity::solve(&scene, &rj, seed, m, &progress).map(Box::new);
+            let outcome = radiosity::solve(&scene, &rj, m, &progress).map(Box::new);
             let _ = events.blocking_send(Event::RadiosityEnded { run, outcome });
         });
-        self.radiosity = Some(RadiosityRunning {
-            id,
-            run,
-            members,
-            req: j.req,
-            scene: j.scene,
-            rj: j.rj,
-            client: j.client,
-            to_coordinator: tx,
-            started: j.started,
-            attempts: j.attempts + 1,
-            lost: j.lost,
-        });
+    }
+
+    /// Marks the attempt's members idle and, with a reason, tells them to
+    /// drop it (a finished attempt's nodes have ended on their own).
+    fn drop_radiosity_attempt(&mut self, reason: Option<&str>) {
+        let Some(r) = self.radiosity.as_mut() else {
+            return;
+        };
+        r.to_coordinator = None;
+        for m in std::mem::take(&mut r.members) {
+            if let Some(w) = self.workers.get_mut(&m) {
+                w.busy = false;
+                if let Some(reason) = reason {
+                    let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
+                        job: r.run,
+                        reason: reason.to_string(),
+                    });
+                }
+            }
+        }
     }
 
     /// A member of the running radiosity job was lost: the attempt is
@@ -149,78 +154,28 @@ impl Actor {
     /// bits), in whole rings; with none, or after [`MAX_ATTEMPTS`], it
     /// fails naming the workers lost.
     pub(super) fn radiosity_lost(&mut self, addr: String, reason: String) {
-        let Some(r) = self.radiosity.take() else {
+        self.drop_radiosity_attempt(Some(&format!("node worker {addr} was lost")));
+        let Some(r) = self.radiosity.as_mut() else {
             return;
         };
-        warn!(job = r.id, worker = %addr, %reason, "radiosity node lost; starting again");
-        for m in &r.members {
-            if let Some(w) = self.workers.get_mut(m) {
-                w.busy = false;
-                let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
-                    job: r.run,
-                    reason: format!("node worker {addr} was lost"),
-                });
-            }
-        }
-        let RadiosityRunning {
-            id,
-            req,
-            scene,
-            rj,
-            client,
-            started,
-            attempts,
-            mut lost,
-            ..
-        } = r;
-        lost.push(addr);
+        warn!(job = r.id, worker = %addr, %reason, "radiosity node lost");
+        r.lost.push(addr);
+        let (ring, attempts) = (r.rj.ring as usize, r.attempts);
         let idle = self.idle();
-        let n = match rj.ring {
+        let n = match ring {
             0 => idle.len(),
-            ring => idle.len() - idle.len() % ring as usize,
-        };
-        let j = Restartable {
-            id,
-            req,
-            scene,
-            rj,
-            client,
-            started,
-            attempts,
-            lost,
+            ring => idle.len() - idle.len() % ring,
         };
         if n == 0 || attempts >= MAX_ATTEMPTS {
+            let lost = &self.radiosity.as_ref().expect("checked").lost;
             let why = format!(
-                "lost node workers {:?} ({reason}) in {attempts} attempts, and {} idle workers \
-                 left to form rings of {}",
-                j.lost,
-                idle.len(),
-                j.rj.ring
+                "lost node workers {lost:?} ({reason}) in {attempts} attempts, with {} idle \
+                 workers left for rings of {ring}: start more workers and submit again",
+                idle.len()
             );
-            // Put it back as running so that it fails the one way.
-            self.launch_radiosity_failed(j, why);
-            return;
+            return self.fail_radiosity(why);
         }
-        self.launch_radiosity(j, idle[..n].to_vec());
-    }
-
-    /// Fails job `j`, which has no attempt running.
-    fn launch_radiosity_failed(&mut self, j: Restartable, why: String) {
-        let (tx, _) = flume::bounded(1);
-        self.radiosity = Some(RadiosityRunning {
-            id: j.id,
-            run: 0,
-            members: Vec::new(),
-            req: j.req,
-            scene: j.scene,
-            rj: j.rj,
-            client: j.client,
-            to_coordinator: tx,
-            started: j.started,
-            attempts: j.attempts,
-            lost: j.lost,
-        });
-        self.fail_radiosity(why);
+        self.launch_radiosity(idle[..n].to_vec());
     }
 
     /// Passes a member's message to the running radiosity job; gives it
@@ -252,7 +207,10 @@ impl Actor {
             WorkerToScheduler::Node { msg, .. } => FromMember::Node(n, *msg),
             _ => unreachable!("matched above"),
         };
-        if r.to_coordinator.try_send(fwd).is_err() {
+        if r.to_coordinator
+            .as_ref()
+            .is_none_or(|tx| tx.try_send(fwd).is_err())
+        {
             self.fail_radiosity(format!(
                 "the coordinator fell {BACKLOG} messages behind its nodes"
             ));
@@ -267,28 +225,23 @@ impl Actor {
             .is_some_and(|r| r.members.contains(&id))
     }
 
+    /// Ends the running radiosity job (its attempt dropped with `reason`,
+    /// if one runs) and records it in the history.
     fn end_radiosity(&mut self, outcome: &str, reason: Option<String>) -> Option<RadiosityRunning> {
+        let workers = self.radiosity.as_ref()?.members.iter().map(|m| {
+            self.workers
+                .get(m)
+                .map_or_else(|| format!("worker {m}"), |w| w.reg.listen.clone())
+        });
+        let workers = workers.collect();
+        self.drop_radiosity_attempt(reason.as_deref());
         let r = self.radiosity.take()?;
-        let workers = r
-            .members
-            .iter()
-            .map(|m| {
-                let w = self.workers.get_mut(m);
-                w.map_or_else(
-                    || format!("worker {m}"),
-                    |w| {
-                        w.busy = false;
-                        w.reg.listen.clone()
-                    },
-                )
-            })
-            .collect();
         let ended = EndedJob {
             id: r.id,
             scene: r.req.name.clone(),
             width: r.req.camera.width,
             height: r.req.camera.height,
-            spp: 0,
+            spp: r.rj.spp.max(1),
             outcome: outcome.to_string(),
             reason,
             seconds: r.started.elapsed().as_secs_f64(),
@@ -309,14 +262,6 @@ impl Actor {
         let Some(r) = self.end_radiosity("failed", Some(reason.clone())) else {
             return;
         };
-        for m in &r.members {
-            if let Some(w) = self.workers.get(m) {
-                let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
-                    job: r.run,
-                    reason: reason.clone(),
-                });
-            }
-        }
         warn!(job = r.id, %reason, "radiosity job failed");
         self.metrics.job_failed();
         r.client
@@ -350,17 +295,13 @@ impl Actor {
             "radiosity job done"
         );
         let s = &r.req.settings;
-        let spp = match &r.req.kind {
-            JobKind::Radiosity(rj) => rj.spp.max(1),
-            JobKind::Render => s.spp,
-        };
         let farm = FarmReport {
             scene: r.req.name.clone(),
             width: image.width,
             height: image.height,
-            spp,
+            spp: r.rj.spp.max(1),
             seed: s.seed,
-            sampler: format!("{:?}", s.sampler).to_lowercase(),
+            sampler: s.sampler.name().into(),
             ..Default::default()
         };
         let (image, farm) = (Arc::new(image), Arc::new(farm));

@@ -162,6 +162,75 @@ impl<L: NodeLinks> Coordinator<L> {
         }
         true
     }
+
+    /// Sends `Finish` to every node and puts the patches they send back
+    /// into `solver`; returns the snapshots, or why the farm could not end.
+    fn take_patches(&mut self, solver: &mut Solver) -> Result<Vec<Vec<f32>>, String> {
+        let nodes = self.links.nodes();
+        for n in 0..nodes as NodeId {
+            if !self.links.send(n, ToNode::Finish) {
+                return Err(format!("node {n} stopped before the end"));
+            }
+        }
+        let mut snapshots: Vec<Vec<f32>> = Vec::new();
+        let mut ended = vec![false; nodes];
+        let mut left = nodes;
+        while left > 0 {
+            let msg = self
+                .links
+                .recv(self.stall)
+                .map_err(|why| format!("{left} of {nodes} nodes sent no patches back: {why}"))?;
+            let (node, patches, snaps, last) = match msg {
+                ToCoordinator::End {
+                    node,
+                    patches,
+                    snapshots,
+                    last,
+                } if ended.get(node as usize) == Some(&false) => (node, patches, snapshots, last),
+                ToCoordinator::Time {
+                    node,
+                    iteration,
+                    time,
+                } => {
+                    self.record_time(node, iteration, time);
+                    continue;
+                }
+                ToCoordinator::Failed { node, reason } => {
+                    return Err(format!("node {node}: {reason}"));
+                }
+                ToCoordinator::Done(d) => {
+                    return Err(format!("node {} reported a shot after the last", d.node));
+                }
+                ToCoordinator::End { node, .. } => {
+                    return Err(format!("node {node} sent patches after its last run"));
+                }
+            };
+            if patches
+                .iter()
+                .any(|(i, _)| *i as usize >= solver.patches.len())
+            {
+                return Err(format!(
+                    "node {node} sent back a patch the job does not have"
+                ));
+            }
+            solver.take_back(patches);
+            for (j, snap) in snaps.into_iter().enumerate() {
+                if snapshots.len() <= j {
+                    snapshots.push(vec![0.0; 2 * solver.patches.len()]);
+                }
+                for (i, lv) in snap {
+                    if let Some(slot) = snapshots[j].get_mut(2 * i as usize..2 * i as usize + 2) {
+                        slot.copy_from_slice(&lv);
+                    }
+                }
+            }
+            if last {
+                ended[node as usize] = true;
+                left -= 1;
+            }
+        }
+        Ok(snapshots)
+    }
 }
 
 impl<L: NodeLinks> Shots for Coordinator<L> {
@@ -208,72 +277,9 @@ impl<L: NodeLinks> Shots for Coordinator<L> {
     /// Tells every node to finish and takes their patches back; a node
     /// that fails to send them leaves the error set (and shells in place).
     fn finish(&mut self, solver: &mut Solver) -> Vec<Vec<f32>> {
-        let nodes = self.links.nodes();
-        for n in 0..nodes as NodeId {
-            if !self.links.send(n, ToNode::Finish) {
-                self.fail(format!("node {n} stopped before the end"));
-                return Vec::new();
-            }
-        }
-        let mut snapshots: Vec<Vec<f32>> = Vec::new();
-        let mut ended = vec![false; nodes];
-        let mut left = nodes;
-        while left > 0 {
-            let (node, patches, snaps, last) = match self.links.recv(self.stall) {
-                Ok(ToCoordinator::End {
-                    node,
-                    patches,
-                    snapshots,
-                    last,
-                }) if ended.get(node as usize) == Some(&false) => (node, patches, snapshots, last),
-                Ok(ToCoordinator::Time {
-                    node,
-                    iteration,
-                    time,
-                }) => {
-                    self.record_time(node, iteration, time);
-                    continue;
-                }
-                Ok(ToCoordinator::Failed { node, reason }) => {
-                    self.fail(format!("node {node}: {reason}"));
-                    return Vec::new();
-                }
-                Ok(other) => {
-                    self.fail(format!("a node sent {other:?} after the last shot"));
-                    return Vec::new();
-                }
-                Err(why) => {
-                    self.fail(format!(
-                        "{left} of {nodes} nodes sent no patches back: {why}"
-                    ));
-                    return Vec::new();
-                }
-            };
-            if patches
-                .iter()
-                .any(|(i, _)| *i as usize >= solver.patches.len())
-            {
-                self.fail(format!(
-                    "node {node} sent back a patch the job does not have"
-                ));
-                return Vec::new();
-            }
-            solver.take_back(patches);
-            for (j, snap) in snaps.into_iter().enumerate() {
-                if snapshots.len() <= j {
-                    snapshots.push(vec![0.0; 2 * solver.patches.len()]);
-                }
-                for (i, lv) in snap {
-                    if let Some(slot) = snapshots[j].get_mut(2 * i as usize..2 * i as usize + 2) {
-                        slot.copy_from_slice(&lv);
-                    }
-                }
-            }
-            if last {
-                ended[node as usize] = true;
-                left -= 1;
-            }
-        }
-        snapshots
+        self.take_patches(solver).unwrap_or_else(|why| {
+            self.fail(why);
+            Vec::new()
+        })
     }
 }

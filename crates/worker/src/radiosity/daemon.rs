@@ -91,6 +91,7 @@ pub async fn start(mut setup: Box<NodeJob>, env: Env) -> anyhow::Result<Arc<JobL
         own: tx.clone(),
         peers,
         control: env.control.clone(),
+        cancel: cancel.clone(),
     };
     let ctl = env.control.clone();
     tokio::spawn(async move {
@@ -98,8 +99,8 @@ pub async fn start(mut setup: Box<NodeJob>, env: Env) -> anyhow::Result<Arc<JobL
         let res = tokio::select! {
             r = &mut thread => r,
             _ = cancel.cancelled() => {
-                // Aborted: Finish ends the node's loop (what it sends
-                // then carries a run id the scheduler no longer knows).
+                // Aborted: Finish ends the node's loop, and its links
+                // send nothing more (no patches go back for nothing).
                 let _ = tx.send_async(ToNode::Finish).await;
                 thread.await
             }
@@ -135,10 +136,15 @@ struct DaemonLinks {
     own: flume::Sender<ToNode>,
     peers: Vec<Option<flume::Sender<PeerMsg>>>,
     control: flume::Sender<WorkerToScheduler>,
+    /// The job's abort: nothing leaves the node after it.
+    cancel: tokio_util::sync::CancellationToken,
 }
 
 impl Outbox for DaemonLinks {
     fn to_node(&mut self, to: NodeId, msg: ToNode) {
+        if self.cancel.is_cancelled() {
+            return;
+        }
         // Every inbox holds every message that can be in flight to it
         // (see `inbox_capacity`), so these waits end; a closed link means
         // the job is ending anyway.
@@ -150,6 +156,9 @@ impl Outbox for DaemonLinks {
     }
 
     fn to_coordinator(&mut self, msg: ToCoordinator) {
+        if self.cancel.is_cancelled() {
+            return;
+        }
         let _ = self.control.send(WorkerToScheduler::Node {
             job: self.job,
             msg: Box::new(msg),
