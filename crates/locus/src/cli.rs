@@ -99,6 +99,9 @@ pub(crate) struct BenchFarmArgs {
     pub(crate) workers: Vec<usize>,
     #[arg(long, num_args = 1.., default_values = ["forward", "fetch", "adaptive"])]
     pub(crate) policies: Vec<FetchPolicy>,
+    /// Also measure `forward` with random polling for hot regions.
+    #[arg(long)]
+    pub(crate) random_polling: bool,
     /// Cores one machine uses and the farms share (0: all of them).
     #[arg(long, default_value_t = 0)]
     pub(crate) cores: usize,
@@ -266,6 +269,11 @@ pub(crate) struct FarmArgs {
     /// MiB of fetched geometry each worker keeps (LRU-like eviction).
     #[arg(long, default_value_t = 256)]
     pub(crate) fetch_budget_mib: u64,
+    /// Random polling for hot regions (the radiosity paper's dynamic load
+    /// balancing): an idle worker asks a random peer for queued queries
+    /// and traces them, fetching the peer's leaves they cross.
+    #[arg(long)]
+    pub(crate) random_polling: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy)]
@@ -660,6 +668,7 @@ impl FarmArgs {
                 packet_size: self.packet_size.max(1),
                 flush_us: self.flush_us,
                 max_inflight: self.max_inflight.max(1),
+                random_polling: self.random_polling,
                 ..Tuning::default()
             },
             cache: None,

@@ -291,3 +291,48 @@ fn shading_normals_travel_with_their_triangles() {
         farm.stop().await.expect("clean stop");
     });
 }
+
+/// Random polling for hot regions: idle workers poll, loaded ones hand
+/// queued queries and camera samples over, the pollers fetch the handers'
+/// leaves to trace them, and the image keeps one machine's bits. Every
+/// handed item arrives. Whether a poll finds a queue long enough to share
+/// depends on timing, so the job runs until one has (at most 4 times); a
+/// farm that never hands anything over fails.
+#[test]
+fn random_polling_hands_work_over_and_keeps_the_bits() {
+    let mut scene = common::small_cornell(96, 64, 11);
+    scene.settings.spp = 8;
+    let reference = single_machine(&scene);
+    let rt = runtime();
+    rt.block_on(async {
+        let farm = locus::farm::LocalFarm::start(2, 1).await.expect("farm");
+        let mut handed = 0;
+        for run in 0..4 {
+            let mut opts = JobOptions {
+                workers: 2,
+                // Two tiles a worker: thousands of samples queued at once.
+                tile_size: 32,
+                fetch: FetchPolicy::Forward,
+                ..Default::default()
+            };
+            opts.tuning.random_polling = true;
+            let req = locus_scheduler::client::request(&scene, opts);
+            let r = farm.render(req, &|_, _| {}).await.expect("job");
+            assert_eq!(bits(&r), reference, "run {run}");
+            let t = &r.report.totals;
+            eprintln!(
+                "run {run}: polls {}, answered {}, handed {}, fetched leaves {}",
+                t.polls, t.polls_answered, t.handed_out, t.fetched_leaves
+            );
+            assert_eq!(t.handed_out, t.handed_in, "every handed item arrives");
+            assert!(t.polls_answered <= t.polls);
+            handed += t.handed_out;
+            if handed > 0 {
+                assert!(t.fetched_leaves > 0, "pollers fetch the handers' leaves");
+                break;
+            }
+        }
+        assert!(handed > 0, "no poll found work to share in 4 runs");
+        farm.stop().await.expect("clean stop");
+    });
+}

@@ -152,6 +152,10 @@ pub struct Tuning {
     pub max_inflight: u32,
     /// Tiles a worker holds at once.
     pub tiles_ahead: u32,
+    /// Random polling for hot regions (paper 003, section 5.2): an idle
+    /// worker asks a random peer for queued queries and traces them,
+    /// fetching the peer's leaves they cross.
+    pub random_polling: bool,
 }
 
 impl Default for Tuning {
@@ -161,6 +165,7 @@ impl Default for Tuning {
             flush_us: 1000,
             max_inflight: 65536,
             tiles_ahead: 2,
+            random_polling: false,
         }
     }
 }

@@ -24,6 +24,33 @@ pub enum PeerMsg {
     Leaf(Box<LeafGeometry>),
     /// A radiosity job's message between nodes (sample packets, polls).
     Node(Box<crate::radiosity::ToNode>),
+    /// Random polling for hot regions (paper 003, section 5.2, offered
+    /// to the render job): the sender has nothing to trace and asks for
+    /// queries the receiver has queued.
+    Poll,
+    /// The answer to `Poll`: work the sender had queued, for the receiver
+    /// to trace: `Trace` items, and camera samples whose answers go to
+    /// the sender's slots. The receiver fetches the sender's leaves they
+    /// cross rather than forward them back, so each hit is the one the
+    /// owner would find.
+    Handed {
+        queries: Packet,
+        samples: Vec<HandedSample>,
+    },
+    /// The answer to `Poll` from a worker with no queries to spare, with
+    /// the workers it knows to be idle (so that the poller does not try
+    /// them next).
+    NoWork { idle: Vec<WorkerId> },
+}
+
+/// A camera sample handed over by random polling; its radiance goes to
+/// the hander's `slot`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HandedSample {
+    pub x: u32,
+    pub y: u32,
+    pub sample: u32,
+    pub slot: u32,
 }
 
 /// A leaf's triangles as its owner holds them.

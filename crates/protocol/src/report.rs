@@ -72,6 +72,12 @@ pub struct WorkerStats {
     /// Rebuilds of BVH parts that merged fetched leaves, and their time.
     pub rebuilds: u32,
     pub rebuild_s: f64,
+    /// Random polling: polls sent, polls answered with work, and queries
+    /// handed to pollers and received from the polled.
+    pub polls: u64,
+    pub polls_answered: u64,
+    pub handed_out: u64,
+    pub handed_in: u64,
 }
 
 /// Job totals: counters add up; the BVH build time, the peaks and the
@@ -112,6 +118,10 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.fetched_held_peak = self.fetched_held_peak.max(o.fetched_held_peak);
         self.rebuilds += o.rebuilds;
         self.rebuild_s += o.rebuild_s;
+        self.polls += o.polls;
+        self.polls_answered += o.polls_answered;
+        self.handed_out += o.handed_out;
+        self.handed_in += o.handed_in;
     }
 }
 

@@ -196,6 +196,12 @@ proptest! {
         prop_assert_eq!(back, items.iter().map(unseeded).collect::<Vec<_>>());
         roundtrip(&PeerMsg::Hello { job, from });
         roundtrip(&PeerMsg::Fetch(vec![job as u32, from as u32]));
+        roundtrip(&PeerMsg::Poll);
+        roundtrip(&PeerMsg::NoWork { idle: vec![from, from / 2] });
+        let samples = (0..n as u32)
+            .map(|i| HandedSample { x: i, y: job as u32, sample: from as u32, slot: i * 7 })
+            .collect();
+        roundtrip(&PeerMsg::Handed { queries: packet.clone(), samples });
         let verts: Vec<[Vec3; 3]> = tris(n, job);
         roundtrip(&PeerMsg::Leaf(Box::new(LeafGeometry {
             leaf: from as u32,

@@ -336,7 +336,11 @@ pub fn prepare(
         Vec::new()
     };
     let map = ProcessorMap::new(&tree, owner);
-    let tile_affinity = if replicated || workers < 2 {
+    // Under random polling tiles go to whoever asks: a worker that has
+    // fetched a hot region's leaves renders its tiles, and the owner's
+    // queued work is handed to idle pollers. With affinity, a worker with
+    // no tiles of its own would live on forwarded and handed work alone.
+    let tile_affinity = if replicated || workers < 2 || options.tuning.random_polling {
         vec![None; tiles.len()]
     } else {
         use rayon::prelude::*;

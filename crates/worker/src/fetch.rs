@@ -142,6 +142,14 @@ impl Locality {
         }
     }
 
+    /// Whether `leaf` may still be fetched at all (a query handed over by
+    /// random polling fetches its hander's leaves whatever the policy).
+    pub fn may_fetch(&self, leaf: u32) -> bool {
+        self.refused
+            .get(leaf as usize)
+            .is_some_and(|b| !b.load(Relaxed))
+    }
+
     /// Never fetch `leaf` again (it would not fit).
     pub fn refuse(&self, leaf: u32) {
         if let Some(b) = self.refused.get(leaf as usize) {

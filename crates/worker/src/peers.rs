@@ -201,6 +201,13 @@ async fn serve_peer(
                 bytes: n as u64,
                 leaf,
             },
+            PeerMsg::Poll => Input::Poll { from },
+            PeerMsg::Handed { queries, samples } => Input::Handed {
+                from,
+                queries,
+                samples,
+            },
+            PeerMsg::NoWork { idle } => Input::NoWork { from, idle },
             PeerMsg::Hello { .. } => anyhow::bail!("{}: a second Hello", r.peer()),
         };
         if engine.send_async(Event::Input(input)).await.is_err() {

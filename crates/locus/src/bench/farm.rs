@@ -4,8 +4,9 @@
 //! For each scene: one machine on all cores; then farms of 1, 2, 4 and 8
 //! worker processes (`locus worker` children of this process, threads per
 //! worker chosen so that the total is the core count, at least one each)
-//! under each fetch policy, and Morton's partition beside region growing
-//! under `forward`. Every farm image is checked bit for bit against the
+//! under each fetch policy, Morton's partition beside region growing
+//! under `forward`, and with `--random-polling` also `forward` with random
+//! polling for hot regions. Every farm image is checked bit for bit against the
 //! single machine's. Each row gives:
 //! - efficiency: one machine's time over the farm's, for the render phase
 //!   and for everything after loading (preparation, distribution, BVH
@@ -42,6 +43,8 @@ pub struct Plan {
     pub repeat: u32,
     pub workers: Vec<usize>,
     pub policies: Vec<FetchPolicy>,
+    /// Also `forward` with random polling for hot regions.
+    pub random_polling: bool,
     /// Cores the single machine uses and the farms share.
     pub cores: usize,
     /// The large generated scene and its workers' budget, if wanted.
@@ -76,6 +79,11 @@ pub struct Row {
     pub forwards_per_ray: f64,
     pub bytes_per_sample: f64,
     pub imbalance: f64,
+    /// Of the workers' render time, the share they sat idle.
+    pub idle_share: f64,
+    /// Random polling: polls sent, and queries handed to pollers.
+    pub polls: u64,
+    pub handed: u64,
     pub route_nodes: u32,
     /// Peak resident bytes of each worker process, and their budget.
     pub peak_rss: Vec<u64>,
@@ -147,6 +155,7 @@ struct FarmRun {
     spec: FarmSpec,
     policy: FetchPolicy,
     partitioner: Partitioner,
+    random_polling: bool,
 }
 
 /// Runs `run` `repeat` times on fresh processes; keeps the fastest render
@@ -159,12 +168,13 @@ fn farm(scene: &Scene, run: &FarmRun, repeat: u32, want: &[u32]) -> Result<(Farm
     let mut best: Option<FarmReport> = None;
     let mut identical = true;
     for _ in 0..repeat.max(1) {
-        let opts = JobOptions {
+        let mut opts = JobOptions {
             workers: run.spec.workers as u32,
             partitioner: run.partitioner,
             fetch: run.policy,
             ..JobOptions::default()
         };
+        opts.tuning.random_polling = run.random_polling;
         let req = locus_scheduler::client::request(scene, opts);
         let r = rt.block_on(async {
             let farm = LocalFarm::launch(&run.spec).await?;
@@ -200,11 +210,16 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
     Row {
         scene: scene.to_string(),
         config: format!(
-            "{} x {} thr, {}, {:?}",
+            "{} x {} thr, {}, {:?}{}",
             run.spec.workers,
             run.spec.threads_per_worker,
             run.policy.name(),
-            run.partitioner
+            run.partitioner,
+            if run.random_polling {
+                ", random polling"
+            } else {
+                ""
+            }
         ),
         workers: run.spec.workers,
         threads_per_worker: run.spec.threads_per_worker,
@@ -219,6 +234,9 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
         forwards_per_ray: f.forwarded_fraction,
         bytes_per_sample: f.bytes_per_sample,
         imbalance: f.load_imbalance,
+        idle_share: t.idle_s / (t.busy_s + t.idle_s).max(1e-9),
+        polls: t.polls,
+        handed: t.handed_out,
         route_nodes: f.route_leaves,
         peak_rss: f.workers.iter().map(|w| w.stats.peak_rss).collect(),
         budget: run.spec.memory_budget,
@@ -283,6 +301,9 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             forwards_per_ray: 0.0,
             bytes_per_sample: 0.0,
             imbalance: 1.0,
+            idle_share: 0.0,
+            polls: 0,
+            handed: 0,
             route_nodes: 0,
             peak_rss: one_peak,
             budget: 0,
@@ -296,6 +317,15 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                         spec: spec(plan, l.workers, l.budget),
                         policy,
                         partitioner: Partitioner::RegionGrowing,
+                        random_polling: false,
+                    });
+                }
+                if plan.random_polling {
+                    runs.push(FarmRun {
+                        spec: spec(plan, l.workers, l.budget),
+                        policy: FetchPolicy::Forward,
+                        partitioner: Partitioner::RegionGrowing,
+                        random_polling: true,
                     });
                 }
             }
@@ -306,6 +336,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                             spec: spec(plan, w, 0),
                             policy,
                             partitioner: Partitioner::RegionGrowing,
+                            random_polling: false,
                         });
                     }
                     if w > 1 && plan.policies.contains(&FetchPolicy::Forward) {
@@ -313,7 +344,16 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                             spec: spec(plan, w, 0),
                             policy: FetchPolicy::Forward,
                             partitioner: Partitioner::Morton,
+                            random_polling: false,
                         });
+                        if plan.random_polling {
+                            runs.push(FarmRun {
+                                spec: spec(plan, w, 0),
+                                policy: FetchPolicy::Forward,
+                                partitioner: Partitioner::RegionGrowing,
+                                random_polling: true,
+                            });
+                        }
                     }
                 }
             }
@@ -374,11 +414,11 @@ pub fn markdown(rows: &[Row]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | imbalance | peak MiB per process (budget) | bit-identical |"
+        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | imbalance | idle | handed | peak MiB per process (budget) | bit-identical |"
     );
     let _ = writeln!(
         s,
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
     );
     for r in rows {
         let peaks = r
@@ -394,7 +434,7 @@ pub fn markdown(rows: &[Row]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {:.2} | {}{} | {} |",
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {:.2} | {:.0}% | {} | {}{} | {} |",
             r.scene,
             r.config,
             r.render_s,
@@ -405,6 +445,8 @@ pub fn markdown(rows: &[Row]) -> String {
             r.forwards_per_ray,
             r.bytes_per_sample,
             r.imbalance,
+            r.idle_share * 100.0,
+            r.handed,
             peaks,
             budget,
             if r.identical { "yes" } else { "NO" }

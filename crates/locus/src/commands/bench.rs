@@ -207,6 +207,7 @@ pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
         repeat: a.repeat.max(1),
         workers: a.workers.clone(),
         policies: a.policies.clone(),
+        random_polling: a.random_polling,
         cores,
         large,
         exe: std::env::current_exe().context("finding the locus executable")?,

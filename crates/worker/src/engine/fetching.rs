@@ -391,7 +391,7 @@ impl<'a> Engine<'a> {
             &self.local,
             AccelSet::from_parts(self.parts.clone()),
             self.pending.clone(),
-            s.fetch != FetchPolicy::Forward,
+            self.job.per_leaf(),
         ));
         self.reach_dirty = false;
     }

@@ -26,12 +26,16 @@ pub struct Work {
     /// The fetched leaf this work waited for, held so that it is traced
     /// here even by a batch whose snapshot predates the leaf.
     pub pinned: Option<Arc<FetchedLeaf>>,
+    /// The peer that handed this query over by random polling: its leaves
+    /// are fetched here, not forwarded back to it.
+    pub handed_by: Option<WorkerId>,
 }
 
 /// What a traced batch hands back to the engine.
 pub struct Batch {
-    /// Per item: where its answer goes, and how it ended here.
-    pub items: Vec<(ReplyTo, Outcome)>,
+    /// Per item: where its answer goes, how it ended here, and the peer
+    /// that handed it over (whose leaves it goes on fetching).
+    pub items: Vec<(ReplyTo, Outcome, Option<WorkerId>)>,
     /// The vertices `Outcome::Chain` ranges point into.
     pub chain: Vec<ChainVertex>,
     pub stats: TraceStats,
@@ -48,6 +52,7 @@ struct ItemTracer<'a> {
     job: &'a EngineJob,
     reach: &'a Reach,
     pinned: Option<&'a Arc<FetchedLeaf>>,
+    handed_by: Option<WorkerId>,
     fetched_traces: Cell<u64>,
 }
 
@@ -135,7 +140,13 @@ impl Tracer for ItemTracer<'_> {
                             return t;
                         }
                         resume = Resume::at(tb);
-                    } else if leaf != u32::MAX && self.job.locality.wants_fetch(leaf, kind) {
+                    } else if leaf != u32::MAX
+                        && if self.handed_by == Some(owner) {
+                            self.job.locality.may_fetch(leaf)
+                        } else {
+                            self.job.locality.wants_fetch(leaf, kind)
+                        }
+                    {
                         // Traced here once the leaf has come: nothing of it
                         // is in the BVH parts meanwhile.
                         return Traced::Next(Dest::Leaf(leaf), Resume::at(ta));
@@ -173,6 +184,7 @@ pub fn trace_batch(
             job,
             reach,
             pinned: w.pinned.as_ref(),
+            handed_by: w.handed_by,
             fetched_traces: Cell::new(0),
         };
         let o = kernel.process(&tracer, w.task, w.resume, &mut b.chain, &mut b.stats);
@@ -180,12 +192,14 @@ pub fn trace_batch(
         if let Outcome::Forward { resume, .. } = o
             && resume.at == w.resume.at
             && w.from != me
+            && w.handed_by.is_none()
         {
             // The sender computed the same processor vector; a query that
             // does not start in a leaf of ours was corrupted or misrouted.
+            // (A handed query starts in its hander's leaves.)
             b.misrouted = Some(w.from);
         }
-        b.items.push((w.reply, o));
+        b.items.push((w.reply, o, w.handed_by));
     }
     b.cpu_s = sys::thread_cpu_s() - cpu0;
     b

@@ -10,7 +10,8 @@
 //!   idleness, and held back (never blocking) when a peer is full.
 //! - `state`: the engine's bookkeeping (samples, batches, answers,
 //!   routing); `fetching`: fetch requests, served leaves, and the builder
-//!   thread that merges fetched leaves into BVH parts.
+//!   thread that merges fetched leaves into BVH parts; `polling`: random
+//!   polling, which hands queued queries of a hot region to idle peers.
 //! - this module: the loop. The engine's own thread traces too, one batch
 //!   per turn, and hands further batches to the pool's other threads; a
 //!   worker of one thread has no pool and no hand-over at all. Everything
@@ -31,6 +32,7 @@
 mod fetching;
 pub mod kernel;
 pub mod outbox;
+mod polling;
 pub mod slots;
 mod state;
 
@@ -43,8 +45,9 @@ use locus_core::path::{CacheUse, Kernel};
 use locus_core::region::WorkerId;
 use locus_protocol::control::{JobSetup, TileAssignment, WorkerToScheduler};
 use locus_protocol::packet::PacketError;
-use locus_protocol::rays::{LeafGeometry, Packet, PeerMsg};
+use locus_protocol::rays::{HandedSample, LeafGeometry, Packet, PeerMsg};
 use locus_protocol::report::WorkerStats;
+use locus_protocol::submit::FetchPolicy;
 use outbox::LinkClosed;
 use slots::UnknownSlot;
 use state::{Engine, STALL_REPORT};
@@ -94,6 +97,12 @@ impl EngineJob {
         }
     }
 
+    /// Whether routes name remote leaves one by one: fetching asks for
+    /// leaves by name, and so does a poller tracing handed queries.
+    pub(crate) fn per_leaf(&self) -> bool {
+        self.setup.fetch != FetchPolicy::Forward || self.setup.tuning.random_polling
+    }
+
     /// Triangle ids of own leaf `leaf`.
     pub(crate) fn own_ids(&self, leaf: u32) -> Option<&[u32]> {
         let own = &self.setup.own_leaves;
@@ -117,6 +126,21 @@ pub enum Input {
         from: WorkerId,
         bytes: u64,
         leaf: Box<LeafGeometry>,
+    },
+    /// Random polling: a peer with nothing to trace asks for queries.
+    Poll {
+        from: WorkerId,
+    },
+    /// Work a polled peer handed over.
+    Handed {
+        from: WorkerId,
+        queries: Packet,
+        samples: Vec<HandedSample>,
+    },
+    /// A polled peer had none to spare; these workers are idle too.
+    NoWork {
+        from: WorkerId,
+        idle: Vec<WorkerId>,
     },
     Tile(TileAssignment),
     NoMoreTiles,
@@ -165,6 +189,10 @@ pub enum EngineError {
     Cancelled(Box<WorkerStats>),
     #[error("worker {from} sent a malformed packet: {why}")]
     BadPacket { from: WorkerId, why: PacketError },
+    #[error("worker {from} handed over {what}")]
+    BadHanded { from: WorkerId, what: String },
+    #[error("worker {from} named worker {worker} idle, which is not in the job")]
+    BadIdle { from: WorkerId, worker: WorkerId },
     #[error("worker {from} asked for leaf {leaf}, which this worker does not own")]
     NotMyLeaf { from: WorkerId, leaf: u32 },
     #[error("worker {from} sent geometry for leaf {leaf}: {why}")]
@@ -280,8 +308,11 @@ fn turns<'a: 's, 's>(
             e.apply(b)?;
         }
         if out == 0 && e.work.is_empty() {
-            // Nothing is being traced: what waits in packets must go.
+            // Nothing is being traced: what waits in packets must go, and
+            // a peer may have queries to spare.
             e.outbox.flush_all()?;
+            e.now = Instant::now();
+            e.maybe_poll()?;
         }
         let first = if traced_here || !e.work.is_empty() {
             // There is work: take what has come, do not wait for more.

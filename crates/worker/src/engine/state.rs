@@ -5,17 +5,17 @@
 use super::fetching::{Builder, MERGE_AFTER};
 use super::kernel::{Batch, Work};
 use super::outbox::Outbox;
+use super::polling::Polling;
 use super::slots::{Effect, Slots};
 use super::{EngineError, EngineJob, Event, Input, Links};
 use crate::fetch::FetchedLeaf;
 use crate::reach::Reach;
 use locus_core::accel_set::{AccelSet, Part};
 use locus_core::path::{Answer, Dest, Outcome, Query, Task};
-use locus_core::region::Resume;
+use locus_core::region::{Resume, WorkerId};
 use locus_protocol::control::WorkerToScheduler;
 use locus_protocol::rays::{PeerMsg, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
-use locus_protocol::submit::FetchPolicy;
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -81,6 +81,7 @@ pub(super) struct Engine<'a> {
     pub(super) now: Instant,
     /// Threads tracing for this engine: its own and the pool's.
     pub(super) threads: usize,
+    pub(super) polling: Polling,
 }
 
 impl<'a> Engine<'a> {
@@ -107,7 +108,6 @@ impl<'a> Engine<'a> {
                 *x = true;
             }
         }
-        let per_leaf = s.fetch != FetchPolicy::Forward;
         let own = AccelSet::from_parts(parts.clone());
         let region_bytes = own.bytes() as u64;
         let reach = Arc::new(Reach::new(
@@ -116,7 +116,7 @@ impl<'a> Engine<'a> {
             &local,
             own,
             Vec::new(),
-            per_leaf,
+            job.per_leaf(),
         ));
         let flush = Duration::from_micros(s.tuning.flush_us.max(1) as u64);
         Engine {
@@ -159,6 +159,7 @@ impl<'a> Engine<'a> {
             cpu_s: 0.0,
             now: Instant::now(),
             threads: threads.max(1),
+            polling: Polling::new(s.tuning.random_polling, job.workers, s.me, s.seed),
         }
     }
 
@@ -203,10 +204,11 @@ impl<'a> Engine<'a> {
     /// traces everything itself (one worker, or the scene replicated)
     /// needs only enough to keep its threads busy, since its samples
     /// finish where they start: more would hold tiles that an idle peer
-    /// could render at the end of the job.
+    /// could render at the end of the job (unless idle peers poll for
+    /// them).
     pub(super) fn originate(&mut self) {
         let mut cap = self.job.setup.tuning.max_inflight.max(1) as usize;
-        if self.reach.all_local {
+        if self.reach.all_local && !self.polling.on {
             cap = cap.min(LOCAL_INFLIGHT_PER_THREAD * self.threads);
         }
         let me = self.job.setup.me;
@@ -224,6 +226,7 @@ impl<'a> Engine<'a> {
                 reply: n.reply,
                 from: me,
                 pinned: None,
+                handed_by: None,
             });
         }
     }
@@ -264,6 +267,7 @@ impl<'a> Engine<'a> {
                                 reply,
                                 from,
                                 pinned: None,
+                                handed_by: None,
                             });
                         }
                         RayItem::Answer { to, answer } => answers.push((to, answer)),
@@ -290,6 +294,13 @@ impl<'a> Engine<'a> {
                 self.answers = answers;
             }
             Input::Fetch { from, leaves } => self.serve(from, leaves)?,
+            Input::Poll { from } => self.polled(from)?,
+            Input::Handed {
+                from,
+                queries,
+                samples,
+            } => self.handed(from, queries, samples)?,
+            Input::NoWork { from, idle } => self.no_work(from, idle)?,
             Input::Leaf { from, bytes, leaf } => self.receive_leaf(from, bytes, *leaf, scope)?,
             Input::Tile(a) => {
                 self.tiles_asked = self.tiles_asked.saturating_sub(1);
@@ -313,7 +324,7 @@ impl<'a> Engine<'a> {
         let me = self.job.setup.me;
         // As for a packet's answers: slots a few items ahead.
         let mine = |i: usize| match b.items.get(i) {
-            Some((r, Outcome::Answer(_))) if r.worker == me => Some(r.slot),
+            Some((r, Outcome::Answer(_), _)) if r.worker == me => Some(r.slot),
             _ => None,
         };
         for i in 0..b.items.len() {
@@ -323,7 +334,7 @@ impl<'a> Engine<'a> {
             if let Some(slot) = mine(i + AHEAD / 2) {
                 self.slots.prefetch_next(slot);
             }
-            let (reply, o) = b.items[i];
+            let (reply, o, handed_by) = b.items[i];
             match o {
                 Outcome::Answer(a) => {
                     if reply.worker == me {
@@ -343,7 +354,7 @@ impl<'a> Engine<'a> {
                     dest,
                     query,
                     resume,
-                } => self.route(dest, query, resume, reply)?,
+                } => self.route(dest, query, resume, reply, handed_by)?,
                 Outcome::Chain { start, end } => {
                     let mut children = std::mem::take(&mut self.children);
                     self.slots.open_chain(
@@ -352,7 +363,7 @@ impl<'a> Engine<'a> {
                         &mut children,
                     );
                     for (dest, query, resume, r) in children.drain(..) {
-                        self.route(dest, query, resume, r)?;
+                        self.route(dest, query, resume, r, None)?;
                     }
                     self.children = children;
                 }
@@ -391,13 +402,15 @@ impl<'a> Engine<'a> {
         Ok(())
     }
 
-    /// Sends a query on: to a peer, or into the wait for a leaf.
+    /// Sends a query on: to a peer, or into the wait for a leaf (with the
+    /// peer that handed it over, whose leaves it goes on fetching).
     pub(super) fn route(
         &mut self,
         dest: Dest,
         query: Query,
         resume: Resume,
         reply: ReplyTo,
+        handed_by: Option<WorkerId>,
     ) -> Result<(), EngineError> {
         let job = self.job;
         let leaf = match dest {
@@ -418,6 +431,7 @@ impl<'a> Engine<'a> {
             reply,
             from: job.setup.me,
             pinned: None,
+            handed_by,
         };
         let l = leaf as usize;
         if self.local.get(l) == Some(&true) || self.pending.iter().any(|p| p.leaf == leaf) {
@@ -442,7 +456,7 @@ impl<'a> Engine<'a> {
             // No room: this leaf is forwarded from now on.
             job.locality.refuse(leaf);
             self.stats.fetch_waits -= 1;
-            return self.route(Dest::Peer(owner), query, resume, reply);
+            return self.route(Dest::Peer(owner), query, resume, reply, None);
         }
         self.held += need;
         self.held_peak = self.held_peak.max(self.held);
@@ -471,6 +485,9 @@ impl<'a> Engine<'a> {
         }
         if !self.pending.is_empty() && !self.builder.busy {
             w = w.min((self.last_arrival + MERGE_AFTER).saturating_duration_since(now));
+        }
+        if let Some(p) = self.polling.wake(now) {
+            w = w.min(p);
         }
         w
     }
