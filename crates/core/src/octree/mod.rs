@@ -10,12 +10,18 @@
 //! half-open parameter intervals `[ta, tb)` that exactly partition the
 //! clipped ray, which is what a processor vector (paper 003, section 3.3)
 //! is made of.
+//!
+//! This module builds the tree and answers point and neighbour queries;
+//! `walk` walks it along rays, `group` merges and groups its subtrees by
+//! labels and weights, and `split` holds the triangle-box tests the build
+//! splits by.
 
-use crate::geometry::{Bounds, Ray};
+use crate::geometry::Bounds;
 use glam::Vec3;
-use std::ops::ControlFlow;
 
+mod group;
 mod split;
+mod walk;
 pub use split::tri_box_overlap;
 use split::{separates, split_refs};
 
@@ -247,110 +253,6 @@ impl Octree {
         }
     }
 
-    /// Visits the leaves along `ray` within `[t0, t1)`, front to back, as
-    /// half-open intervals that partition the part of `[t0, t1)` inside the
-    /// root. A ray lying exactly in a splitting plane is assigned to the
-    /// upper side, so every point of the ray belongs to exactly one leaf.
-    pub fn walk<F>(&self, ray: &Ray, t0: f32, t1: f32, f: F) -> ControlFlow<()>
-    where
-        F: FnMut(u32, f32, f32) -> ControlFlow<()>,
-    {
-        self.walk_from(ray, t0, t1, f32::NEG_INFINITY, f)
-    }
-
-    /// The walk of [`Self::walk`] resumed at `resume`: leaves ending at or
-    /// before it are skipped and the first one is clipped to start there.
-    /// Every leaf is classified exactly as in the full walk from `t0`, so a
-    /// worker that receives a forwarded ray continues the very processor
-    /// vector its sender computed, even for rays through leaf corners.
-    pub fn walk_from<F>(
-        &self,
-        ray: &Ray,
-        t0: f32,
-        t1: f32,
-        resume: f32,
-        mut f: F,
-    ) -> ControlFlow<()>
-    where
-        F: FnMut(u32, f32, f32) -> ControlFlow<()>,
-    {
-        let w = WalkRay::new(ray);
-        let Some((a, b)) = w.clip(&self.bounds, t0, t1) else {
-            return ControlFlow::Continue(());
-        };
-        self.walk_node(0, &w, a, b, resume, &mut f)
-    }
-
-    fn walk_node<F>(
-        &self,
-        n: usize,
-        ray: &WalkRay,
-        ta: f32,
-        tb: f32,
-        resume: f32,
-        f: &mut F,
-    ) -> ControlFlow<()>
-    where
-        F: FnMut(u32, f32, f32) -> ControlFlow<()>,
-    {
-        if tb <= resume {
-            return ControlFlow::Continue(());
-        }
-        match self.nodes[n] {
-            Node::Leaf { leaf } => f(leaf, ta.max(resume), tb),
-            Node::Interior { first_child } => {
-                let m = self.node_bounds[n].center().to_array();
-                // Plane crossings inside the interval, with their axes. A
-                // ray that does not move along an axis has an infinite
-                // inverse there: its crossing is infinite or NaN, never
-                // inside.
-                let mut cuts = [(tb, 3usize); 3];
-                let mut k = 0;
-                for (a, &c) in m.iter().enumerate() {
-                    let t = ((c as f64 - ray.o[a]) * ray.inv[a]) as f32;
-                    if t > ta && t < tb {
-                        cuts[k] = (t, a);
-                        k += 1;
-                    }
-                }
-                // A sorting network for at most three cuts (unused slots
-                // hold tb and stay last).
-                let swap = |c: &mut [(f32, usize); 3], i: usize, j: usize| {
-                    if c[j].0 < c[i].0 {
-                        c.swap(i, j);
-                    }
-                };
-                swap(&mut cuts, 0, 1);
-                swap(&mut cuts, 1, 2);
-                swap(&mut cuts, 0, 1);
-                // The first piece's octant from its midpoint; each crossing
-                // then moves to the other half along its axis. Pieces are
-                // found from the same cuts in every tree that keeps this
-                // node, so ends agree wherever they are compared.
-                let first_end = if k > 0 { cuts[0].0 } else { tb };
-                let tm = 0.5 * (ta as f64 + first_end as f64);
-                let mut oct = 0usize;
-                for (a, &c) in m.iter().enumerate() {
-                    let upper = ray.o[a] + tm * ray.d[a] >= c as f64;
-                    oct |= (upper as usize) << a;
-                }
-                let mut start = ta;
-                for (end, axis) in cuts[..k].iter().copied().chain([(tb, 3)]) {
-                    if end > start {
-                        if end > resume {
-                            self.walk_node(first_child as usize + oct, ray, start, end, resume, f)?;
-                        }
-                        start = end;
-                    }
-                    if axis < 3 {
-                        oct ^= 1 << axis;
-                    }
-                }
-                ControlFlow::Continue(())
-            }
-        }
-    }
-
     /// For each leaf, the leaves sharing part of a face with it (positive
     /// area of contact), ascending. Sibling faces are bit-identical (see
     /// `child_bounds`), so contact is decided exactly.
@@ -432,127 +334,6 @@ impl Octree {
         }
         Ok(())
     }
-
-    /// The tree with every subtree whose leaves all carry one label merged
-    /// into a single leaf, and the label of each merged leaf. A merged node
-    /// keeps its bounds bit for bit, and the walk splits a node's interval
-    /// into children whose intervals concatenate to exactly the node's, so
-    /// walking the merged tree gives the same interval boundaries wherever
-    /// the label changes: the processor map walks far fewer nodes this way.
-    pub fn collapse<L: Copy + PartialEq>(&self, label: &[L]) -> (Octree, Vec<L>) {
-        assert_eq!(label.len(), self.leaves.len(), "one label per leaf");
-        let mut uniform: Vec<Option<L>> = vec![None; self.nodes.len()];
-        // Children are stored after their parent, so a reverse sweep sees
-        // every child before its parent.
-        for n in (0..self.nodes.len()).rev() {
-            uniform[n] = match self.nodes[n] {
-                Node::Leaf { leaf } => Some(label[leaf as usize]),
-                Node::Interior { first_child } => {
-                    let f = first_child as usize;
-                    let l0 = uniform[f];
-                    if l0.is_some() && (f + 1..f + 8).all(|c| uniform[c] == l0) {
-                        l0
-                    } else {
-                        None
-                    }
-                }
-            };
-        }
-        let mut out = Octree {
-            bounds: self.bounds,
-            nodes: vec![Node::Leaf { leaf: u32::MAX }],
-            node_bounds: vec![self.node_bounds[0]],
-            leaves: Vec::new(),
-            params: self.params,
-        };
-        let mut labels = Vec::new();
-        let mut stack = vec![(0usize, 0usize, 0u32)];
-        while let Some((src, dst, depth)) = stack.pop() {
-            match (uniform[src], self.nodes[src]) {
-                (Some(l), _) => {
-                    out.nodes[dst] = Node::Leaf {
-                        leaf: out.leaves.len() as u32,
-                    };
-                    out.leaves.push(Leaf {
-                        bounds: self.node_bounds[src],
-                        depth,
-                        tris: Vec::new(),
-                    });
-                    labels.push(l);
-                }
-                (None, Node::Interior { first_child }) => {
-                    let first = out.nodes.len();
-                    out.nodes[dst] = Node::Interior {
-                        first_child: first as u32,
-                    };
-                    for c in 0..8 {
-                        out.nodes.push(Node::Leaf { leaf: u32::MAX });
-                        out.node_bounds
-                            .push(self.node_bounds[first_child as usize + c]);
-                        stack.push((first_child as usize + c, first + c, depth + 1));
-                    }
-                }
-                (None, Node::Leaf { .. }) => unreachable!("a leaf always has a label"),
-            }
-        }
-        (out, labels)
-    }
-
-    /// Groups the leaves into whole subtrees, each as large as it can be
-    /// while its leaves' `weight` sums to at most `max` (a leaf heavier
-    /// than that is a group of its own). Returns each leaf's group and each
-    /// group's bounds; groups are numbered in depth-first (Morton) order.
-    /// A partition made of whole groups collapses to a route no deeper
-    /// than the groups are.
-    pub fn subtree_groups(&self, weight: &[f64], max: f64) -> (Vec<u32>, Vec<Bounds>) {
-        let mut sum = vec![0.0f64; self.nodes.len()];
-        // Children are stored after their parent: a reverse sweep sums
-        // every subtree before its parent.
-        for n in (0..self.nodes.len()).rev() {
-            sum[n] = match self.nodes[n] {
-                Node::Leaf { leaf } => weight.get(leaf as usize).copied().unwrap_or(0.0),
-                Node::Interior { first_child } => {
-                    let f = first_child as usize;
-                    sum[f..f + 8].iter().sum()
-                }
-            };
-        }
-        let mut group = vec![0u32; self.leaves.len()];
-        let mut bounds = Vec::new();
-        let mut stack = vec![0usize];
-        while let Some(n) = stack.pop() {
-            match self.nodes[n] {
-                Node::Interior { first_child } if sum[n] > max => {
-                    // Children in reverse so that they pop in order.
-                    stack.extend((first_child as usize..first_child as usize + 8).rev());
-                }
-                _ => {
-                    let g = bounds.len() as u32;
-                    bounds.push(self.node_bounds[n]);
-                    let mut sub = vec![n];
-                    while let Some(m) = sub.pop() {
-                        match self.nodes[m] {
-                            Node::Leaf { leaf } => group[leaf as usize] = g,
-                            Node::Interior { first_child } => {
-                                sub.extend(first_child as usize..first_child as usize + 8)
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        (group, bounds)
-    }
-
-    /// Leaves along the ray as `(leaf, ta, tb)`.
-    pub fn leaves_along(&self, ray: &Ray, t0: f32, t1: f32) -> Vec<(u32, f32, f32)> {
-        let mut v = Vec::new();
-        let _ = self.walk(ray, t0, t1, |l, a, b| {
-            v.push((l, a, b));
-            ControlFlow::Continue(())
-        });
-        v
-    }
 }
 
 /// Levels of the octree built in parallel (8^2 tasks): enough to keep a
@@ -565,61 +346,6 @@ struct Sub {
     nodes: Vec<Node>,
     node_bounds: Vec<Bounds>,
     leaves: Vec<Leaf>,
-}
-
-/// A ray prepared for walking: origin, direction and inverse direction in
-/// f64. A plane crossing is `(m - o) * inv`; every worker and every
-/// collapsed tree computes each crossing with this same expression, so
-/// interval ends agree bit for bit wherever they are compared.
-struct WalkRay {
-    o: [f64; 3],
-    d: [f64; 3],
-    inv: [f64; 3],
-    /// Whether the ray moves along each axis (a zero component never
-    /// crosses that axis's planes).
-    moves: [bool; 3],
-}
-
-impl WalkRay {
-    /// Entry and exit of the ray into `b` within `[t0, t1)` (products with
-    /// the inverse direction, in f64), or None when it misses.
-    #[inline(always)]
-    fn clip(&self, b: &Bounds, t0: f32, t1: f32) -> Option<(f32, f32)> {
-        let (mut lo, mut hi) = (t0 as f64, t1 as f64);
-        for a in 0..3 {
-            let (bmin, bmax) = (b.min[a] as f64, b.max[a] as f64);
-            if !self.moves[a] {
-                if self.o[a] < bmin || self.o[a] > bmax {
-                    return None;
-                }
-                continue;
-            }
-            let (x, y) = (
-                (bmin - self.o[a]) * self.inv[a],
-                (bmax - self.o[a]) * self.inv[a],
-            );
-            lo = lo.max(x.min(y));
-            hi = hi.min(x.max(y));
-        }
-        (lo < hi).then_some((lo as f32, hi as f32))
-    }
-
-    #[inline(always)]
-    fn new(ray: &Ray) -> Self {
-        let o = [
-            ray.origin.x as f64,
-            ray.origin.y as f64,
-            ray.origin.z as f64,
-        ];
-        let d = [ray.dir.x as f64, ray.dir.y as f64, ray.dir.z as f64];
-        let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
-        Self {
-            o,
-            d,
-            inv,
-            moves: [d[0] != 0.0, d[1] != 0.0, d[2] != 0.0],
-        }
-    }
 }
 
 fn child_bounds(b: &Bounds, i: usize) -> Bounds {
@@ -638,10 +364,10 @@ fn child_bounds(b: &Bounds, i: usize) -> Bounds {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn grid_tris(n: usize) -> Vec<[Vec3; 3]> {
+    pub(crate) fn grid_tris(n: usize) -> Vec<[Vec3; 3]> {
         let mut v = Vec::new();
         for i in 0..n {
             for j in 0..n {
@@ -650,50 +376,6 @@ mod tests {
             }
         }
         v
-    }
-
-    /// Subtree groups are whole subtrees (a partition by groups collapses
-    /// to at most one route node per group), within their weight bound
-    /// unless a single leaf, and numbered in leaf (Morton) order.
-    #[test]
-    fn subtree_groups_are_whole_subtrees_within_their_bound() {
-        let tree = Octree::build(
-            &grid_tris(40),
-            OctreeParams {
-                max_leaf_tris: 8,
-                max_depth: 7,
-            },
-        );
-        let n = tree.leaves.len();
-        let weight: Vec<f64> = (0..n).map(|l| 1.0 + (l % 7) as f64).collect();
-        let total: f64 = weight.iter().sum();
-        for max in [0.0, total / 64.0, total / 8.0, total] {
-            let (group, bounds) = tree.subtree_groups(&weight, max);
-            let g = bounds.len();
-            assert!(group.windows(2).all(|p| p[0] <= p[1]), "Morton order");
-            assert_eq!(tree.collapse(&group).1.len(), g, "whole subtrees");
-            let mut sum = vec![0.0; g];
-            let mut count = vec![0; g];
-            for (l, &k) in group.iter().enumerate() {
-                sum[k as usize] += weight[l];
-                count[k as usize] += 1;
-                let (b, lb) = (bounds[k as usize], tree.leaves[l].bounds);
-                assert!(b.contains(lb.min) && b.contains(lb.max));
-            }
-            for k in 0..g {
-                assert!(
-                    sum[k] <= max || count[k] == 1,
-                    "group {k}: {} > {max}",
-                    sum[k]
-                );
-            }
-            if max >= total {
-                assert_eq!(g, 1);
-            }
-            if max == 0.0 {
-                assert_eq!(g, n);
-            }
-        }
     }
 
     /// The parallel build lays out nodes and leaves exactly as one
@@ -745,136 +427,6 @@ mod tests {
             }
         }
         assert!(seen.iter().all(|&s| s));
-    }
-
-    #[test]
-    fn walk_partitions_the_ray() {
-        let tris = grid_tris(30);
-        let o = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 8,
-                max_depth: 5,
-            },
-        );
-        let c = o.bounds.center();
-        // Rays along the root's splitting planes and through node corners.
-        let rays = [
-            Ray::new(Vec3::new(o.bounds.min.x - 1.0, c.y, c.z), Vec3::X),
-            Ray::new(o.bounds.min - Vec3::ONE, Vec3::ONE.normalize()),
-            Ray::new(Vec3::new(c.x, c.y, o.bounds.max.z + 1.0), -Vec3::Z),
-            Ray::new(
-                Vec3::new(0.1, 0.2, 0.3),
-                Vec3::new(0.3, 0.5, 0.1).normalize(),
-            ),
-        ];
-        for r in rays {
-            let segs = o.leaves_along(&r, 0.0, f32::INFINITY);
-            assert!(!segs.is_empty());
-            let (a, b) = o.bounds.clip(&r, 0.0, f32::INFINITY).unwrap();
-            assert_eq!(segs[0].1, a);
-            assert_eq!(segs.last().unwrap().2, b);
-            for w in segs.windows(2) {
-                assert_eq!(w[0].2, w[1].1, "segments must be contiguous");
-            }
-            for &(l, ta, tb) in &segs {
-                assert!(ta < tb);
-                let m = r.at(0.5 * (ta + tb));
-                let lb = o.leaves[l as usize].bounds;
-                let tol = lb.extent().max_element() * 1e-4;
-                assert!(m.cmpge(lb.min - tol).all() && m.cmple(lb.max + tol).all());
-                // Away from faces, f32 rounding of the midpoint cannot move
-                // it into a neighbour, so the point lookup must agree.
-                if m.cmpgt(lb.min + tol).all() && m.cmplt(lb.max - tol).all() {
-                    assert_eq!(o.leaf_at(m), Some(l));
-                }
-            }
-        }
-    }
-
-    /// Label-change points along a walk: (label before, label after, t).
-    fn changes(o: &Octree, labels: &[u8], r: &Ray) -> Vec<(u8, u8, u32)> {
-        let segs = o.leaves_along(r, 0.0, f32::INFINITY);
-        let mut v = vec![(u8::MAX, labels[segs[0].0 as usize], segs[0].1.to_bits())];
-        for w in segs.windows(2) {
-            let (a, b) = (labels[w[0].0 as usize], labels[w[1].0 as usize]);
-            if a != b {
-                v.push((a, b, w[1].1.to_bits()));
-            }
-        }
-        v.push((
-            labels[segs.last().unwrap().0 as usize],
-            u8::MAX,
-            segs.last().unwrap().2.to_bits(),
-        ));
-        v
-    }
-
-    #[test]
-    fn collapse_keeps_every_label_boundary_bit_for_bit() {
-        let tris = grid_tris(30);
-        let o = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 4,
-                max_depth: 7,
-            },
-        );
-        // Labels by octant of the leaf centre, plus a scattered minority, so
-        // both large uniform subtrees and ragged borders occur.
-        let c = o.bounds.center();
-        let labels: Vec<u8> = o
-            .leaves
-            .iter()
-            .enumerate()
-            .map(|(i, l)| {
-                let m = l.bounds.center();
-                if i % 17 == 0 {
-                    9
-                } else {
-                    (m.x > c.x) as u8 + 2 * (m.y > c.y) as u8
-                }
-            })
-            .collect();
-        let (small, small_labels) = o.collapse(&labels);
-        small.check_structure().unwrap();
-        assert!(small.leaves.len() < o.leaves.len());
-        let mut rng = 0x9e3779b97f4a7c15u64;
-        let mut next = || {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            (rng >> 40) as f32 / (1u64 << 24) as f32
-        };
-        let lo = o.bounds.min - Vec3::ONE;
-        let ext = o.bounds.extent() + 2.0;
-        let mut tested = 0;
-        for i in 0..2000 {
-            let p = lo + Vec3::new(next(), next(), next()) * ext;
-            // Every fourth ray runs along the root's splitting planes.
-            let (p, d) = if i % 4 == 0 {
-                (Vec3::new(c.x, c.y, p.z), Vec3::new(next() - 0.5, 0.0, 0.0))
-            } else {
-                (p, Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5))
-            };
-            if d.length() < 1e-3 {
-                continue;
-            }
-            let r = Ray::new(p, d.normalize());
-            if o.leaves_along(&r, 0.0, f32::INFINITY).is_empty() {
-                continue;
-            }
-            tested += 1;
-            assert_eq!(
-                changes(&o, &labels, &r),
-                changes(&small, &small_labels, &r),
-                "ray {i}"
-            );
-        }
-        assert!(tested > 500);
-        // One label everywhere: the whole tree is one leaf.
-        let (one, l) = o.collapse(&vec![3u8; o.leaves.len()]);
-        assert_eq!((one.leaves.len(), l), (1, vec![3]));
     }
 
     #[test]

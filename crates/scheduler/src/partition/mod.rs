@@ -9,10 +9,19 @@
 //! depth-first order) cut into chunks of the workers' shares of the
 //! predicted cost. Both keep to [`Limits`]: shares by cores, and the
 //! triangle references each worker's memory budget allows.
+//!
+//! `grow` places the seeds and grows regions from them; `refine` smooths
+//! the borders afterwards; this module builds the leaf graph, cuts leaves
+//! into units and chooses between the grown and the Morton regions.
 
 use locus_core::octree::Octree;
-use std::cmp::Ordering;
-use std::collections::{BinaryHeap, HashMap};
+use std::collections::HashMap;
+
+mod grow;
+mod refine;
+use grow::grow;
+pub use refine::FORWARD_COST;
+use refine::refine;
 
 /// What every partitioner keeps to: each worker's share of the predicted
 /// cost (by its cores, summing to 1) and the most triangle references its
@@ -129,30 +138,11 @@ impl LeafGraph {
     }
 }
 
-#[derive(Clone, Copy, PartialEq)]
-struct ByAffinity(f64, f64, u32);
-impl Eq for ByAffinity {}
-impl PartialOrd for ByAffinity {
-    fn partial_cmp(&self, o: &Self) -> Option<Ordering> {
-        Some(self.cmp(o))
-    }
-}
-impl Ord for ByAffinity {
-    fn cmp(&self, o: &Self) -> Ordering {
-        // Strongest tie to the region, then highest cost, then the lower
-        // leaf index: a pure function of the input.
-        self.0
-            .total_cmp(&o.0)
-            .then(self.1.total_cmp(&o.1))
-            .then(o.2.cmp(&self.2))
-    }
-}
-
 /// How far above its share of the cost a region may grow while borders
 /// are smoothed.
 pub const BALANCE_SLACK: f64 = 0.02;
 /// Passes of border smoothing.
-const REFINE_PASSES: usize = 24;
+pub(crate) const REFINE_PASSES: usize = 24;
 
 /// Sizes of partition units tried, as the fraction of the smallest
 /// worker's share of the cost and of the references that one unit may
@@ -336,329 +326,6 @@ fn partition_units(
         Err(_) => grown,
     };
     Ok(best)
-}
-
-fn grow(
-    centers: &[glam::Vec3],
-    graph: &LeafGraph,
-    cost: &[f64],
-    lim: &Limits,
-) -> Result<Vec<u16>, String> {
-    let n = centers.len();
-    let workers = lim.targets.len().max(1);
-    const NONE: u16 = u16::MAX;
-    let mut owner = vec![NONE; n];
-    let total: f64 = cost.iter().sum::<f64>().max(f64::MIN_POSITIVE);
-    let tie = |l: usize| -> f64 { graph.edges[l].iter().map(|e| e.1).sum::<f64>() + 1e-12 };
-    let seeds = seeds(centers, cost, workers);
-    let mut load = vec![0.0f64; workers];
-    let mut held = vec![0u64; workers];
-    let behind = |w: usize, load: &[f64]| load[w] / (lim.targets[w] * total).max(f64::MIN_POSITIVE);
-    let mut frontier: Vec<BinaryHeap<ByAffinity>> =
-        (0..workers).map(|_| BinaryHeap::new()).collect();
-    let push_neighbours =
-        |l: usize, w: usize, owner: &[u16], f: &mut Vec<BinaryHeap<ByAffinity>>| {
-            for &(nb, _) in &graph.edges[l] {
-                let nb = nb as usize;
-                if owner[nb] == NONE {
-                    let a = graph.weight_to(nb, owner, w as u16) / tie(nb);
-                    f[w].push(ByAffinity(a, cost[nb], nb as u32));
-                }
-            }
-        };
-    for (w, &s) in seeds.iter().enumerate() {
-        if !lim.fits(w, 0, s) {
-            continue;
-        }
-        owner[s] = w as u16;
-        load[w] += cost[s];
-        held[w] += lim.refs[s];
-    }
-    for (w, &s) in seeds.iter().enumerate() {
-        if owner[s] == w as u16 {
-            push_neighbours(s, w, &owner, &mut frontier);
-        }
-    }
-    loop {
-        // The worker furthest behind its share that can still grow.
-        let mut best: Option<usize> = None;
-        for w in 0..workers {
-            while let Some(&ByAffinity(_, _, l)) = frontier[w].peek() {
-                if owner[l as usize] == NONE && lim.fits(w, held[w], l as usize) {
-                    break;
-                }
-                frontier[w].pop();
-            }
-            if !frontier[w].is_empty() && best.is_none_or(|b| behind(w, &load) < behind(b, &load)) {
-                best = Some(w);
-            }
-        }
-        let Some(w) = best else { break };
-        let l = frontier[w].pop().expect("peeked").2 as usize;
-        owner[l] = w as u16;
-        load[w] += cost[l];
-        held[w] += lim.refs[l];
-        push_neighbours(l, w, &owner, &mut frontier);
-    }
-    // Unreached leaves, costliest first, to the worker furthest behind
-    // that has room.
-    let mut rest: Vec<usize> = (0..n).filter(|&l| owner[l] == NONE).collect();
-    rest.sort_by(|&a, &b| cost[b].total_cmp(&cost[a]).then(a.cmp(&b)));
-    for l in rest {
-        let w = (0..workers)
-            .filter(|&w| lim.fits(w, held[w], l))
-            .min_by(|&a, &b| behind(a, &load).total_cmp(&behind(b, &load)))
-            .ok_or_else(|| overflow(lim, l))?;
-        owner[l] = w as u16;
-        load[w] += cost[l];
-        held[w] += lim.refs[l];
-    }
-    refine(graph, cost, lim, &mut owner);
-    Ok(owner)
-}
-
-/// Seeds: farthest-point sampling (the costliest leaf, then each next as
-/// far as possible from those so far), moved by a few rounds of
-/// cost-weighted k-means (Lloyd) to the leaf nearest each cluster's
-/// centre, so that regions grown from them meet along short, straight
-/// borders.
-fn seeds(centers: &[glam::Vec3], cost: &[f64], workers: usize) -> Vec<usize> {
-    let n = centers.len();
-    let center = |l: usize| centers[l];
-    let has_work: Vec<usize> = (0..n).filter(|&l| cost[l] > 0.0).collect();
-    let pool: Vec<usize> = if has_work.len() >= workers {
-        has_work
-    } else {
-        (0..n).collect()
-    };
-    let mut seeds: Vec<usize> = Vec::with_capacity(workers);
-    if let Some(&first) = pool
-        .iter()
-        .max_by(|&&a, &&b| cost[a].total_cmp(&cost[b]).then(b.cmp(&a)))
-    {
-        seeds.push(first);
-    } else {
-        return seeds;
-    }
-    let mut dist: Vec<f32> = pool
-        .iter()
-        .map(|&l| center(l).distance_squared(center(seeds[0])))
-        .collect();
-    while seeds.len() < workers.min(n) {
-        let Some((k, _)) = pool
-            .iter()
-            .enumerate()
-            .filter(|(_, l)| !seeds.contains(l))
-            .max_by(|a, b| dist[a.0].total_cmp(&dist[b.0]).then(b.0.cmp(&a.0)))
-        else {
-            break;
-        };
-        let s = pool[k];
-        seeds.push(s);
-        for (d, &l) in dist.iter_mut().zip(&pool) {
-            *d = d.min(center(l).distance_squared(center(s)));
-        }
-    }
-    // Lloyd rounds with every leaf weighted by its cost (empty leaves a
-    // little, so empty space still pulls).
-    let weight = |l: usize| cost[l] + 1e-9;
-    for _ in 0..8 {
-        let k = seeds.len();
-        let cs: Vec<glam::Vec3> = seeds.iter().map(|&s| center(s)).collect();
-        let mut sum = vec![glam::DVec3::ZERO; k];
-        let mut wsum = vec![0.0f64; k];
-        for &l in &pool {
-            let p = center(l);
-            let j = (0..k)
-                .min_by(|&a, &b| {
-                    p.distance_squared(cs[a])
-                        .total_cmp(&p.distance_squared(cs[b]))
-                })
-                .expect("seeds");
-            sum[j] += p.as_dvec3() * weight(l);
-            wsum[j] += weight(l);
-        }
-        let mut next = Vec::with_capacity(k);
-        for j in 0..k {
-            let c = if wsum[j] > 0.0 {
-                (sum[j] / wsum[j]).as_vec3()
-            } else {
-                cs[j]
-            };
-            let nearest = pool
-                .iter()
-                .copied()
-                .filter(|l| !next.contains(l))
-                .min_by(|&a, &b| {
-                    center(a)
-                        .distance_squared(c)
-                        .total_cmp(&center(b).distance_squared(c))
-                        .then(a.cmp(&b))
-                })
-                .unwrap_or(seeds[j]);
-            next.push(nearest);
-        }
-        if next == seeds {
-            break;
-        }
-        seeds = next;
-    }
-    seeds
-}
-
-/// What a forwarded query costs its receiver beyond the tracing the cost
-/// preview counts (decoding it, walking the route again, restarting a BVH
-/// traversal, answering), in the preview's units of BVH steps. A region's
-/// load is its leaves' cost plus this for every preview crossing of its
-/// border, half of which come in: borders make work.
-pub const FORWARD_COST: f64 = 16.0;
-
-/// Loads that count borders: cost plus [`FORWARD_COST`] for half the
-/// weight crossing each region's border, kept up to date leaf move by leaf
-/// move.
-struct Loads<'a> {
-    graph: &'a LeafGraph,
-    cost: &'a [f64],
-    load: Vec<f64>,
-    held: Vec<u64>,
-}
-
-impl<'a> Loads<'a> {
-    fn new(graph: &'a LeafGraph, cost: &'a [f64], lim: &Limits, owner: &[u16]) -> Self {
-        let w = lim.targets.len().max(1);
-        let (mut load, mut held) = (vec![0.0; w], vec![0u64; w]);
-        for (l, &o) in owner.iter().enumerate() {
-            load[o as usize] += cost[l];
-            held[o as usize] += lim.refs[l];
-            for &(b, x) in &graph.edges[l] {
-                if owner[b as usize] != o {
-                    load[o as usize] += 0.5 * FORWARD_COST * x;
-                }
-            }
-        }
-        Self {
-            graph,
-            cost,
-            load,
-            held,
-        }
-    }
-
-    /// The loads of regions `a` and `b` if leaf `l` moved from `a` to `b`.
-    fn after_move(&self, owner: &[u16], l: usize, b: usize) -> (f64, f64) {
-        let a = owner[l] as usize;
-        let (mut la, mut lb) = (self.load[a] - self.cost[l], self.load[b] + self.cost[l]);
-        let f = 0.5 * FORWARD_COST;
-        for &(n, x) in &self.graph.edges[l] {
-            let o = owner[n as usize] as usize;
-            if o == a {
-                // Internal to a, now a border of both.
-                la += f * x;
-                lb += f * x;
-            } else if o == b {
-                // A border of both, now internal to b.
-                la -= f * x;
-                lb -= f * x;
-            } else {
-                // A border of a with c, now of b with c.
-                la -= f * x;
-                lb += f * x;
-            }
-        }
-        (la, lb)
-    }
-
-    fn apply(&mut self, owner: &mut [u16], lim: &Limits, l: usize, b: usize) {
-        let a = owner[l] as usize;
-        let (la, lb) = self.after_move(owner, l, b);
-        self.load[a] = la;
-        self.load[b] = lb;
-        self.held[a] -= lim.refs[l];
-        self.held[b] += lim.refs[l];
-        owner[l] = b as u16;
-    }
-}
-
-/// Border smoothing (after Fiduccia and Mattheyses, greedy), on loads that
-/// count borders ([`FORWARD_COST`]). First balance: while a region is above
-/// its share plus [`BALANCE_SLACK`], its border leaf whose move costs the
-/// least cut goes to the neighbour with the most room. Then smooth: a leaf
-/// moves to the neighbouring region it is most tied to when that lowers
-/// the cut and both regions stay within their shares plus the slack (and
-/// their memory).
-fn refine(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &mut [u16]) {
-    let workers = lim.targets.len();
-    if workers < 2 {
-        return;
-    }
-    let mut loads = Loads::new(graph, cost, lim, owner);
-    let total: f64 = loads.load.iter().sum();
-    let cap = |w: usize| lim.targets[w] * total * (1.0 + BALANCE_SLACK);
-    let neighbours = |l: usize, owner: &[u16]| {
-        let mut v: Vec<usize> = graph.edges[l]
-            .iter()
-            .map(|&(n, _)| owner[n as usize] as usize)
-            .filter(|&o| o != owner[l] as usize)
-            .collect();
-        v.sort_unstable();
-        v.dedup();
-        v
-    };
-    // Balance.
-    for _ in 0..owner.len() {
-        let Some(a) = (0..workers)
-            .filter(|&w| loads.load[w] > cap(w))
-            .max_by(|&x, &y| (loads.load[x] / cap(x)).total_cmp(&(loads.load[y] / cap(y))))
-        else {
-            break;
-        };
-        let mut best: Option<(f64, usize, usize)> = None;
-        for l in (0..owner.len()).filter(|&l| owner[l] as usize == a) {
-            for b in neighbours(l, owner) {
-                let (la, lb) = loads.after_move(owner, l, b);
-                if lb > cap(b) || la >= loads.load[a] || !lim.fits(b, loads.held[b], l) {
-                    continue;
-                }
-                // Cut change of the move: what joins b minus what leaves a.
-                let dcut =
-                    graph.weight_to(l, owner, a as u16) - graph.weight_to(l, owner, b as u16);
-                if best.is_none_or(|(d, _, _)| dcut < d) {
-                    best = Some((dcut, l, b));
-                }
-            }
-        }
-        let Some((_, l, b)) = best else { break };
-        loads.apply(owner, lim, l, b);
-    }
-    // Smooth.
-    for _ in 0..REFINE_PASSES {
-        let mut moved = 0;
-        for l in 0..owner.len() {
-            let a = owner[l] as usize;
-            let here = graph.weight_to(l, owner, a as u16);
-            let mut best: Option<(f64, usize)> = None;
-            for b in neighbours(l, owner) {
-                let gain = graph.weight_to(l, owner, b as u16) - here;
-                if gain <= 1e-12 || best.is_some_and(|(g, _)| gain <= g) {
-                    continue;
-                }
-                let (la, lb) = loads.after_move(owner, l, b);
-                if lb <= cap(b).max(loads.load[b])
-                    && la <= cap(a).max(loads.load[a])
-                    && lim.fits(b, loads.held[b], l)
-                {
-                    best = Some((gain, b));
-                }
-            }
-            if let Some((_, b)) = best {
-                loads.apply(owner, lim, l, b);
-                moved += 1;
-            }
-        }
-        if moved == 0 {
-            break;
-        }
-    }
 }
 
 /// Leaves in Morton order cut into chunks of the workers' shares of the

@@ -1,0 +1,160 @@
+//! Smoothing region borders: leaves move to the neighbouring region that
+//! cuts the least border weight, within each region's share of the cost
+//! (border crossings counted as work) and its memory.
+
+use super::{BALANCE_SLACK, LeafGraph, Limits, REFINE_PASSES};
+
+/// What a forwarded query costs its receiver beyond the tracing the cost
+/// preview counts (decoding it, walking the route again, restarting a BVH
+/// traversal, answering), in the preview's units of BVH steps. A region's
+/// load is its leaves' cost plus this for every preview crossing of its
+/// border, half of which come in: borders make work.
+pub const FORWARD_COST: f64 = 16.0;
+
+/// Loads that count borders: cost plus [`FORWARD_COST`] for half the
+/// weight crossing each region's border, kept up to date leaf move by leaf
+/// move.
+struct Loads<'a> {
+    graph: &'a LeafGraph,
+    cost: &'a [f64],
+    load: Vec<f64>,
+    held: Vec<u64>,
+}
+
+impl<'a> Loads<'a> {
+    fn new(graph: &'a LeafGraph, cost: &'a [f64], lim: &Limits, owner: &[u16]) -> Self {
+        let w = lim.targets.len().max(1);
+        let (mut load, mut held) = (vec![0.0; w], vec![0u64; w]);
+        for (l, &o) in owner.iter().enumerate() {
+            load[o as usize] += cost[l];
+            held[o as usize] += lim.refs[l];
+            for &(b, x) in &graph.edges[l] {
+                if owner[b as usize] != o {
+                    load[o as usize] += 0.5 * FORWARD_COST * x;
+                }
+            }
+        }
+        Self {
+            graph,
+            cost,
+            load,
+            held,
+        }
+    }
+
+    /// The loads of regions `a` and `b` if leaf `l` moved from `a` to `b`.
+    fn after_move(&self, owner: &[u16], l: usize, b: usize) -> (f64, f64) {
+        let a = owner[l] as usize;
+        let (mut la, mut lb) = (self.load[a] - self.cost[l], self.load[b] + self.cost[l]);
+        let f = 0.5 * FORWARD_COST;
+        for &(n, x) in &self.graph.edges[l] {
+            let o = owner[n as usize] as usize;
+            if o == a {
+                // Internal to a, now a border of both.
+                la += f * x;
+                lb += f * x;
+            } else if o == b {
+                // A border of both, now internal to b.
+                la -= f * x;
+                lb -= f * x;
+            } else {
+                // A border of a with c, now of b with c.
+                la -= f * x;
+                lb += f * x;
+            }
+        }
+        (la, lb)
+    }
+
+    fn apply(&mut self, owner: &mut [u16], lim: &Limits, l: usize, b: usize) {
+        let a = owner[l] as usize;
+        let (la, lb) = self.after_move(owner, l, b);
+        self.load[a] = la;
+        self.load[b] = lb;
+        self.held[a] -= lim.refs[l];
+        self.held[b] += lim.refs[l];
+        owner[l] = b as u16;
+    }
+}
+
+/// Border smoothing (after Fiduccia and Mattheyses, greedy), on loads that
+/// count borders ([`FORWARD_COST`]). First balance: while a region is above
+/// its share plus [`BALANCE_SLACK`], its border leaf whose move costs the
+/// least cut goes to the neighbour with the most room. Then smooth: a leaf
+/// moves to the neighbouring region it is most tied to when that lowers
+/// the cut and both regions stay within their shares plus the slack (and
+/// their memory).
+pub(super) fn refine(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &mut [u16]) {
+    let workers = lim.targets.len();
+    if workers < 2 {
+        return;
+    }
+    let mut loads = Loads::new(graph, cost, lim, owner);
+    let total: f64 = loads.load.iter().sum();
+    let cap = |w: usize| lim.targets[w] * total * (1.0 + BALANCE_SLACK);
+    let neighbours = |l: usize, owner: &[u16]| {
+        let mut v: Vec<usize> = graph.edges[l]
+            .iter()
+            .map(|&(n, _)| owner[n as usize] as usize)
+            .filter(|&o| o != owner[l] as usize)
+            .collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    };
+    // Balance.
+    for _ in 0..owner.len() {
+        let Some(a) = (0..workers)
+            .filter(|&w| loads.load[w] > cap(w))
+            .max_by(|&x, &y| (loads.load[x] / cap(x)).total_cmp(&(loads.load[y] / cap(y))))
+        else {
+            break;
+        };
+        let mut best: Option<(f64, usize, usize)> = None;
+        for l in (0..owner.len()).filter(|&l| owner[l] as usize == a) {
+            for b in neighbours(l, owner) {
+                let (la, lb) = loads.after_move(owner, l, b);
+                if lb > cap(b) || la >= loads.load[a] || !lim.fits(b, loads.held[b], l) {
+                    continue;
+                }
+                // Cut change of the move: what joins b minus what leaves a.
+                let dcut =
+                    graph.weight_to(l, owner, a as u16) - graph.weight_to(l, owner, b as u16);
+                if best.is_none_or(|(d, _, _)| dcut < d) {
+                    best = Some((dcut, l, b));
+                }
+            }
+        }
+        let Some((_, l, b)) = best else { break };
+        loads.apply(owner, lim, l, b);
+    }
+    // Smooth.
+    for _ in 0..REFINE_PASSES {
+        let mut moved = 0;
+        for l in 0..owner.len() {
+            let a = owner[l] as usize;
+            let here = graph.weight_to(l, owner, a as u16);
+            let mut best: Option<(f64, usize)> = None;
+            for b in neighbours(l, owner) {
+                let gain = graph.weight_to(l, owner, b as u16) - here;
+                if gain <= 1e-12 || best.is_some_and(|(g, _)| gain <= g) {
+                    continue;
+                }
+                let (la, lb) = loads.after_move(owner, l, b);
+                if lb <= cap(b).max(loads.load[b])
+                    && la <= cap(a).max(loads.load[a])
+                    && lim.fits(b, loads.held[b], l)
+                {
+                    best = Some((gain, b));
+                }
+            }
+            if let Some((_, b)) = best {
+                loads.apply(owner, lim, l, b);
+                moved += 1;
+            }
+        }
+        if moved == 0 {
+            break;
+        }
+    }
+}
