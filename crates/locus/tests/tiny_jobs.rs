@@ -9,8 +9,9 @@
 //!   its only packet and waited for the answer waited for ever.
 //!
 //! 500 jobs of random sizes (1x1 to 16x16), worker counts (1 to 8), fetch
-//! policies, partitioners and tile sizes, each under a timeout, must all
-//! finish with the single machine's bits.
+//! policies, partitioners and tile sizes, with random polling on in every
+//! third, each under a timeout, must all finish with the single machine's
+//! bits.
 
 mod common;
 use common::{bits, runtime, single_machine};
@@ -38,15 +39,19 @@ fn five_hundred_tiny_jobs_all_finish_bit_for_bit() {
             let mut scene = common::small_cornell(w, h, i);
             scene.settings.spp = 1;
             let want = single_machine(&scene);
-            let opts = JobOptions {
+            let mut opts = JobOptions {
                 workers: workers as u32,
                 partitioner,
                 fetch,
                 tile_size: 1 + (k.get1d(4) * 8.0) as u32,
                 ..Default::default()
             };
+            let polling = i % 3 == 0;
+            opts.tuning.random_polling = polling;
             let req = locus_scheduler::client::request(&scene, opts);
-            let what = format!("job {i}: {w}x{h}, {workers} workers, {fetch:?}, {partitioner:?}");
+            let what = format!(
+                "job {i}: {w}x{h}, {workers} workers, {fetch:?}, {partitioner:?}, random polling {polling}"
+            );
             let r =
                 match tokio::time::timeout(Duration::from_secs(30), farm.render(req, &|_, _| {}))
                     .await
