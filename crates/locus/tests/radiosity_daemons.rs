@@ -18,13 +18,7 @@ fn cornell() -> Scene {
 }
 
 fn params() -> RadiosityParams {
-    RadiosityParams {
-        patches: 2,
-        mesh: 4,
-        subdivide: 2,
-        stop: 3e-2,
-        ..Default::default()
-    }
+    RadiosityParams::COARSE
 }
 
 const SPP: u32 = 2;

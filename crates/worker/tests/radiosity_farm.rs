@@ -21,13 +21,7 @@ fn cornell() -> Scene {
 }
 
 fn params() -> RadiosityParams {
-    RadiosityParams {
-        patches: 2,
-        mesh: 4,
-        subdivide: 2,
-        stop: 3e-2,
-        ..Default::default()
-    }
+    RadiosityParams::COARSE
 }
 
 fn one_machine(scene: &Scene) -> Solver {

@@ -72,6 +72,15 @@ impl RadiosityParams {
         max_iterations: 1_000_000,
         max_elements: 4_000_000,
     };
+
+    /// A coarse solve that still exercises every part (patches, elements,
+    /// adaptive subdivision) and finishes in a fraction of a second on the
+    /// Cornell box: what the farm tests compare one machine with.
+    pub const COARSE: Self = Self {
+        mesh: 4,
+        stop: 3e-2,
+        ..Self::DEFAULT
+    };
 }
 
 /// Finest lattice a patch may use: `2^30` divisions per edge still fits

@@ -14,7 +14,9 @@
 //! Nothing here can hang: a poll is answered by exactly one message, and
 //! one that is not (its peer's queue is long) is given up after
 //! [`POLL_TIMEOUT`]. A peer that had nothing to spare is not polled again
-//! for [`QUIET`].
+//! for [`QUIET`]. Nothing grows without bound either: handed work belongs
+//! to samples open at its origin, and a worker polls only while it has
+//! fewer than `max_inflight` slots waiting.
 
 use super::EngineError;
 use super::kernel::Work;
@@ -105,8 +107,14 @@ impl Engine<'_> {
     pub(super) fn maybe_poll(&mut self) -> Result<(), EngineError> {
         let now = self.now;
         let p = &mut self.polling;
-        // Work waiting for fetched leaves will soon be traced here.
+        // Work waiting for fetched leaves will soon be traced here. Handed
+        // work opens slots here beyond this worker's own samples: it is
+        // taken only while the slots waiting for answers are fewer than
+        // `max_inflight`, so that what a worker holds stays bounded by
+        // twice its own share (and what one poll hands over).
+        let full = self.slots.pending() >= self.job.setup.tuning.max_inflight as usize;
         if !p.on
+            || full
             || !self.waiting.is_empty()
             || p.outstanding.is_some_and(|(_, t)| now < t + POLL_TIMEOUT)
         {
