@@ -127,10 +127,10 @@ impl Locality {
     /// Whether a ray of `kind` that reaches remote leaf `leaf` (not held
     /// here) should wait for its geometry rather than be forwarded.
     pub fn wants_fetch(&self, leaf: u32, kind: RayKind) -> bool {
-        let l = leaf as usize;
-        if self.refused.get(l).is_none_or(|b| b.load(Relaxed)) {
+        if !self.may_fetch(leaf) {
             return false;
         }
+        let l = leaf as usize;
         match self.policy {
             FetchPolicy::Forward => false,
             FetchPolicy::Fetch => true,

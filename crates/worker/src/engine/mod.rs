@@ -11,7 +11,7 @@
 //! - `state`: the engine's bookkeeping (samples, batches, answers,
 //!   routing); `fetching`: fetch requests, served leaves, and the builder
 //!   thread that merges fetched leaves into BVH parts; `polling`: random
-//!   polling, which hands queued queries of a hot region to idle peers.
+//!   polling, which hands the queued work of a hot region to idle peers.
 //! - this module: the loop. The engine's own thread traces too, one batch
 //!   per turn, and hands further batches to the pool's other threads; a
 //!   worker of one thread has no pool and no hand-over at all. Everything
@@ -127,7 +127,7 @@ pub enum Input {
         bytes: u64,
         leaf: Box<LeafGeometry>,
     },
-    /// Random polling: a peer with nothing to trace asks for queries.
+    /// Random polling: a peer with nothing to trace asks for work.
     Poll {
         from: WorkerId,
     },

@@ -1,15 +1,15 @@
 //! Random polling for hot regions (paper 003, section 5.2, offered to the
 //! render job): a worker with nothing to trace asks a random peer for
-//! work; a peer with a long queue of queries hands some of them over, and
-//! one without answers with the workers it knows to be idle, so that the
-//! poller does not try them next.
+//! work; a peer with a long queue (forwarded queries and camera samples)
+//! hands some of it over, and one without answers with the workers it
+//! knows to be idle, so that the poller does not try them next.
 //!
-//! A handed query is traced by the poller through its own route. The
+//! Handed work is traced by the poller through its own route. The
 //! hander's leaves it crosses are fetched (as under the `fetch` policy),
 //! not forwarded back, and stay for the job: each hit is the one the owner
 //! would find, so the image keeps its bits. Leaves of other workers are
-//! forwarded to their owners as usual, and the answer goes to the query's
-//! origin, which cannot tell who traced it.
+//! forwarded to their owners as usual, and answers go to the query's
+//! origin or the sample's slot, which cannot tell who traced them.
 //!
 //! Nothing here can hang: a poll is answered by exactly one message, and
 //! one that is not (its peer's queue is long) is given up after
@@ -26,11 +26,11 @@ use locus_core::region::{Resume, WorkerId};
 use locus_protocol::rays::{HandedSample, Packet, PeerMsg, RayItem, ReplyTo};
 use std::time::{Duration, Instant};
 
-/// Queued queries a worker keeps before it hands any over: fewer are
+/// Queued items a worker keeps before it hands any over: fewer are
 /// traced here in about the time a poller would need to fetch their
 /// leaves.
 const HAND_MIN: usize = 1024;
-/// Most queries handed over for one poll (and at most half the queue).
+/// Most items handed over for one poll (and at most half the queue).
 const HAND_MAX: usize = 4096;
 /// A peer that had nothing to spare, or was named idle, is left alone for
 /// this long.
@@ -64,14 +64,21 @@ impl Polling {
     }
 
     /// When the loop must wake to poll again: the end of the outstanding
-    /// poll's wait, or of the first quiet peer's.
+    /// poll's wait, or of the next quiet peer's. A quiet time already past
+    /// wakes nothing (the next idle turn polls anyway); counting it would
+    /// spin the loop while it may not poll, waiting for fetched leaves.
     pub(super) fn wake(&self, now: Instant) -> Option<Duration> {
         if !self.on {
             return None;
         }
         let at = match self.outstanding {
             Some((_, t)) => t + POLL_TIMEOUT,
-            None => self.quiet_until.iter().flatten().min().copied()?,
+            None => *self
+                .quiet_until
+                .iter()
+                .flatten()
+                .filter(|&&t| t > now)
+                .min()?,
         };
         Some(at.saturating_duration_since(now))
     }
@@ -221,6 +228,8 @@ impl Engine<'_> {
             self.stats.handed_in += 1;
             self.work.push_front(Work {
                 task: Task::Query(query),
+                // Whatever span the sender claims lies in its leaves, not
+                // in this worker's.
                 resume: Resume::at(resume.at),
                 reply,
                 from,
