@@ -46,6 +46,38 @@ fn farm_matches_single_machine_bit_for_bit() {
     });
 }
 
+/// Workers of several threads: with 2, the engine's thread traces beside a
+/// pool of one; with `DEDICATED_ENGINE_THREADS`, the pool has them all and
+/// the engine's thread only keeps the books. Both give one machine's bits,
+/// whether rays are forwarded or leaves fetched.
+#[test]
+fn workers_of_several_threads_keep_the_bits() {
+    use locus_worker::engine::DEDICATED_ENGINE_THREADS;
+    let scene = small_cornell();
+    let reference = single_machine(&scene);
+    let rt = runtime();
+    rt.block_on(async {
+        for threads in [2, DEDICATED_ENGINE_THREADS] {
+            let farm = locus::farm::LocalFarm::start(2, threads)
+                .await
+                .expect("farm");
+            for fetch in [FetchPolicy::Forward, FetchPolicy::Fetch] {
+                let opts = JobOptions {
+                    workers: 2,
+                    tile_size: 8,
+                    fetch,
+                    ..Default::default()
+                };
+                let req = locus_scheduler::client::request(&scene, opts);
+                let r = farm.render(req, &|_, _| {}).await.expect("job");
+                assert_eq!(bits(&r), reference, "{threads} threads a worker, {fetch:?}");
+                assert_eq!(r.report.totals.trace.samples, (40 * 32 * 3) as u64);
+            }
+            farm.stop().await.expect("clean stop");
+        }
+    });
+}
+
 /// Hostile and mistaken clients are refused or dropped with their reason,
 /// and a job running meanwhile still completes bit for bit.
 #[test]

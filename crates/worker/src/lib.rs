@@ -81,10 +81,11 @@ impl Worker {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
             t => t,
         };
-        // The engine's thread traces too: the pool has the others.
+        // With few threads the engine's thread traces too, and the pool
+        // has the others; with more, the pool has them all.
         let pool = if threads > 1 {
             let p = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads - 1)
+                .num_threads(engine::pool_threads(threads))
                 .thread_name(|i| format!("locus-trace-{i}"))
                 .build()
                 .context("worker: cannot start the tracing pool")?;
