@@ -348,6 +348,12 @@ pub struct CacheStats {
     pub global: u64,
     /// Rays that reached the perimeter and were answered by the cache.
     pub lookups: u64,
+    /// Of all these, the rays whose locality sphere went on in another
+    /// worker's region as a segment query (the farm only): they are
+    /// counted local where they hit, or global or a lookup at home when
+    /// they got beyond.
+    #[serde(default)]
+    pub segments: u64,
 }
 
 impl std::ops::AddAssign for CacheStats {
@@ -355,6 +361,7 @@ impl std::ops::AddAssign for CacheStats {
         self.local += o.local;
         self.global += o.global;
         self.lookups += o.lookups;
+        self.segments += o.segments;
     }
 }
 

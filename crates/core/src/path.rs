@@ -3,7 +3,9 @@
 //! integrators share their per-vertex code the same way).
 //!
 //! A work item is a camera sample or a [`Query`]: a path ray ("the radiance
-//! arriving along it") or a shadow segment ("is it unoccluded"). The
+//! arriving along it"), a shadow segment ("is it unoccluded"), or, with
+//! directional caches on the farm, the part of a continuation ray inside its
+//! locality sphere ("the radiance, if it hits before the perimeter"). The
 //! [`Kernel`] traces it through a [`Tracer`], which either finishes the
 //! segment (a hit, a miss, an occluder) or says where it must go on
 //! ([`Traced::Next`]). A hit is shaded ([`crate::integrator::shade`]); its
@@ -43,12 +45,21 @@ pub enum Query {
     Path(PathRay),
     /// Whether the segment is unoccluded.
     Shadow(ShadowRay),
+    /// A continuation ray inside its locality sphere only (directional
+    /// caches on): the radiance arriving along it if it hits a surface
+    /// before the perimeter (`emit_within`), otherwise [`Answer::Beyond`],
+    /// and its origin's leaf cache answers for the rest or traces on. So a
+    /// ray that leaves its worker's region inside the sphere still reaches
+    /// the cache, and no owner beyond the perimeter sees it.
+    Segment(PathRay),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Answer {
     Radiance(Vec3),
     Visible(bool),
+    /// A [`Query::Segment`] reached its perimeter without a hit.
+    Beyond,
 }
 
 /// Where a query goes on when this tracer cannot finish it.
@@ -161,7 +172,9 @@ pub struct ChainVertex {
     pub vertex: ShadedVertex,
     pub shadow: Child<bool>,
     pub next: Child<Vec3>,
-    /// The cache entry the continuation's radiance updates when it comes.
+    /// The cache entry the continuation's radiance updates when it comes;
+    /// for a continuation that went on as a [`Query::Segment`], the cache
+    /// that answers if the segment gets beyond its perimeter.
     pub update: Option<CacheKey>,
 }
 
@@ -238,6 +251,21 @@ impl Kernel<'_> {
                     Traced::Occluded | Traced::Hit(_) => Outcome::Answer(Answer::Visible(false)),
                 }
             }
+            Query::Segment(q) => {
+                let tp = q.emit_within;
+                match tracer.trace(&q.ray, tp, resume, false, RayKind::Secondary, st) {
+                    Traced::Next(dest, t) => Outcome::Forward {
+                        dest,
+                        query,
+                        resume: t,
+                    },
+                    Traced::Miss | Traced::Occluded => Outcome::Answer(Answer::Beyond),
+                    Traced::Hit(h) => {
+                        st.cache.local += 1;
+                        self.hit_outcome(tracer, &q, &h, chain, st)
+                    }
+                }
+            }
             Query::Path(q) => {
                 let kind = if q.depth == 0 {
                     RayKind::Camera
@@ -253,18 +281,29 @@ impl Kernel<'_> {
                     Traced::Miss | Traced::Occluded => {
                         Outcome::Answer(Answer::Radiance(Vec3::ZERO))
                     }
-                    Traced::Hit(h) => {
-                        let start = chain.len();
-                        match self.eval_hit(tracer, &q, &h, chain, st) {
-                            Some(l) => Outcome::Answer(Answer::Radiance(l)),
-                            None => Outcome::Chain {
-                                start: start as u32,
-                                end: chain.len() as u32,
-                            },
-                        }
-                    }
+                    Traced::Hit(h) => self.hit_outcome(tracer, &q, &h, chain, st),
                 }
             }
+        }
+    }
+
+    /// A path's or a segment's hit, shaded: its radiance, or the chain of
+    /// vertices left waiting.
+    fn hit_outcome<T: Tracer>(
+        &self,
+        tracer: &T,
+        q: &PathRay,
+        h: &Surface,
+        chain: &mut Vec<ChainVertex>,
+        st: &mut TraceStats,
+    ) -> Outcome {
+        let start = chain.len();
+        match self.eval_hit(tracer, q, h, chain, st) {
+            Some(l) => Outcome::Answer(Answer::Radiance(l)),
+            None => Outcome::Chain {
+                start: start as u32,
+                end: chain.len() as u32,
+            },
         }
     }
 
@@ -382,9 +421,21 @@ impl Kernel<'_> {
         // this ray's emission and its vertex's next-event weights.
         let tp = nq.emit_within;
         let inside = tracer.trace(&nq.ray, tp, Resume::START, false, RayKind::Secondary, st);
-        if !matches!(inside, Traced::Miss) {
-            st.cache.local += 1;
-            return (follow(inside, chain, st), None);
+        match inside {
+            Traced::Miss => {}
+            // The sphere goes on in another worker's region: the rest of it
+            // is a segment query, whose owner answers a hit or that the
+            // ray got beyond (counted where that is known), and the key is
+            // the cache that then answers here.
+            Traced::Next(dest, t) => {
+                st.cache.segments += 1;
+                let seg = Child::Forward(dest, Query::Segment(*nq), t);
+                return (seg, Some((leaf, nq.ray.dir)));
+            }
+            Traced::Hit(_) | Traced::Occluded => {
+                st.cache.local += 1;
+                return (follow(inside, chain, st), None);
+            }
         }
         if let Lookup::Answer(v) = c.caches.lookup(leaf, nq.ray.dir) {
             st.cache.lookups += 1;

@@ -125,3 +125,62 @@ fn cache_bias_in_a_uniform_environment_is_small() {
         "cached {mb} vs uncached {ma}"
     );
 }
+
+/// The farm's segment query (a continuation ray inside its locality sphere
+/// only) on one machine's tracer: a ray that hits before its perimeter
+/// gets the radiance the same ray gets as a path query, bit for bit, and
+/// counts as local; one whose perimeter comes first gets `Beyond` and no
+/// radiance at all.
+#[test]
+fn a_segment_query_answers_its_hit_inside_the_sphere_or_beyond() {
+    use locus_core::geometry::Ray;
+    use locus_core::integrator::PathRay;
+    use locus_core::path::{Answer, Outcome, Query, Task, WholeScene};
+    use locus_core::region::Resume;
+    use locus_core::sampler::SampleKey;
+    use locus_core::stats::TraceStats;
+    let prep = Prepared::new(common::cornell());
+    let kernel = prep.kernel(6, None);
+    let tracer = WholeScene(&prep.accel);
+    let mut chain = Vec::new();
+    let mut hits = 0;
+    for i in 0..64u32 {
+        let cam = &prep.scene.camera;
+        let (x, y) = (i % 8 * cam.width / 8, i / 8 * cam.height / 8);
+        let ray: Ray = cam.ray(x, y, [0.5, 0.5]);
+        let key = SampleKey::independent(i as u64, 3, 7);
+        let far = PathRay {
+            emit_within: 1e6,
+            ..PathRay::camera(ray, key)
+        };
+        let run = |q: Query, st: &mut TraceStats, chain: &mut Vec<_>| {
+            kernel.process(&tracer, Task::Query(q), Resume::START, chain, st)
+        };
+        let (mut a, mut b) = (TraceStats::default(), TraceStats::default());
+        let seg = run(Query::Segment(far), &mut a, &mut chain);
+        let path = run(Query::Path(far), &mut b, &mut chain);
+        match (seg, path) {
+            (Outcome::Answer(Answer::Radiance(s)), Outcome::Answer(Answer::Radiance(p))) => {
+                assert_eq!(
+                    s.to_array().map(f32::to_bits),
+                    p.to_array().map(f32::to_bits)
+                );
+                assert_eq!(a.cache.local, 1);
+                hits += 1;
+            }
+            (Outcome::Answer(Answer::Beyond), Outcome::Answer(Answer::Radiance(p))) => {
+                assert_eq!(p, glam::Vec3::ZERO, "only an escaped ray gets beyond");
+            }
+            other => panic!("{other:?}"),
+        }
+        let near = PathRay {
+            emit_within: 1e-4,
+            ..far
+        };
+        let mut st = TraceStats::default();
+        let out = run(Query::Segment(near), &mut st, &mut chain);
+        assert!(matches!(out, Outcome::Answer(Answer::Beyond)), "{out:?}");
+        assert_eq!(st.cache.local, 0);
+    }
+    assert!(hits > 32, "{hits} of 64 rays hit the box");
+}

@@ -161,9 +161,16 @@ fn farm_cache_bias_in_a_uniform_environment_is_small() {
         );
         assert!(se > 0.0 && se < 0.01 * expected, "se {se}");
         assert!(t.forwarded_out > 1000, "misses must cross workers");
-        // Lower than on one machine (0.28): rays that leave a small region
-        // inside the locality sphere go on uncached.
         assert!(c.lookups > 1000 && c.hit_ratio() > 0.1, "{c:?}");
+        // Rays that leave a small region inside the locality sphere go on
+        // as segment queries, and each ends as exactly one of local,
+        // global or lookup, wherever that is known.
+        assert!(c.segments > 1000, "{c:?}");
+        assert_eq!(
+            c.local + c.global + c.lookups,
+            t.trace.indirect_rays,
+            "{c:?}"
+        );
         assert!(t.cache_memory.nodes > 0);
         assert!(
             (m - expected).abs() < 4.0 * se + 0.02 * expected,

@@ -17,12 +17,14 @@
 //! |---|---|---:|
 //! | path query | tag, resume, [span end], reply, origin, direction, pixel, sample, depth, pdf, throughput, [emission bound] | 59-68 |
 //! | shadow query | tag, resume, [span end], reply, origin, direction, t_max | 41-43 |
+//! | segment query | as a path query with its emission bound | 63-68 |
 //!
 //! A query forwarded into a route node carries where that node ends on
 //! its ray (the [`Resume`]'s `local_until`), flagged in its tag, so that
 //! its receiver need not walk the route over it again.
 //! | radiance answer | tag, slot, RGB | 15-16 |
 //! | visibility answer | tag, slot | 3-4 |
+//! | beyond answer (a segment reached its perimeter) | tag, slot | 3-4 |
 
 use crate::rays::{RayItem, ReplyTo};
 use glam::Vec3;
@@ -40,6 +42,9 @@ const SHADOW: u8 = 3;
 const RADIANCE: u8 = 4;
 const VISIBLE: u8 = 5;
 const BLOCKED: u8 = 6;
+/// A segment query (always bounded by its perimeter).
+const SEGMENT: u8 = 7;
+const BEYOND: u8 = 8;
 /// Flag on a query's tag: the item carries its span's end.
 const SPAN: u8 = 0x10;
 
@@ -206,12 +211,18 @@ impl Packet {
     pub fn push(&mut self, item: &RayItem) {
         let w = match item {
             RayItem::Trace {
-                query: Query::Path(q),
+                query: query @ (Query::Path(q) | Query::Segment(q)),
                 resume,
                 reply,
             } => {
                 let bounded = q.emit_within != f32::INFINITY;
-                let mut w = Writer::new(if bounded { PATH } else { PATH_UNBOUNDED });
+                let tag = match (query, bounded) {
+                    (Query::Segment(_), _) => SEGMENT,
+                    (_, true) => PATH,
+                    (_, false) => PATH_UNBOUNDED,
+                };
+                let bounded = bounded || tag == SEGMENT;
+                let mut w = Writer::new(tag);
                 w.head(*resume, *reply, &q.ray);
                 w.var(q.key.pixel);
                 w.var(q.key.sample as u64);
@@ -250,6 +261,14 @@ impl Packet {
                 w.var(*to as u64);
                 w
             }
+            RayItem::Answer {
+                to,
+                answer: Answer::Beyond,
+            } => {
+                let mut w = Writer::new(BEYOND);
+                w.var(*to as u64);
+                w
+            }
         };
         self.bytes.extend_from_slice(w.done());
     }
@@ -279,27 +298,32 @@ impl Items<'_> {
     fn item(&self, tag: u8, r: &mut Reader) -> Result<RayItem, Fail> {
         let span = tag & SPAN != 0;
         Ok(match tag & !SPAN {
-            PATH | PATH_UNBOUNDED => {
+            PATH | PATH_UNBOUNDED | SEGMENT => {
                 let (resume, reply, ray) = r.head(span)?;
                 let pixel = r.var(64)?;
                 let sample = r.var(32)? as u32;
                 let depth = r.var(32)? as u32;
                 let prev_pdf = r.f32()?;
                 let beta = r.v3()?;
-                let emit_within = if tag & !SPAN == PATH {
-                    r.f32()?
-                } else {
+                let emit_within = if tag & !SPAN == PATH_UNBOUNDED {
                     f32::INFINITY
+                } else {
+                    r.f32()?
+                };
+                let q = PathRay {
+                    ray,
+                    key: SampleKey::new(pixel, sample, self.seed, self.sampler),
+                    depth,
+                    prev_pdf,
+                    beta,
+                    emit_within,
                 };
                 RayItem::Trace {
-                    query: Query::Path(PathRay {
-                        ray,
-                        key: SampleKey::new(pixel, sample, self.seed, self.sampler),
-                        depth,
-                        prev_pdf,
-                        beta,
-                        emit_within,
-                    }),
+                    query: if tag & !SPAN == SEGMENT {
+                        Query::Segment(q)
+                    } else {
+                        Query::Path(q)
+                    },
                     resume,
                     reply,
                 }
@@ -317,6 +341,10 @@ impl Items<'_> {
                 to: r.var(32)? as u32,
                 answer: Answer::Radiance(r.v3()?),
             },
+            BEYOND => RayItem::Answer {
+                to: r.var(32)? as u32,
+                answer: Answer::Beyond,
+            },
             _ => RayItem::Answer {
                 to: r.var(32)? as u32,
                 answer: Answer::Visible(tag == VISIBLE),
@@ -332,8 +360,9 @@ impl Iterator for Items<'_> {
     fn next(&mut self) -> Option<Self::Item> {
         let at = self.at;
         let &tag = self.b.get(at)?;
-        let query = (PATH..=SHADOW).contains(&(tag & !SPAN));
-        if !(PATH..=BLOCKED).contains(&tag) && !query {
+        let query = (PATH..=SHADOW).contains(&(tag & !SPAN)) || tag & !SPAN == SEGMENT;
+        let answer = (RADIANCE..=BLOCKED).contains(&tag) || tag == BEYOND;
+        if !query && !answer {
             self.at = self.b.len();
             return Some(Err(PacketError::BadTag { tag, at }));
         }
@@ -418,6 +447,20 @@ mod tests {
                 query: Query::Path(path(4, f32::INFINITY)),
                 resume: Resume::within(0.5, f32::INFINITY),
                 reply,
+            },
+            RayItem::Trace {
+                query: Query::Segment(path(5, 0.75)),
+                resume: Resume::within(0.25, 0.5),
+                reply,
+            },
+            RayItem::Trace {
+                query: Query::Segment(path(6, 1.5)),
+                resume: Resume::START,
+                reply: ReplyTo { worker: 1, slot: 7 },
+            },
+            RayItem::Answer {
+                to: 12,
+                answer: Answer::Beyond,
             },
             RayItem::Trace {
                 query: Query::Shadow(ShadowRay { ray, t_max: 2.0 }),

@@ -59,11 +59,13 @@ fn ray_item() -> impl Strategy<Value = RayItem> {
     let reply = (any::<u16>(), any::<u32>()).prop_map(|(worker, slot)| ReplyTo { worker, slot });
     let query = prop_oneof![
         path_ray().prop_map(Query::Path),
+        path_ray().prop_map(Query::Segment),
         (ray(), 0f32..1e30).prop_map(|(ray, t_max)| Query::Shadow(ShadowRay { ray, t_max })),
     ];
     let answer = prop_oneof![
         v3().prop_map(Answer::Radiance),
-        any::<bool>().prop_map(Answer::Visible)
+        any::<bool>().prop_map(Answer::Visible),
+        Just(Answer::Beyond),
     ];
     prop_oneof![
         (query, -1e6f32..1e6, 0f32..1e3, any::<bool>(), reply).prop_map(
@@ -190,6 +192,10 @@ proptest! {
             RayItem::Trace { query: Query::Path(mut q), resume, reply } => {
                 q.key.seed = 0;
                 RayItem::Trace { query: Query::Path(q), resume, reply }
+            }
+            RayItem::Trace { query: Query::Segment(mut q), resume, reply } => {
+                q.key.seed = 0;
+                RayItem::Trace { query: Query::Segment(q), resume, reply }
             }
             other => other,
         };

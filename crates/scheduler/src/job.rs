@@ -381,12 +381,9 @@ pub fn prepare(
         max_inflight: crate::tiles::inflight(&tile_affinity, workers, options.tuning.max_inflight)
             .into_iter()
             .zip(members)
-            .map(|(n, m)| match m.budget {
-                // A worker with a budget keeps its queues within the plan's
-                // room for them.
-                0 => n,
-                _ => n.min(memory::INFLIGHT_IN_QUEUE_ROOM),
-            })
+            // A worker with a budget keeps its queues within the plan's
+            // room for them.
+            .map(|(n, m)| memory::inflight_cap(n, m.budget, options.tuning.random_polling))
             .collect(),
         map,
         tile_affinity,

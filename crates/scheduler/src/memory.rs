@@ -43,6 +43,19 @@ pub const QUEUE_BYTES: u64 = 24 << 20;
 /// a sample in flight holds its pending vertices' slots and queries, a few
 /// hundred bytes.
 pub const INFLIGHT_IN_QUEUE_ROOM: u32 = 24 << 10;
+/// Camera samples a worker keeps in flight, of the `n` its tiles call for:
+/// with a budget, what [`QUEUE_BYTES`] holds. Under random polling a
+/// worker also holds the work peers hand it, up to as much again (it polls
+/// only while fewer slots than its own share wait for answers), so its own
+/// share is half: a polling worker of a 160 MiB budget peaked at 161 MiB
+/// with the whole room.
+pub fn inflight_cap(n: u32, budget: u64, polling: bool) -> u32 {
+    match (budget, polling) {
+        (0, _) => n,
+        (_, false) => n.min(INFLIGHT_IN_QUEUE_ROOM),
+        (_, true) => n.min(INFLIGHT_IN_QUEUE_ROOM / 2),
+    }
+}
 /// Bytes a directional cache node may take (the node, and the growth of
 /// its leaf's node list).
 pub const CACHE_NODE_BYTES: u64 = 112;
@@ -128,6 +141,15 @@ pub fn plan(
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn polling_halves_a_budgeted_workers_own_samples_in_flight() {
+        use super::{INFLIGHT_IN_QUEUE_ROOM as Q, inflight_cap};
+        assert_eq!(inflight_cap(100_000, 0, true), 100_000);
+        assert_eq!(inflight_cap(100_000, 1 << 30, false), Q);
+        assert_eq!(inflight_cap(100_000, 1 << 30, true), Q / 2);
+        assert_eq!(inflight_cap(1_000, 1 << 30, true), 1_000);
+    }
+
     use super::*;
 
     #[test]

@@ -78,6 +78,10 @@ pub struct Row {
     pub us_per_forward: Option<f64>,
     pub forwards_per_ray: f64,
     pub bytes_per_sample: f64,
+    /// Ray items (forwarded queries and answers) per message between
+    /// workers: each message costs a write, a read and often a wake-up,
+    /// whatever it carries.
+    pub items_per_message: Option<f64>,
     pub imbalance: f64,
     /// Of the workers' render time, the share they sat idle.
     pub idle_share: f64,
@@ -207,6 +211,12 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
         .map(|w| w.stats.cpu_s - w.stats.setup_cpu_s)
         .sum();
     let fwd = t.forwarded_out;
+    let messages: u64 = f
+        .workers
+        .iter()
+        .flat_map(|w| &w.stats.peers)
+        .map(|p| p.msgs_sent)
+        .sum();
     Row {
         scene: scene.to_string(),
         config: format!(
@@ -233,6 +243,8 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
         us_per_forward: (fwd > 0).then(|| (cpu - one.cpu_s) / fwd as f64 * 1e6),
         forwards_per_ray: f.forwarded_fraction,
         bytes_per_sample: f.bytes_per_sample,
+        items_per_message: (messages > 0 && fwd > 0)
+            .then(|| (fwd + t.answers_out) as f64 / messages as f64),
         imbalance: f.load_imbalance,
         idle_share: t.idle_s / (t.busy_s + t.idle_s).max(1e-9),
         polls: t.polls,
@@ -300,6 +312,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             us_per_forward: None,
             forwards_per_ray: 0.0,
             bytes_per_sample: 0.0,
+            items_per_message: None,
             imbalance: 1.0,
             idle_share: 0.0,
             polls: 0,
@@ -414,11 +427,11 @@ pub fn markdown(rows: &[Row]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | imbalance | idle | handed | peak MiB per process (budget) | bit-identical |"
+        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | items / message | imbalance | idle | handed | peak MiB per process (budget) | bit-identical |"
     );
     let _ = writeln!(
         s,
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
     );
     for r in rows {
         let peaks = r
@@ -434,7 +447,7 @@ pub fn markdown(rows: &[Row]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {:.2} | {:.0}% | {} | {}{} | {} |",
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {} | {:.2} | {:.0}% | {} | {}{} | {} |",
             r.scene,
             r.config,
             r.render_s,
@@ -444,6 +457,7 @@ pub fn markdown(rows: &[Row]) -> String {
             r.us_per_forward.map_or("".into(), |u| format!("{u:.2}")),
             r.forwards_per_ray,
             r.bytes_per_sample,
+            r.items_per_message.map_or("".into(), |m| format!("{m:.0}")),
             r.imbalance,
             r.idle_share * 100.0,
             r.handed,

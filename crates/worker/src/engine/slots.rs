@@ -10,6 +10,7 @@
 //! same as one machine's.
 
 use glam::Vec3;
+use locus_core::integrator::PathRay;
 use locus_core::integrator::ShadedVertex;
 use locus_core::passes::PixelSum;
 use locus_core::path::{Answer, CacheKey, ChainVertex, Child, Dest, Query};
@@ -64,6 +65,14 @@ struct TileState {
 pub enum Effect {
     /// A finished vertex answers an asker on another worker.
     Reply(ReplyTo, Answer),
+    /// A vertex's segment query got beyond its perimeter: the cache `key`
+    /// answers for `slot`, or `ray` is traced on from the perimeter (and
+    /// then updates the cache, as [`Slots::expect_update`] arranges).
+    Beyond {
+        slot: u32,
+        key: CacheKey,
+        ray: PathRay,
+    },
     /// A continuation's radiance, for the directional cache entry that
     /// asked for it.
     CacheUpdate(CacheKey, Vec3),
@@ -89,6 +98,10 @@ pub struct Slots {
     free: Vec<u32>,
     /// Cache entries that pending continuations update, by slot.
     updates: HashMap<u32, CacheKey>,
+    /// Continuations that went on as segment queries, by slot: the cache
+    /// that answers if the segment gets beyond its perimeter, and the ray
+    /// to trace on if the cache cannot.
+    segments: HashMap<u32, (CacheKey, PathRay)>,
     tiles: Vec<Option<TileState>>,
     /// Held tiles with samples not started yet, in arrival order: the
     /// front one starts next.
@@ -108,6 +121,7 @@ impl Slots {
             slots: Vec::new(),
             free: Vec::new(),
             updates: HashMap::new(),
+            segments: HashMap::new(),
             tiles: Vec::new(),
             fresh: VecDeque::new(),
             held: 0,
@@ -290,8 +304,14 @@ impl Slots {
                     _ => Wait::Pending,
                 },
             });
-            if let Some(k) = cv.update {
-                self.updates.insert(slot, k);
+            match (cv.update, cv.next) {
+                (Some(k), Child::Forward(_, Query::Segment(q), _)) => {
+                    self.segments.insert(slot, (k, q));
+                }
+                (Some(k), _) => {
+                    self.updates.insert(slot, k);
+                }
+                (None, _) => {}
             }
             let mine = ReplyTo {
                 worker: self.me,
@@ -305,6 +325,12 @@ impl Slots {
             }
             parent = mine;
         }
+    }
+
+    /// The continuation of vertex `slot`, traced on from its perimeter,
+    /// updates cache entry `key` when its radiance comes.
+    pub fn expect_update(&mut self, slot: u32, key: CacheKey) {
+        self.updates.insert(slot, key);
     }
 
     /// Applies answer `a` (from worker `from`) to `slot`, and whatever it
@@ -359,6 +385,18 @@ impl Slots {
                             {
                                 effects.push(Effect::CacheUpdate(k, l));
                             }
+                            // A segment that hit inside its sphere: its
+                            // radiance is no cache's.
+                            if !self.segments.is_empty() {
+                                self.segments.remove(&slot);
+                            }
+                        }
+                        (Answer::Beyond, _, Wait::Pending) => {
+                            let Some((key, ray)) = self.segments.remove(&slot) else {
+                                return Err(bad);
+                            };
+                            effects.push(Effect::Beyond { slot, key, ray });
+                            continue;
                         }
                         _ => return Err(bad),
                     }
@@ -606,6 +644,74 @@ mod tests {
         );
         assert!(
             s.answer(0, 12345, Answer::Visible(true), &mut fx, &mut st)
+                .is_err()
+        );
+    }
+
+    /// A continuation that went on as a segment query: a hit inside the
+    /// sphere answers the vertex and updates no cache; a segment that got
+    /// beyond asks for the cache (or the rest of the ray), whose radiance
+    /// then updates the cache. A second `Beyond`, or one for a vertex with
+    /// no segment out, is refused.
+    #[test]
+    fn segments_answer_inside_or_hand_back_beyond() {
+        let ray = PathRay::camera(
+            Ray::new(Vec3::ZERO, Vec3::X),
+            locus_core::sampler::SampleKey::independent(5, 1, 2),
+        );
+        let key = (42, Vec3::X);
+        let asker = ReplyTo {
+            worker: 3,
+            slot: 77,
+        };
+        let chain = [ChainVertex {
+            vertex: vertex(0.0),
+            shadow: Child::Done(true),
+            next: Child::Forward(Dest::Peer(0), Query::Segment(ray), Resume::at(0.0)),
+            update: Some(key),
+        }];
+        let (mut fx, mut st) = (Vec::new(), TraceStats::default());
+        // Inside: the radiance finishes the vertex, and no cache hears of it.
+        let mut s = Slots::new(1, 9, IMAGE);
+        let mut out = Vec::new();
+        s.open_chain(asker, &chain, &mut out);
+        let slot = out[0].3.slot;
+        s.answer(0, slot, Answer::Radiance(Vec3::ONE), &mut fx, &mut st)
+            .unwrap();
+        assert_eq!(
+            fx,
+            vec![Effect::Reply(asker, Answer::Radiance(Vec3::splat(1.5)))]
+        );
+        // Beyond: the engine is asked to finish it; its radiance then
+        // updates the cache.
+        fx.clear();
+        let mut out = Vec::new();
+        s.open_chain(asker, &chain, &mut out);
+        let slot = out[0].3.slot;
+        s.answer(0, slot, Answer::Beyond, &mut fx, &mut st).unwrap();
+        assert_eq!(fx, vec![Effect::Beyond { slot, key, ray }]);
+        assert!(s.answer(0, slot, Answer::Beyond, &mut fx, &mut st).is_err());
+        fx.clear();
+        s.expect_update(slot, key);
+        s.answer(1, slot, Answer::Radiance(Vec3::ONE), &mut fx, &mut st)
+            .unwrap();
+        assert_eq!(
+            fx,
+            vec![
+                Effect::CacheUpdate(key, Vec3::ONE),
+                Effect::Reply(asker, Answer::Radiance(Vec3::splat(1.5)))
+            ]
+        );
+        // A vertex whose continuation is no segment takes no `Beyond`.
+        let plain = [ChainVertex {
+            next: Child::Forward(Dest::Peer(0), shadow(), Resume::at(0.0)),
+            update: None,
+            ..chain[0]
+        }];
+        let mut out = Vec::new();
+        s.open_chain(asker, &plain, &mut out);
+        assert!(
+            s.answer(0, out[0].3.slot, Answer::Beyond, &mut fx, &mut st)
                 .is_err()
         );
     }

@@ -6,12 +6,14 @@ use super::fetching::{Builder, MERGE_AFTER};
 use super::kernel::{Batch, Work};
 use super::outbox::Outbox;
 use super::polling::Polling;
-use super::slots::{Effect, Slots};
+use super::slots::{Effect, Slots, UnknownSlot};
 use super::{EngineError, EngineJob, Event, Input, Links};
 use crate::fetch::FetchedLeaf;
 use crate::reach::Reach;
 use locus_core::accel_set::{AccelSet, Part};
-use locus_core::path::{Answer, Dest, Outcome, Query, Task};
+use locus_core::dircache::Lookup;
+use locus_core::integrator::PathRay;
+use locus_core::path::{Answer, CacheKey, Dest, Outcome, Query, Task};
 use locus_core::region::{Resume, WorkerId};
 use locus_protocol::control::WorkerToScheduler;
 use locus_protocol::rays::{PeerMsg, RayItem, ReplyTo};
@@ -383,22 +385,57 @@ impl<'a> Engine<'a> {
 
     /// Carries out what answers set off.
     pub(super) fn effects(&mut self) -> Result<(), EngineError> {
-        let mut fx = std::mem::take(&mut self.effects);
-        for f in fx.drain(..) {
-            match f {
-                Effect::Reply(to, a) => self.reply(to, a)?,
-                Effect::CacheUpdate((leaf, dir), v) => {
-                    if let Some(c) = &self.job.caches {
-                        c.update(leaf, dir, v);
+        // A cache's answer to a segment finishes its vertex, which may set
+        // off more: until none is left.
+        while !self.effects.is_empty() {
+            let mut fx = std::mem::take(&mut self.effects);
+            for f in fx.drain(..) {
+                match f {
+                    Effect::Reply(to, a) => self.reply(to, a)?,
+                    Effect::CacheUpdate((leaf, dir), v) => {
+                        if let Some(c) = &self.job.caches {
+                            c.update(leaf, dir, v);
+                        }
                     }
-                }
-                Effect::TileDone(r) => {
-                    self.stats.tiles += 1;
-                    self.control(WorkerToScheduler::TileDone(r))?;
+                    Effect::TileDone(r) => {
+                        self.stats.tiles += 1;
+                        self.control(WorkerToScheduler::TileDone(r))?;
+                    }
+                    Effect::Beyond { slot, key, ray } => self.beyond(slot, key, ray)?,
                 }
             }
+            if self.effects.is_empty() {
+                self.effects = fx;
+            }
         }
-        self.effects = fx;
+        Ok(())
+    }
+
+    /// A vertex's segment query got beyond its perimeter: its leaf's cache
+    /// answers, or the rest of the ray is traced from the perimeter here
+    /// (forwarded on as needed) and its radiance updates the cache, exactly
+    /// as [`locus_core::path::Kernel`] does when the whole sphere is local.
+    fn beyond(&mut self, slot: u32, key: CacheKey, ray: PathRay) -> Result<(), EngineError> {
+        let me = self.job.setup.me;
+        let Some(c) = &self.job.caches else {
+            return Err(UnknownSlot { from: me, slot }.into());
+        };
+        if let Lookup::Answer(v) = c.lookup(key.0, key.1) {
+            self.stats.trace.cache.lookups += 1;
+            let answer = Answer::Radiance(v);
+            let st = &mut self.stats.trace;
+            return Ok(self.slots.answer(me, slot, answer, &mut self.effects, st)?);
+        }
+        self.stats.trace.cache.global += 1;
+        self.slots.expect_update(slot, key);
+        self.work.push_front(Work {
+            task: Task::Query(Query::Path(ray)),
+            resume: Resume::at(ray.emit_within),
+            reply: ReplyTo { worker: me, slot },
+            from: me,
+            pinned: None,
+            handed_by: None,
+        });
         Ok(())
     }
 
