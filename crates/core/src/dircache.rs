@@ -413,6 +413,24 @@ impl LeafCaches {
         }
     }
 
+    /// A continuation ray from `leaf` along `dir` that reached its
+    /// perimeter: the cache's answer (counted a lookup), or None (counted a
+    /// global ray, which the caller traces on from the perimeter and whose
+    /// radiance then updates this cache). One machine and a farm worker,
+    /// whichever finds the ray at its perimeter, decide here.
+    pub fn at_perimeter(&self, leaf: u32, dir: Vec3, st: &mut CacheStats) -> Option<Vec3> {
+        match self.lookup(leaf, dir) {
+            Lookup::Answer(v) => {
+                st.lookups += 1;
+                Some(v)
+            }
+            Lookup::Miss => {
+                st.global += 1;
+                None
+            }
+        }
+    }
+
     pub fn update(&self, leaf: u32, dir: Vec3, value: Vec3) {
         let Some(m) = self.caches.get(leaf as usize) else {
             return;

@@ -25,7 +25,7 @@
 //! construction. [`crate::passes`] has the one pixel mean both use.
 
 use crate::accel::{Accel, Surface};
-use crate::dircache::{LeafCaches, Lookup};
+use crate::dircache::LeafCaches;
 use crate::geometry::Ray;
 use crate::integrator::{DIM_PIXEL, PathRay, ShadedVertex, ShadowRay, shade};
 use crate::light::LightSet;
@@ -251,59 +251,43 @@ impl Kernel<'_> {
                     Traced::Occluded | Traced::Hit(_) => Outcome::Answer(Answer::Visible(false)),
                 }
             }
-            Query::Segment(q) => {
-                let tp = q.emit_within;
-                match tracer.trace(&q.ray, tp, resume, false, RayKind::Secondary, st) {
-                    Traced::Next(dest, t) => Outcome::Forward {
-                        dest,
-                        query,
-                        resume: t,
-                    },
-                    Traced::Miss | Traced::Occluded => Outcome::Answer(Answer::Beyond),
-                    Traced::Hit(h) => {
-                        st.cache.local += 1;
-                        self.hit_outcome(tracer, &q, &h, chain, st)
-                    }
-                }
-            }
-            Query::Path(q) => {
-                let kind = if q.depth == 0 {
-                    RayKind::Camera
+            Query::Path(q) | Query::Segment(q) => {
+                // A segment stops at its perimeter and says so when it gets
+                // there; a path goes on to infinity.
+                let segment = matches!(query, Query::Segment(_));
+                let (t_max, kind, miss) = if segment {
+                    (q.emit_within, RayKind::Secondary, Answer::Beyond)
+                } else if q.depth == 0 {
+                    (f32::INFINITY, RayKind::Camera, Answer::Radiance(Vec3::ZERO))
                 } else {
-                    RayKind::Secondary
+                    (
+                        f32::INFINITY,
+                        RayKind::Secondary,
+                        Answer::Radiance(Vec3::ZERO),
+                    )
                 };
-                match tracer.trace(&q.ray, f32::INFINITY, resume, false, kind, st) {
+                match tracer.trace(&q.ray, t_max, resume, false, kind, st) {
                     Traced::Next(dest, t) => Outcome::Forward {
                         dest,
                         query,
                         resume: t,
                     },
-                    Traced::Miss | Traced::Occluded => {
-                        Outcome::Answer(Answer::Radiance(Vec3::ZERO))
+                    Traced::Miss | Traced::Occluded => Outcome::Answer(miss),
+                    Traced::Hit(h) => {
+                        if segment {
+                            st.cache.local += 1;
+                        }
+                        let start = chain.len();
+                        match self.eval_hit(tracer, &q, &h, chain, st) {
+                            Some(l) => Outcome::Answer(Answer::Radiance(l)),
+                            None => Outcome::Chain {
+                                start: start as u32,
+                                end: chain.len() as u32,
+                            },
+                        }
                     }
-                    Traced::Hit(h) => self.hit_outcome(tracer, &q, &h, chain, st),
                 }
             }
-        }
-    }
-
-    /// A path's or a segment's hit, shaded: its radiance, or the chain of
-    /// vertices left waiting.
-    fn hit_outcome<T: Tracer>(
-        &self,
-        tracer: &T,
-        q: &PathRay,
-        h: &Surface,
-        chain: &mut Vec<ChainVertex>,
-        st: &mut TraceStats,
-    ) -> Outcome {
-        let start = chain.len();
-        match self.eval_hit(tracer, q, h, chain, st) {
-            Some(l) => Outcome::Answer(Answer::Radiance(l)),
-            None => Outcome::Chain {
-                start: start as u32,
-                end: chain.len() as u32,
-            },
         }
     }
 
@@ -437,11 +421,9 @@ impl Kernel<'_> {
                 return (follow(inside, chain, st), None);
             }
         }
-        if let Lookup::Answer(v) = c.caches.lookup(leaf, nq.ray.dir) {
-            st.cache.lookups += 1;
+        if let Some(v) = c.caches.at_perimeter(leaf, nq.ray.dir, &mut st.cache) {
             return (Child::Done(v), None);
         }
-        st.cache.global += 1;
         let beyond = tracer.trace(
             &nq.ray,
             f32::INFINITY,

@@ -215,13 +215,11 @@ impl Packet {
                 resume,
                 reply,
             } => {
-                let bounded = q.emit_within != f32::INFINITY;
-                let tag = match (query, bounded) {
-                    (Query::Segment(_), _) => SEGMENT,
-                    (_, true) => PATH,
-                    (_, false) => PATH_UNBOUNDED,
+                let tag = match query {
+                    Query::Segment(_) => SEGMENT,
+                    _ if q.emit_within != f32::INFINITY => PATH,
+                    _ => PATH_UNBOUNDED,
                 };
-                let bounded = bounded || tag == SEGMENT;
                 let mut w = Writer::new(tag);
                 w.head(*resume, *reply, &q.ray);
                 w.var(q.key.pixel);
@@ -229,7 +227,7 @@ impl Packet {
                 w.var(q.depth as u64);
                 w.f32(q.prev_pdf);
                 w.v3(q.beta);
-                if bounded {
+                if tag != PATH_UNBOUNDED {
                     w.f32(q.emit_within);
                 }
                 w

@@ -47,8 +47,8 @@ pub const INFLIGHT_IN_QUEUE_ROOM: u32 = 24 << 10;
 /// with a budget, what [`QUEUE_BYTES`] holds. Under random polling a
 /// worker also holds the work peers hand it, up to as much again (it polls
 /// only while fewer slots than its own share wait for answers), so its own
-/// share is half: a polling worker of a 160 MiB budget peaked at 161 MiB
-/// with the whole room.
+/// share is half: with its whole queue room for its own samples, a
+/// polling worker of a 160 MiB budget peaked at 161 MiB.
 pub fn inflight_cap(n: u32, budget: u64, polling: bool) -> u32 {
     match (budget, polling) {
         (0, _) => n,
@@ -141,16 +141,16 @@ pub fn plan(
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn polling_halves_a_budgeted_workers_own_samples_in_flight() {
-        use super::{INFLIGHT_IN_QUEUE_ROOM as Q, inflight_cap};
+        const Q: u32 = INFLIGHT_IN_QUEUE_ROOM;
         assert_eq!(inflight_cap(100_000, 0, true), 100_000);
         assert_eq!(inflight_cap(100_000, 1 << 30, false), Q);
         assert_eq!(inflight_cap(100_000, 1 << 30, true), Q / 2);
         assert_eq!(inflight_cap(1_000, 1 << 30, true), 1_000);
     }
-
-    use super::*;
 
     #[test]
     fn plans_fit_their_budget() {

@@ -250,6 +250,8 @@ pub fn run(
     let (events_tx, inbox) = events;
     let cancel = links.cancel.clone();
     let pool_n = pool.map_or(0, |p| p.current_num_threads());
+    // [`pool_threads`] gives a pool of fewer than this only to workers
+    // whose engine's thread traces beside it.
     let engine_traces = pool_n < DEDICATED_ENGINE_THREADS;
     let threads = pool_n + usize::from(engine_traces);
     let mut e = Engine::new(&job, parts, &events_tx, links, threads);

@@ -11,7 +11,6 @@ use super::{EngineError, EngineJob, Event, Input, Links};
 use crate::fetch::FetchedLeaf;
 use crate::reach::Reach;
 use locus_core::accel_set::{AccelSet, Part};
-use locus_core::dircache::Lookup;
 use locus_core::integrator::PathRay;
 use locus_core::path::{Answer, CacheKey, Dest, Outcome, Query, Task};
 use locus_core::region::{Resume, WorkerId};
@@ -420,13 +419,11 @@ impl<'a> Engine<'a> {
         let Some(c) = &self.job.caches else {
             return Err(UnknownSlot { from: me, slot }.into());
         };
-        if let Lookup::Answer(v) = c.lookup(key.0, key.1) {
-            self.stats.trace.cache.lookups += 1;
+        let st = &mut self.stats.trace;
+        if let Some(v) = c.at_perimeter(key.0, key.1, &mut st.cache) {
             let answer = Answer::Radiance(v);
-            let st = &mut self.stats.trace;
             return Ok(self.slots.answer(me, slot, answer, &mut self.effects, st)?);
         }
-        self.stats.trace.cache.global += 1;
         self.slots.expect_update(slot, key);
         self.work.push_front(Work {
             task: Task::Query(Query::Path(ray)),
