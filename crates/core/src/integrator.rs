@@ -20,6 +20,7 @@
 use crate::accel::Hit;
 use crate::dircache::{locality_sphere, perimeter};
 use crate::geometry::{Ray, cosine_hemisphere, hit_point, offset_point, spawn_offset, tri_cross};
+use crate::irradiance::IrradianceCache;
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::sampler::SampleKey;
@@ -129,6 +130,44 @@ pub struct Shaded {
     /// With `locality`: the leaf whose sphere split this vertex's light,
     /// whose cache answers `next` beyond `next.emit_within`.
     pub cache_leaf: Option<u32>,
+    /// With an irradiance cache, at the first vertex: whether its records
+    /// answered (true) or the vertex was path traced (false).
+    pub ambient: Option<bool>,
+}
+
+/// Where a path vertex sits and which way it faces.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Frame {
+    pub p: Vec3,
+    /// The geometric normal as the triangle's winding gives it.
+    pub ng: Vec3,
+    /// The geometric normal on the side the ray arrived from.
+    pub n: Vec3,
+    /// The shading normal on that side ([`shading_normal`]).
+    pub ns: Vec3,
+    /// `p` moved off the surface to that side: where new rays leave.
+    pub origin: Vec3,
+    /// Whether the triangle has shading normals.
+    pub shaded: bool,
+}
+
+impl Frame {
+    /// The frame of hit `h` on triangle `tri` by a ray along `dir`.
+    #[inline(always)]
+    pub fn at(dir: Vec3, tri: &[Vec3; 3], h: &Hit, shading: Vec3) -> Self {
+        let ng = tri_cross(tri).normalize();
+        let p = hit_point(tri, h.b1, h.b2);
+        let n = if ng.dot(-dir) >= 0.0 { ng } else { -ng };
+        let ns = shading_normal(shading, n);
+        Self {
+            p,
+            ng,
+            n,
+            ns,
+            origin: offset_point(p, ng, n, spawn_offset(tri)),
+            shaded: shading != Vec3::ZERO,
+        }
+    }
 }
 
 /// A triangle's shading normals interpolated at barycentrics `(b1, b2)`
@@ -190,6 +229,7 @@ pub fn shade(
     lights: &LightSet,
     max_depth: u32,
     locality: Option<(&Octree, f32)>,
+    ambient: Option<&IrradianceCache>,
 ) -> Shaded {
     let mut out = Shaded {
         vertex: ShadedVertex {
@@ -200,6 +240,7 @@ pub fn shade(
         shadow: None,
         next: None,
         cache_leaf: None,
+        ambient: None,
     };
     let ng = tri_cross(tri).normalize();
     let wo = -q.ray.dir;
@@ -220,13 +261,32 @@ pub fn shade(
     }
     let vertex = q.depth + 1;
     let key = q.key;
-    let p = hit_point(tri, h.b1, h.b2);
-    let n = if cos_o >= 0.0 { ng } else { -ng };
-    let shaded = shading != Vec3::ZERO;
-    let ns = shading_normal(shading, n);
-    let origin = offset_point(p, ng, n, spawn_offset(tri));
+    let Frame {
+        p,
+        ng: _,
+        n,
+        ns,
+        origin,
+        shaded,
+    } = Frame::at(q.ray.dir, tri, h, shading);
     let base = vertex_dim(vertex);
     let f = mat.albedo / PI;
+    // Ward's irradiance cache answers the first vertex's diffuse
+    // interreflection where its records cover the point: the vertex then
+    // sends no continuation, and its next-event estimate takes all of the
+    // direct light (the records hold the light arriving from surfaces,
+    // without their emission).
+    let cached = match ambient {
+        Some(cache) if q.depth == 0 => {
+            let e = cache.interpolate(p, ns);
+            out.ambient = Some(e.is_some());
+            e
+        }
+        _ => None,
+    };
+    if let Some(e) = cached {
+        out.vertex.emitted += f * e;
+    }
     out.cache_leaf = locality.and_then(|(octree, _)| octree.leaf_at(origin));
     let sphere = locality
         .zip(out.cache_leaf)
@@ -251,6 +311,7 @@ pub fn shade(
                 let pdf_b = cos_s / PI;
                 let ray = Ray::new(origin, seg / len);
                 let w = match sphere {
+                    _ if cached.is_some() => 1.0,
                     Some(s) if len >= perimeter(s, &ray) => 1.0,
                     _ => power_heuristic(pdf_l, pdf_b),
                 };
@@ -260,6 +321,9 @@ pub fn shade(
         }
     }
 
+    if cached.is_some() {
+        return out;
+    }
     // Continue by cosine sampling: f cos / pdf = albedo.
     let wi = cosine_hemisphere(ns, key.get2d(base + 3));
     let pdf_b = ns.dot(wi) / PI;

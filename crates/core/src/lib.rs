@@ -22,7 +22,9 @@
 //! leave through [`image_io`], are compared with [`metrics`], and reports
 //! are written by [`report`]. [`dircache`] is Jansen and Reinhard's directional
 //! cache: per octree leaf, the radiance arriving from beyond a locality
-//! radius, by direction. [`radiosity`] is the second job kind, Stürzlinger,
+//! radius, by direction. [`irradiance`] is Ward's irradiance cache for the
+//! first vertex's diffuse interreflection, filled by an overture before
+//! the render. [`radiosity`] is the second job kind, Stürzlinger,
 //! Schaufler and Volkert's progressive refinement radiosity, which shares
 //! the scene, the BVH and the image writers. [`generate`] writes the generated scenes (the
 //! benchmarks, in the `locus` crate, use them too).
@@ -35,6 +37,7 @@ pub mod generate;
 pub mod geometry;
 pub mod image_io;
 pub mod integrator;
+pub mod irradiance;
 pub mod light;
 pub mod limits;
 pub mod mesh_io;

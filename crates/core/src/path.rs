@@ -28,6 +28,7 @@ use crate::accel::{Accel, Surface};
 use crate::dircache::LeafCaches;
 use crate::geometry::Ray;
 use crate::integrator::{DIM_PIXEL, PathRay, ShadedVertex, ShadowRay, shade};
+use crate::irradiance::IrradianceCache;
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::region::{Resume, WorkerId};
@@ -206,6 +207,9 @@ pub struct Kernel<'a> {
     pub max_depth: u32,
     /// Directional caches per octree leaf; None traces every ray.
     pub cache: Option<CacheUse<'a>>,
+    /// Ward's irradiance cache for the first vertex's interreflection
+    /// (read only while rendering); None path traces it.
+    pub irradiance: Option<&'a IrradianceCache>,
 }
 
 impl Kernel<'_> {
@@ -309,6 +313,35 @@ impl Kernel<'_> {
         }
     }
 
+    /// The radiance arriving along `q` and the distance to the surface it
+    /// hits first (infinite if none), on a tracer that finishes every
+    /// segment: what an irradiance record's rays measure.
+    pub fn first_hit<T: Tracer>(
+        &self,
+        tracer: &T,
+        q: &PathRay,
+        chain: &mut Vec<ChainVertex>,
+        st: &mut TraceStats,
+    ) -> (Vec3, f32) {
+        st.indirect_rays += 1;
+        let t = tracer.trace(
+            &q.ray,
+            f32::INFINITY,
+            Resume::START,
+            false,
+            RayKind::Secondary,
+            st,
+        );
+        match t {
+            Traced::Miss | Traced::Occluded => (Vec3::ZERO, f32::INFINITY),
+            Traced::Hit(h) => match self.eval_hit(tracer, q, &h, chain, st) {
+                Some(l) => (l, h.hit.t),
+                None => unreachable!("a tracer that never forwards left a chain"),
+            },
+            Traced::Next(..) => unreachable!("a tracer that never forwards said Next"),
+        }
+    }
+
     /// Shades hit `h` of `q` and evaluates its shadow and continuation
     /// queries as far as they stay with the tracer. Returns the vertex's
     /// radiance when everything finished; otherwise leaves this vertex (and
@@ -331,7 +364,13 @@ impl Kernel<'_> {
             self.lights,
             self.max_depth,
             self.cache.map(|c| (c.octree, c.caches.params.radius)),
+            self.irradiance,
         );
+        match s.ambient {
+            Some(true) => st.irradiance.interpolated += 1,
+            Some(false) => st.irradiance.traced += 1,
+            None => {}
+        }
         let shadow = match s.shadow {
             None => Child::Done(false),
             Some(sr) => {

@@ -7,8 +7,10 @@
 
 use crate::accel::Accel;
 use crate::dircache::{CacheMemory, CacheParams, LeafCaches};
-use crate::geometry::TriangleSet;
+use crate::geometry::{Bounds, TriangleSet};
 use crate::image_io::Image;
+use crate::irradiance::IrradianceParams;
+use crate::irradiance::overture::{self, OvertureStats};
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::passes::pixel_mean;
@@ -90,6 +92,7 @@ impl Prepared {
             sampler: self.scene.settings.sampler,
             max_depth,
             cache,
+            irradiance: None,
         }
     }
 }
@@ -114,6 +117,8 @@ pub struct RenderOptions {
     pub tile_order: TileOrder,
     /// Directional caches on the octree's leaves.
     pub cache: Option<CacheParams>,
+    /// Ward's irradiance cache at the first vertex.
+    pub irradiance: Option<IrradianceParams>,
 }
 
 impl RenderOptions {
@@ -127,6 +132,7 @@ impl RenderOptions {
             tile_size: 16,
             tile_order: TileOrder::Scanline,
             cache: None,
+            irradiance: None,
         }
     }
 }
@@ -194,6 +200,8 @@ pub struct RenderOutput {
     pub render_s: f64,
     /// What the directional caches held at the end, when they were on.
     pub cache_memory: Option<CacheMemory>,
+    /// How the irradiance cache was built, when it was on.
+    pub irradiance: Option<OvertureStats>,
 }
 
 /// Renders on a pool of `opts.threads` threads; `progress(done, total)` is
@@ -226,6 +234,12 @@ pub fn render(
         .num_threads(opts.threads)
         .build()
         .expect("thread pool");
+    // The overture fills the irradiance cache; the render only reads it.
+    let ambient = opts.irradiance.map(|p| {
+        let bounds = Bounds::of_triangles(&prep.scene.tris);
+        pool.install(|| overture::build(&kernel, &tracer, p, &bounds))
+    });
+    kernel.irradiance = ambient.as_ref().map(|a| &a.0);
     let results: Vec<(Tile, Vec<[f32; 3]>, TraceStats)> = pool.install(|| {
         tl.par_iter()
             .map(|t| {
@@ -259,6 +273,7 @@ pub fn render(
         stats,
         render_s,
         cache_memory: caches.map(|c| c.memory()),
+        irradiance: ambient.map(|a| a.1),
     }
 }
 

@@ -36,6 +36,9 @@ pub struct RenderReport {
     pub error_vs_reference: Option<ErrorMetrics>,
     /// What the directional caches held at the end (when on).
     pub cache_memory: Option<crate::dircache::CacheMemory>,
+    /// How the irradiance cache was built (when on); its time is part of
+    /// `times.render_s`.
+    pub irradiance: Option<crate::irradiance::overture::OvertureStats>,
 }
 
 impl RenderReport {

@@ -19,6 +19,8 @@ pub struct TraceStats {
     pub samples: u64,
     /// Directional cache use by continuation rays.
     pub cache: crate::dircache::CacheStats,
+    /// Irradiance cache use at first vertices.
+    pub irradiance: crate::irradiance::IrradianceUse,
 }
 
 impl TraceStats {
@@ -38,5 +40,6 @@ impl std::ops::AddAssign for TraceStats {
         self.invalid_samples += o.invalid_samples;
         self.samples += o.samples;
         self.cache += o.cache;
+        self.irradiance += o.irradiance;
     }
 }

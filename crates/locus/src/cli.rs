@@ -391,6 +391,14 @@ pub(crate) struct RenderArgs {
     /// Locality radius in leaf edges (overrides the preset's).
     #[arg(long)]
     pub(crate) cache_radius: Option<f32>,
+    /// Switch Ward's irradiance cache on for the first vertex's diffuse
+    /// interreflection (the preset's [irradiance] settings, or the
+    /// defaults). Biased by design: pass --reference to see its error.
+    #[arg(long)]
+    pub(crate) irradiance: bool,
+    /// Ward's accuracy a (Radiance's -aa), overriding the preset's.
+    #[arg(long)]
+    pub(crate) irradiance_accuracy: Option<f32>,
     #[command(flatten)]
     pub(crate) farm: FarmArgs,
 }
@@ -616,6 +624,11 @@ pub(crate) struct QualityArgs {
     /// Leave Mitsuba out even where it is installed.
     #[arg(long)]
     pub(crate) no_mitsuba: bool,
+    /// Also render with Ward's irradiance cache at each of these presets'
+    /// [irradiance] settings (Sobol, at every --spp; the overture's time
+    /// is part of the render's).
+    #[arg(long, num_args = 1..)]
+    pub(crate) irradiance: Vec<String>,
     /// Where the tables, the plot and the reference go; default
     /// bench-out/quality-<scene>.
     #[arg(long)]

@@ -190,6 +190,9 @@ pub struct Preset {
     pub max_depth: u32,
     #[serde(default)]
     pub cache: locus_core::dircache::CacheParams,
+    /// Ward's irradiance cache, used when it is switched on.
+    #[serde(default)]
+    pub irradiance: locus_core::irradiance::IrradianceParams,
 }
 
 /// The presets built into the binary (the files in `configs/presets/`),
@@ -233,6 +236,10 @@ impl Preset {
             .cache
             .check()
             .map_err(|e| anyhow::anyhow!("{origin}: {e}"))?;
+        preset
+            .irradiance
+            .check()
+            .map_err(|e| anyhow::anyhow!("{origin}: [irradiance] {e}"))?;
         if preset.spp == 0 {
             bail!("{origin}: spp must be at least 1");
         }
@@ -367,6 +374,9 @@ certificate = \"x\"\n"
         assert!(p[0].spp > p[1].spp && p[1].spp > p[2].spp);
         assert!(p[0].cache.answer_rel_error < p[1].cache.answer_rel_error);
         assert!(p[0].cache.radius > p[2].cache.radius);
+        let a: Vec<_> = p.iter().map(|p| p.irradiance).collect();
+        assert!(a[0].accuracy < a[1].accuracy && a[1].accuracy < a[2].accuracy);
+        assert!(a[0].divisions > a[1].divisions && a[1].divisions > a[2].divisions);
     }
 
     /// Built-in presets are the files, byte for byte parsed alike, and
@@ -382,6 +392,7 @@ certificate = \"x\"\n"
                 (n, f.spp, f.max_depth)
             );
             assert_eq!(format!("{:?}", b.cache), format!("{:?}", f.cache));
+            assert_eq!(b.irradiance, f.irradiance);
         }
         let by_path = Preset::resolve(dir.join("fast.toml").to_str().unwrap()).unwrap();
         assert_eq!(by_path.name, "fast");

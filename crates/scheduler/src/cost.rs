@@ -208,6 +208,7 @@ pub fn preview(
                             lights,
                             bounces,
                             None,
+                            None,
                         );
                         if let Some(sr) = s.shadow {
                             t.rays += 1;

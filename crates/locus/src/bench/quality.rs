@@ -17,6 +17,7 @@
 use anyhow::{Context, Result, bail};
 use locus_core::geometry::FLAT;
 use locus_core::image_io::Image;
+use locus_core::irradiance::IrradianceParams;
 use locus_core::metrics::compare;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::sampler::Sampler;
@@ -44,6 +45,8 @@ pub struct Plan {
     pub threads: usize,
     pub max_depth: Option<u32>,
     pub mitsuba: Option<Mitsuba>,
+    /// Irradiance cache settings to render with too, by preset name.
+    pub irradiance: Vec<(String, IrradianceParams)>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -213,6 +216,26 @@ pub fn run(plan: &Plan) -> Result<Outcome> {
                 rel_mse = m.rel_mse,
                 "locus"
             );
+        }
+    }
+    for (name, params) in &plan.irradiance {
+        for &spp in &plan.spp {
+            let mut o = RenderOptions::from_scene(&scene);
+            o.spp = spp;
+            o.sampler = Sampler::Sobol;
+            o.threads = plan.threads;
+            o.irradiance = Some(*params);
+            let out = render(&prep, &o, &|_, _| {});
+            let m = compare(&out.image, &reference)?;
+            let records = out.irradiance.map_or(0, |i| i.records);
+            tracing::info!(preset = %name, spp, seconds = out.render_s, rel_mse = m.rel_mse, records, "locus + irradiance");
+            rows.push(Row {
+                renderer: format!("locus + irradiance cache ({name}: {records} records)"),
+                sampler: Sampler::Sobol.name().into(),
+                spp,
+                seconds: out.render_s,
+                rel_mse: m.rel_mse,
+            });
         }
     }
     if let Some(mi) = &plan.mitsuba {
@@ -444,7 +467,16 @@ pub fn markdown(o: &Outcome) -> String {
     let best = |spp: u32, locus: bool| {
         o.rows
             .iter()
-            .filter(|r| r.spp == spp && (r.renderer == "locus") == locus)
+            // Path tracing against path tracing: the irradiance cache's
+            // rows are biased, and compared in their own rows.
+            .filter(|r| {
+                r.spp == spp
+                    && if locus {
+                        r.renderer == "locus"
+                    } else {
+                        r.renderer.starts_with("Mitsuba")
+                    }
+            })
             .map(Row::product)
             .fold(f64::INFINITY, f64::min)
     };

@@ -94,6 +94,11 @@ pub(crate) fn cmd_bench_quality(a: QualityArgs) -> Result<()> {
         threads: a.threads,
         max_depth: a.max_depth,
         mitsuba,
+        irradiance: a
+            .irradiance
+            .iter()
+            .map(|n| Ok((n.clone(), locus::config::Preset::resolve(n)?.irradiance)))
+            .collect::<Result<_>>()?,
     };
     let out = quality::run(&plan)?;
     print!("{}", quality::markdown(&out));

@@ -7,6 +7,7 @@ use anyhow::{Context, Result};
 use locus::config::Preset;
 use locus_core::dircache::CacheParams;
 use locus_core::image_io::Image;
+use locus_core::irradiance::IrradianceParams;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::report::{PhaseTimes, RenderReport};
 use locus_core::sampler::Sampler;
@@ -30,19 +31,43 @@ pub(crate) fn progress_bar(total: u64, what: &str) -> Option<indicatif::Progress
     Some(pb)
 }
 
-/// The preset and the directional cache parameters `render` asks for.
-pub(crate) fn render_quality(a: &RenderArgs) -> Result<(Option<Preset>, Option<CacheParams>)> {
+/// The preset and the caches `render` asks for.
+pub(crate) struct Quality {
+    pub(crate) preset: Option<Preset>,
+    pub(crate) cache: Option<CacheParams>,
+    pub(crate) irradiance: Option<IrradianceParams>,
+}
+
+/// The preset and the cache parameters `render` asks for.
+pub(crate) fn render_quality(a: &RenderArgs) -> Result<Quality> {
     let preset = a.preset.as_deref().map(Preset::resolve).transpose()?;
-    if !a.cache {
-        return Ok((preset, None));
-    }
-    let mut c = preset.as_ref().map(|p| p.cache).unwrap_or_default();
-    if let Some(r) = a.cache_radius {
-        c.radius = r;
-    }
-    c.check()
-        .map_err(|e| anyhow::anyhow!("--cache-radius: {e}"))?;
-    Ok((preset, Some(c)))
+    let cache = if a.cache {
+        let mut c = preset.as_ref().map(|p| p.cache).unwrap_or_default();
+        if let Some(r) = a.cache_radius {
+            c.radius = r;
+        }
+        c.check()
+            .map_err(|e| anyhow::anyhow!("--cache-radius: {e}"))?;
+        Some(c)
+    } else {
+        None
+    };
+    let irradiance = if a.irradiance {
+        let mut p = preset.as_ref().map(|p| p.irradiance).unwrap_or_default();
+        if let Some(acc) = a.irradiance_accuracy {
+            p.accuracy = acc;
+        }
+        p.check()
+            .map_err(|e| anyhow::anyhow!("--irradiance-accuracy: {e}"))?;
+        Some(p)
+    } else {
+        None
+    };
+    Ok(Quality {
+        preset,
+        cache,
+        irradiance,
+    })
 }
 
 pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
@@ -59,12 +84,17 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         "scene loaded"
     );
     let mut opts = RenderOptions::from_scene(&scene);
-    let (preset, cache) = render_quality(&a)?;
+    let Quality {
+        preset,
+        cache,
+        irradiance,
+    } = render_quality(&a)?;
     if let Some(p) = &preset {
         opts.spp = p.spp;
         opts.max_depth = p.max_depth;
     }
     opts.cache = cache;
+    opts.irradiance = irradiance;
     if let Some(s) = a.spp {
         opts.spp = s.max(1);
     }
@@ -128,6 +158,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         rays_per_second: st.rays() as f64 / out.render_s,
         error_vs_reference: error,
         cache_memory: out.cache_memory,
+        irradiance: out.irradiance,
     };
     report
         .write(&json)
@@ -163,6 +194,18 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
             m.nodes,
             m.leaves_with_cache,
             m.bytes as f64 / (1024.0 * 1024.0)
+        );
+    }
+    if let Some(o) = out.irradiance {
+        let u = st.irradiance;
+        println!(
+            "  irradiance cache: {} records from {} rays in {:.3}s ({:.1} MiB), {} first vertices interpolated, {} path traced",
+            o.records,
+            o.trace.rays(),
+            o.seconds,
+            o.bytes as f64 / (1024.0 * 1024.0),
+            u.interpolated,
+            u.traced
         );
     }
     if let Some(e) = error {
@@ -223,7 +266,16 @@ pub(crate) fn tile_progress(
 }
 
 pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
-    let (preset, cache) = render_quality(&a)?;
+    let Quality {
+        preset,
+        cache,
+        irradiance,
+    } = render_quality(&a)?;
+    if irradiance.is_some() {
+        anyhow::bail!(
+            "--irradiance runs on this machine only for now: leave out --workers, or the irradiance cache"
+        );
+    }
     let spp = a.spp.or(preset.as_ref().map(|p| p.spp));
     let depth = a.max_depth.or(preset.as_ref().map(|p| p.max_depth));
     let t = Instant::now();

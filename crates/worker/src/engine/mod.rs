@@ -97,6 +97,7 @@ impl EngineJob {
                 octree: &s.map.tree,
                 caches: c,
             }),
+            irradiance: None,
         }
     }
 

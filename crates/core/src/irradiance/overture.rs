@@ -1,0 +1,251 @@
+//! Placing the records before the render, coarse to fine.
+//!
+//! Level `s` looks at the pixel centres on a grid of spacing `s` (from the
+//! coarsest spacing down to 1, halving, each level skipping the points
+//! the coarser ones looked at). A point whose camera ray hits a diffuse
+//! surface that the records of the *coarser* levels do not cover gets a
+//! record. So the records a level adds depend only on the levels before
+//! it, all of a level's records are measured in parallel, and the set of
+//! records is the same for any number of threads. Points of one level can
+//! both get a record where one would have done; the finer levels then
+//! find them covered, so the waste stays at the coarse levels where
+//! points are few.
+
+use super::IrradianceCache;
+use super::hemisphere::{Hemisphere, Sample, Strata};
+use crate::geometry::Bounds;
+use crate::integrator::{Frame, PathRay, vertex_dim};
+use crate::path::{Kernel, RayKind, Traced, Tracer};
+use crate::region::Resume;
+use crate::sampler::SampleKey;
+use crate::stats::TraceStats;
+use glam::Vec3;
+use serde::Serialize;
+use std::f32::consts::PI;
+use std::time::Instant;
+
+/// Mixed into the job seed for records' rays, so they share no random
+/// numbers with the camera samples of the same pixel.
+const RECORD_SALT: u64 = 0x1aad_ca5e_0000_0001;
+
+/// What building the cache did.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct OvertureStats {
+    pub records: u64,
+    /// Pixel centres looked at.
+    pub points: u64,
+    /// Points a record would have covered but `max_records` was reached.
+    pub refused: u64,
+    pub levels: u32,
+    /// Every ray traced to place and measure the records.
+    pub trace: TraceStats,
+    pub seconds: f64,
+    /// Bytes the records and their octree hold.
+    pub bytes: u64,
+}
+
+/// A point that needs a record: its pixel, frame, and the width of a
+/// pixel there.
+struct Candidate {
+    pixel: u64,
+    frame: Frame,
+    footprint: f32,
+}
+
+/// The camera ray through the centre of pixel `(x, y)`: the frame of its
+/// first hit where that vertex scatters diffusely, and the width of a
+/// pixel at that distance.
+fn centre_frame<T: Tracer>(
+    kernel: &Kernel,
+    tracer: &T,
+    x: u32,
+    y: u32,
+    st: &mut TraceStats,
+) -> Option<(Frame, f32)> {
+    let ray = kernel.camera.ray(x, y, [0.5, 0.5]);
+    st.camera_rays += 1;
+    let t = tracer.trace(
+        &ray,
+        f32::INFINITY,
+        Resume::START,
+        false,
+        RayKind::Camera,
+        st,
+    );
+    let Traced::Hit(h) = t else { return None };
+    let mat = &kernel.materials[h.material as usize];
+    if kernel.max_depth == 0 || mat.albedo.max_element() <= 0.0 {
+        return None;
+    }
+    let cam = kernel.camera;
+    let pixel_angle = 2.0 * (cam.fov_y.to_radians() * 0.5).tan() / cam.height.max(1) as f32;
+    let f = Frame::at(ray.dir, &h.verts, &h.hit, h.shading);
+    // A pixel seen at a slant covers more of the surface.
+    let slant = f.n.dot(-ray.dir).max(0.1);
+    Some((f, h.hit.t * pixel_angle / slant))
+}
+
+/// Measures the record at `c`: one jittered ray per stratum, each traced
+/// as a path whose first hit's emission is left to next-event estimation.
+fn measure<T: Tracer>(
+    kernel: &Kernel,
+    tracer: &T,
+    c: &Candidate,
+    strata: Strata,
+    st: &mut TraceStats,
+) -> super::hemisphere::Estimate {
+    let f = &c.frame;
+    let h = Hemisphere::new(f.ns, strata);
+    let mut chain = Vec::new();
+    let mut samples = Vec::with_capacity(strata.rays() as usize);
+    for j in 0..strata.m {
+        for k in 0..strata.n {
+            let sample = j * strata.n + k;
+            let key = SampleKey::new(c.pixel, sample, kernel.seed ^ RECORD_SALT, kernel.sampler);
+            let dir = h.direction(j, k, key.get2d(vertex_dim(1) + 3));
+            let cos = f.ns.dot(dir);
+            // Below the geometric surface (a shading normal leans past
+            // it): the continuation would end there, as in `shade`.
+            if cos <= 0.0 || (f.shaded && f.n.dot(dir) <= 0.0) {
+                samples.push(Sample {
+                    radiance: Vec3::ZERO,
+                    dist: f32::INFINITY,
+                });
+                continue;
+            }
+            let q = PathRay {
+                ray: crate::geometry::Ray::new(f.origin, dir),
+                key,
+                depth: 1,
+                prev_pdf: cos / PI,
+                beta: Vec3::ONE,
+                emit_within: 0.0,
+            };
+            let (l, dist) = kernel.first_hit(tracer, &q, &mut chain, st);
+            let l = if l.is_finite() { l } else { Vec3::ZERO };
+            samples.push(Sample { radiance: l, dist });
+        }
+    }
+    h.estimate(&samples)
+}
+
+/// The irradiance at `frame` measured as a record would be, with about
+/// `divisions` rays keyed by `pixel`: what interpolation is compared with.
+pub fn traced<T: Tracer>(
+    kernel: &Kernel,
+    tracer: &T,
+    frame: &Frame,
+    pixel: u64,
+    divisions: u32,
+    st: &mut TraceStats,
+) -> super::hemisphere::Estimate {
+    let c = Candidate {
+        pixel,
+        frame: *frame,
+        footprint: 0.0,
+    };
+    measure(kernel, tracer, &c, Strata::of(divisions), st)
+}
+
+/// The points of level `s` (`first`: the coarsest, which takes all).
+fn level_points(width: u32, height: u32, s: u32, first: bool) -> Vec<(u32, u32)> {
+    let mut v = Vec::new();
+    for y in (0..height).step_by(s as usize) {
+        for x in (0..width).step_by(s as usize) {
+            if first || x % (2 * s) != 0 || y % (2 * s) != 0 {
+                v.push((x, y));
+            }
+        }
+    }
+    v
+}
+
+/// Builds the cache for `kernel`'s camera on the calling rayon pool.
+/// `kernel` must have no irradiance cache of its own.
+pub fn build<T: Tracer + Sync>(
+    kernel: &Kernel,
+    tracer: &T,
+    params: super::IrradianceParams,
+    bounds: &Bounds,
+) -> (IrradianceCache, OvertureStats) {
+    use rayon::prelude::*;
+    let start = Instant::now();
+    let mut cache = IrradianceCache::new(params, bounds);
+    let mut stats = OvertureStats::default();
+    let strata = Strata::of(params.divisions);
+    let (w, h) = (kernel.camera.width, kernel.camera.height);
+    let mut s = params.spacing.max(1);
+    let mut first = true;
+    loop {
+        let points = level_points(w, h, s, first);
+        stats.points += points.len() as u64;
+        stats.levels += 1;
+        let found: Vec<(Option<Candidate>, TraceStats)> = points
+            .par_iter()
+            .map(|&(x, y)| {
+                let mut st = TraceStats::default();
+                let c = centre_frame(kernel, tracer, x, y, &mut st)
+                    .filter(|(f, _)| cache.interpolate(f.p, f.ns).is_none())
+                    .map(|(frame, footprint)| Candidate {
+                        pixel: y as u64 * w as u64 + x as u64,
+                        frame,
+                        footprint,
+                    });
+                (c, st)
+            })
+            .collect();
+        let mut candidates = Vec::new();
+        for (c, st) in found {
+            stats.trace += st;
+            candidates.extend(c);
+        }
+        let room = params.max_records.saturating_sub(cache.len());
+        stats.refused += candidates.len().saturating_sub(room) as u64;
+        candidates.truncate(room);
+        let measured: Vec<_> = candidates
+            .par_iter()
+            .map(|c| {
+                let mut st = TraceStats::default();
+                let est = measure(kernel, tracer, c, strata, &mut st);
+                (est, st)
+            })
+            .collect();
+        for (c, (est, st)) in candidates.iter().zip(measured) {
+            stats.trace += st;
+            cache.insert(c.frame.p, c.frame.ns, &est, c.footprint);
+        }
+        if s == 1 {
+            break;
+        }
+        s /= 2;
+        first = false;
+    }
+    stats.records = cache.len() as u64;
+    stats.bytes = cache.bytes() as u64;
+    stats.seconds = start.elapsed().as_secs_f64();
+    (cache, stats)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn levels_visit_every_pixel_once() {
+        let (w, h) = (37, 21);
+        let mut seen = vec![0u32; (w * h) as usize];
+        let mut s = 16;
+        let mut first = true;
+        loop {
+            for (x, y) in level_points(w, h, s, first) {
+                seen[(y * w + x) as usize] += 1;
+            }
+            if s == 1 {
+                break;
+            }
+            s /= 2;
+            first = false;
+        }
+        assert!(seen.iter().all(|&n| n == 1), "{seen:?}");
+    }
+}

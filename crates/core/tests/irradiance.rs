@@ -1,0 +1,155 @@
+//! Ward's irradiance cache in the renderer: interpolation against the
+//! irradiance traced at the same points, what gradients buy, and an image
+//! that does not depend on the number of threads.
+
+mod common;
+use glam::Vec3;
+use locus_core::integrator::Frame;
+use locus_core::irradiance::overture::{build, traced};
+use locus_core::irradiance::{IrradianceCache, IrradianceParams};
+use locus_core::path::WholeScene;
+use locus_core::render::{Prepared, RenderOptions, render};
+use locus_core::sampler::SampleKey;
+use locus_core::stats::TraceStats;
+
+fn prepared(size: u32, max_depth: u32) -> Prepared {
+    let mut scene = common::cornell();
+    scene.camera.width = size;
+    scene.camera.height = size;
+    scene.settings.spp = 4;
+    scene.settings.max_depth = max_depth;
+    Prepared::new(scene)
+}
+
+/// Frames of first hits at jittered points in the image, with the traced
+/// irradiance there (many rays: its own error is small against the
+/// interpolation's).
+fn references(prep: &Prepared, n: u32) -> Vec<(Frame, Vec3)> {
+    let kernel = prep.kernel(prep.scene.settings.max_depth, None);
+    let tracer = WholeScene(&prep.accel);
+    let cam = &prep.scene.camera;
+    let mut st = TraceStats::default();
+    let mut out = Vec::new();
+    for i in 0..n {
+        let k = SampleKey::independent(i as u64, 0, 99);
+        let (x, y) = (
+            (k.get1d(0) * cam.width as f32) as u32,
+            (k.get1d(1) * cam.height as f32) as u32,
+        );
+        let ray = cam.ray(x, y, k.get2d(2));
+        let Some(h) = prep.accel.closest(&ray, 0.0, f32::INFINITY, &mut st) else {
+            continue;
+        };
+        let s = prep.accel.surface(&h);
+        if prep.scene.materials[s.material as usize]
+            .albedo
+            .max_element()
+            <= 0.0
+        {
+            continue;
+        }
+        let f = Frame::at(ray.dir, &s.verts, &s.hit, s.shading);
+        let e = traced(&kernel, &tracer, &f, 1_000_000 + i as u64, 65_536, &mut st).e;
+        out.push((f, e));
+    }
+    out
+}
+
+fn cache(prep: &Prepared, params: IrradianceParams) -> IrradianceCache {
+    let kernel = prep.kernel(prep.scene.settings.max_depth, None);
+    let tracer = WholeScene(&prep.accel);
+    let bounds = locus_core::geometry::Bounds::of_triangles(&prep.scene.tris);
+    build(&kernel, &tracer, params, &bounds).0
+}
+
+/// Mean relative error of the interpolated irradiance at the covered
+/// reference points (luminance-like channel sum), and the share covered.
+fn error(c: &IrradianceCache, refs: &[(Frame, Vec3)]) -> (f64, f64) {
+    let (mut sum, mut covered) = (0.0f64, 0usize);
+    for (f, e) in refs {
+        if let Some(got) = c.interpolate(f.p, f.ns) {
+            covered += 1;
+            let want = e.element_sum() as f64;
+            sum += ((got.element_sum() as f64) - want).abs() / want.max(1e-3);
+        }
+    }
+    (
+        sum / covered.max(1) as f64,
+        covered as f64 / refs.len() as f64,
+    )
+}
+
+/// As Ward's accuracy `a` shrinks, records are placed closer and the
+/// interpolated irradiance approaches the irradiance traced at the point;
+/// with gradients it is closer still at the same `a`.
+#[test]
+fn interpolation_approaches_the_traced_irradiance_as_the_bound_shrinks() {
+    // Pixels small enough that the records' validity follows Ward's bound
+    // rather than the screen-space clamp.
+    // One bounce after the record (its rays see the direct light at their
+    // hits): the records' own noise stays below the interpolation's error.
+    let prep = prepared(128, 2);
+    let refs = references(&prep, 120);
+    assert!(refs.len() > 80, "{} reference points", refs.len());
+    let at = |accuracy: f32, gradients: bool| {
+        let p = IrradianceParams {
+            accuracy,
+            divisions: 4096,
+            resolution: 256.0,
+            gradients,
+            spacing: 8,
+            ..Default::default()
+        };
+        let c = cache(&prep, p);
+        let (e, cov) = error(&c, &refs);
+        eprintln!(
+            "a {accuracy} gradients {gradients}: {} records, error {e:.4}, covered {cov:.3}",
+            c.len()
+        );
+        (e, cov, c.len())
+    };
+    let coarse = at(0.6, true);
+    let mid = at(0.3, true);
+    let fine = at(0.15, true);
+    let flat = at(0.3, false);
+    assert!(
+        coarse.2 < mid.2 && mid.2 < fine.2,
+        "records {coarse:?} {mid:?} {fine:?}"
+    );
+    assert!(
+        fine.0 < mid.0 && mid.0 < coarse.0,
+        "errors {coarse:?} {mid:?} {fine:?}"
+    );
+    assert!(fine.0 < 0.05, "at a = 0.15 the mean error is {:.3}", fine.0);
+    assert!(mid.0 < flat.0, "gradients {mid:?} against none {flat:?}");
+    for (_, cov, _) in [coarse, mid, fine] {
+        assert!(cov > 0.9, "only {cov} of the points covered");
+    }
+}
+
+/// Records are placed against the coarser levels only, so the image is
+/// the same on any number of threads; the cache answers nearly every first
+/// vertex, and the rest are path traced.
+#[test]
+fn the_cached_image_is_the_same_on_any_number_of_threads() {
+    let prep = prepared(32, 8);
+    let mut opts = RenderOptions::from_scene(&prep.scene);
+    opts.irradiance = Some(IrradianceParams {
+        divisions: 128,
+        ..Default::default()
+    });
+    opts.threads = 1;
+    let one = render(&prep, &opts, &|_, _| {});
+    opts.threads = 2;
+    let two = render(&prep, &opts, &|_, _| {});
+    assert_eq!(one.image.to_bits(), two.image.to_bits());
+    let o = one.irradiance.expect("overture stats");
+    assert!(o.records > 20, "{o:?}");
+    let u = one.stats.irradiance;
+    assert!(u.interpolated > 10 * u.traced && u.traced > 0, "{u:?}");
+    // The cache changed the image: the test can fail.
+    opts.irradiance = None;
+    let plain = render(&prep, &opts, &|_, _| {});
+    assert_ne!(plain.image.to_bits(), one.image.to_bits());
+    assert_eq!(plain.stats.irradiance.interpolated, 0);
+}
