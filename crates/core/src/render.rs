@@ -39,16 +39,21 @@ pub struct PrepTimings {
     pub bvh_s: f64,
 }
 
+/// The BVH over every triangle of `scene` that one machine traces.
+pub fn whole_scene_accel(scene: &Scene) -> Accel {
+    let set = TriangleSet {
+        ids: (0..scene.tris.len() as u32).collect(),
+        verts: scene.tris.clone(),
+        material: scene.tri_material.clone(),
+        normals: scene.tri_normals.clone(),
+    };
+    Accel::from_set(set, scene.magnitude())
+}
+
 impl Prepared {
     pub fn new(scene: Scene) -> Self {
         let t = Instant::now();
-        let set = TriangleSet {
-            ids: (0..scene.tris.len() as u32).collect(),
-            verts: scene.tris.clone(),
-            material: scene.tri_material.clone(),
-            normals: scene.tri_normals.clone(),
-        };
-        let accel = Accel::from_set(set, scene.magnitude());
+        let accel = whole_scene_accel(&scene);
         let bvh_s = t.elapsed().as_secs_f64();
         let lights = LightSet::build(&scene);
         if lights.is_empty() {

@@ -685,6 +685,7 @@ impl FarmArgs {
                 ..Tuning::default()
             },
             cache: None,
+            irradiance: None,
             fetch: self.fetch,
             fetch_budget: self.fetch_budget_mib << 20,
             detached: false,

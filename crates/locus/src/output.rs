@@ -126,6 +126,18 @@ pub(crate) fn write_farm_result(
             t.cache_memory.bytes as f64 / (1024.0 * 1024.0)
         );
     }
+    if let Some(o) = &f.irradiance {
+        let u = t.trace.irradiance;
+        println!(
+            "  irradiance cache: {} records from {} rays in {:.3}s on the scheduler, {:.2} MB sent to the workers; {} first vertices interpolated, {} path traced",
+            o.records,
+            o.rays,
+            o.seconds,
+            o.bytes_sent as f64 / 1e6,
+            u.interpolated,
+            u.traced
+        );
+    }
     if t.fetch_requests > 0 {
         println!(
             "  fetched {} leaves ({:.2} MB on the wire) for {} waiting rays; {} crossings of fetched leaves; store peak {:.1} of {:.1} MiB per worker",

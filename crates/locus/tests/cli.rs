@@ -93,14 +93,22 @@ fn render_writes_exr_png_and_report_and_measures_error() {
 }
 
 /// `--irradiance` renders with the preset's irradiance cache and reports
-/// its records and use; what it cannot do yet, or bad settings, stop with
-/// a message that names the flag.
+/// its records and use, on one machine and on the embedded farm alike (the
+/// same image); bad settings stop with a message that names the flag.
 #[test]
 fn render_with_the_irradiance_cache_reports_it() {
     let d = scratch("irradiance");
     let scene = root().join("scenes/cornell-box/cornell.toml");
     let a = d.join("a.exr");
-    let args = ["--spp", "2", "--threads", "2", "--preset", "low", "--irradiance"];
+    let args = [
+        "--spp",
+        "2",
+        "--threads",
+        "2",
+        "--preset",
+        "low",
+        "--irradiance",
+    ];
     let o = render(&scene, &a, &args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = String::from_utf8_lossy(&o.stdout);
@@ -110,15 +118,37 @@ fn render_with_the_irradiance_cache_reports_it() {
     let records = report["irradiance"]["records"].as_u64().unwrap();
     assert!(records > 10, "{records} records");
     let used = &report["stats"]["irradiance"];
-    let (i, t) = (used["interpolated"].as_u64().unwrap(), used["traced"].as_u64().unwrap());
+    let (i, t) = (
+        used["interpolated"].as_u64().unwrap(),
+        used["traced"].as_u64().unwrap(),
+    );
     assert!(i > 0 && i + t <= 256 * 256 * 2, "{used}");
     assert_eq!(report["options"]["irradiance"]["accuracy"], 0.3);
     let o = render(&scene, &a, &["--irradiance", "--irradiance-accuracy", "0"]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--irradiance-accuracy"));
-    let o = render(&scene, &a, &["--irradiance", "--workers", "2"]);
-    assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--irradiance"));
+    // The embedded farm interpolates the same records: the same image.
+    let b = d.join("b.exr");
+    let farm: Vec<&str> = args.iter().copied().chain(["--workers", "2"]).collect();
+    let o = render(&scene, &b, &farm);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("irradiance cache:") && out.contains("sent to the workers"),
+        "{out}"
+    );
+    let diff = locus()
+        .arg("diff")
+        .arg(&a)
+        .arg(&b)
+        .arg("--exact")
+        .output()
+        .unwrap();
+    assert!(
+        diff.status.success(),
+        "{}",
+        String::from_utf8_lossy(&diff.stdout)
+    );
     std::fs::remove_dir_all(&d).ok();
 }
 

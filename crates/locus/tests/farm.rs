@@ -368,3 +368,60 @@ fn random_polling_hands_work_over_and_keeps_the_bits() {
         farm.stop().await.expect("clean stop");
     });
 }
+
+/// With Ward's irradiance cache the scheduler makes the records once and
+/// every worker interpolates the same set, so the farm still gives one
+/// machine's bits (forwarded rays, fetched leaves); the report counts the
+/// records, the bytes sent and every first vertex the cache answered.
+#[test]
+fn the_irradiance_cache_keeps_the_bits_on_the_farm() {
+    use locus_core::irradiance::IrradianceParams;
+    use locus_core::render::{Prepared, RenderOptions, render};
+    let scene = small_cornell();
+    let params = IrradianceParams {
+        divisions: 64,
+        spacing: 4,
+        ..Default::default()
+    };
+    let prep = Prepared::new(scene.clone());
+    let mut o = RenderOptions::from_scene(&scene);
+    o.threads = 2;
+    o.irradiance = Some(params);
+    let one = render(&prep, &o, &|_, _| {});
+    let records = one.irradiance.expect("overture").records;
+    assert!(records > 10, "{records} records");
+    // The cache changes the image: the comparison can fail.
+    assert_ne!(one.image.to_bits(), single_machine(&scene));
+    let rt = runtime();
+    rt.block_on(async {
+        let workers = 3;
+        let farm = locus::farm::LocalFarm::start(workers, 1)
+            .await
+            .expect("farm");
+        for fetch in [FetchPolicy::Forward, FetchPolicy::Fetch] {
+            let opts = JobOptions {
+                workers: workers as u32,
+                tile_size: 8,
+                fetch,
+                irradiance: Some(params),
+                ..Default::default()
+            };
+            let req = locus_scheduler::client::request(&scene, opts);
+            let r = farm.render(req, &|_, _| {}).await.expect("job");
+            assert_eq!(bits(&r), one.image.to_bits(), "{fetch:?}");
+            let rep = &r.report;
+            let ir = rep.irradiance.expect("irradiance report");
+            assert_eq!(ir.records, records);
+            let per_record = locus_core::irradiance::RecordSet::RECORD_BYTES;
+            assert!(
+                ir.bytes_sent >= workers as u64 * records * per_record,
+                "{ir:?}"
+            );
+            assert_eq!(
+                rep.totals.trace.irradiance, one.stats.irradiance,
+                "{fetch:?}"
+            );
+        }
+        farm.stop().await.expect("clean stop");
+    });
+}

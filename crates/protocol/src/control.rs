@@ -188,6 +188,9 @@ pub struct JobSetup {
     pub magnitude: f32,
     pub tuning: Tuning,
     pub cache: Option<CacheParams>,
+    /// The irradiance cache's records, made before the render; every
+    /// worker interpolates from the same set.
+    pub irradiance: Option<locus_core::irradiance::RecordSet>,
     pub fetch: FetchPolicy,
     /// How the worker keeps to its memory budget.
     pub plan: MemoryPlan,

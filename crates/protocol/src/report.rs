@@ -206,6 +206,20 @@ pub struct FarmReport {
     /// What the job survived. The counters above are the last attempt's:
     /// a lost worker never reports.
     pub recovery: Recovery,
+    /// The irradiance cache's overture, when it was on.
+    pub irradiance: Option<IrradianceReport>,
+}
+
+/// How the irradiance cache's records were made and shared: made by the
+/// scheduler before the render, and sent to every worker.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct IrradianceReport {
+    pub records: u64,
+    /// Rays traced to place and measure them.
+    pub rays: u64,
+    pub seconds: f64,
+    /// Bytes of records sent to the workers, all of them together.
+    pub bytes_sent: u64,
 }
 
 /// Workers a job lost and the attempts it took: after a loss the job is

@@ -87,6 +87,8 @@ pub struct JobOptions {
     /// Directional caches per octree leaf (paper 000, section 2.4); None
     /// traces every ray.
     pub cache: Option<CacheParams>,
+    /// Ward's irradiance cache at the first vertex; None path traces it.
+    pub irradiance: Option<locus_core::irradiance::IrradianceParams>,
     pub fetch: FetchPolicy,
     /// Bytes of fetched leaf geometry (triangles plus BVH) a worker keeps.
     pub fetch_budget: u64,
@@ -104,6 +106,7 @@ impl Default for JobOptions {
             tile_size: 16,
             tuning: Default::default(),
             cache: None,
+            irradiance: None,
             fetch: FetchPolicy::default(),
             fetch_budget: 256 << 20,
             detached: false,

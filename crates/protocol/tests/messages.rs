@@ -152,6 +152,7 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
         magnitude: 11.0,
         tuning: Tuning::default(),
         cache: Some(CacheParams::default()),
+        irradiance: None,
         fetch: FetchPolicy::Hybrid,
         plan: MemoryPlan {
             budget: seed,

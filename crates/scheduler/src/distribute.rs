@@ -53,6 +53,7 @@ pub fn ship(
                 ..req.options.tuning
             },
             cache: req.options.cache,
+            irradiance: prep.irradiance.as_ref().map(|(set, _)| (**set).clone()),
             fetch: req.options.fetch,
             plan: prep.plans[w],
             own_leaves: own,

@@ -6,6 +6,8 @@
 use crate::{cost, memory, partition};
 use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
 use locus_core::geometry::FLAT;
+use locus_core::irradiance::RecordSet;
+use locus_core::irradiance::overture::OvertureStats;
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
@@ -45,6 +47,9 @@ pub struct Prepared {
     pub max_inflight: Vec<u32>,
     /// Triangle references per leaf.
     pub leaf_tris: Vec<u32>,
+    /// The irradiance cache's records, when it is on, with what making
+    /// them took.
+    pub irradiance: Option<(Arc<RecordSet>, OvertureStats)>,
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
     pub preview_rays: u64,
@@ -372,7 +377,15 @@ pub fn prepare(
         parts.push(p);
         region_triangles.push(n);
     }
+    // The irradiance cache's overture, once the job is known to fit, on
+    // every triangle here (a BVH over the whole scene, like one machine's):
+    // the records go to every worker with its setup.
+    let irradiance = options.irradiance.map(|p| {
+        let (cache, stats) = locus_core::irradiance::overture::for_scene(&scene, &lights, p);
+        (Arc::new(cache.to_set()), stats)
+    });
     Ok(Prepared {
+        irradiance,
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
         analytic_share: cost::shares(&analytic, &map.owner, workers),
         sampled_share: cost::shares(&sampled, &map.owner, workers),

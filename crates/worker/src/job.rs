@@ -129,6 +129,10 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
         c.check()
             .map_err(|e| anyhow::anyhow!("cache parameters: {e}"))?;
     }
+    if let Some(set) = &s.irradiance {
+        set.check()
+            .map_err(|e| anyhow::anyhow!("irradiance records: {e}"))?;
+    }
     Ok(())
 }
 

@@ -129,6 +129,30 @@ fn measure<T: Tracer>(
     h.estimate(&samples)
 }
 
+/// Builds the cache for a whole scene held in memory (the farm's
+/// scheduler, which has every triangle): one BVH over the scene exactly as
+/// one machine builds it, and the kernel the scene's settings give, so the
+/// records are the ones a render on one machine makes.
+pub fn for_scene(
+    scene: &crate::scene::Scene,
+    lights: &crate::light::LightSet,
+    params: super::IrradianceParams,
+) -> (IrradianceCache, OvertureStats) {
+    let accel = crate::render::whole_scene_accel(scene);
+    let kernel = Kernel {
+        materials: &scene.materials,
+        lights,
+        camera: &scene.camera,
+        seed: scene.settings.seed,
+        sampler: scene.settings.sampler,
+        max_depth: scene.settings.max_depth,
+        cache: None,
+        irradiance: None,
+    };
+    let bounds = Bounds::of_triangles(&scene.tris);
+    build(&kernel, &crate::path::WholeScene(&accel), params, &bounds)
+}
+
 /// The irradiance at `frame` measured as a record would be, with about
 /// `divisions` rays keyed by `pixel`: what interpolation is compared with.
 pub fn traced<T: Tracer>(

@@ -271,11 +271,6 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
         cache,
         irradiance,
     } = render_quality(&a)?;
-    if irradiance.is_some() {
-        anyhow::bail!(
-            "--irradiance runs on this machine only for now: leave out --workers, or the irradiance cache"
-        );
-    }
     let spp = a.spp.or(preset.as_ref().map(|p| p.spp));
     let depth = a.max_depth.or(preset.as_ref().map(|p| p.max_depth));
     let t = Instant::now();
@@ -298,6 +293,7 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
     };
     let mut opts = a.farm.job_options(a.workers as u32);
     opts.cache = cache;
+    opts.irradiance = irradiance;
     // The scene's triangles move into the request: loaded once, not copied.
     let req = locus_scheduler::client::request_owned(scene, opts, load_s);
     let (pb, progress) = tile_progress(0);

@@ -44,6 +44,7 @@ use crate::sys;
 use kernel::{Batch, Work, trace_batch};
 use locus_core::accel_set::Part;
 use locus_core::dircache::LeafCaches;
+use locus_core::irradiance::IrradianceCache;
 use locus_core::path::{CacheUse, Kernel};
 use locus_core::region::WorkerId;
 use locus_protocol::control::{JobSetup, TileAssignment, WorkerToScheduler};
@@ -65,20 +66,29 @@ pub struct EngineJob {
     pub workers: usize,
     /// One directional cache per octree leaf this worker shades in.
     pub caches: Option<LeafCaches>,
+    /// The irradiance cache's records, the same on every worker.
+    pub irradiance: Option<IrradianceCache>,
     pub locality: Locality,
 }
 
 impl EngineJob {
-    pub fn new(setup: JobSetup) -> Self {
+    pub fn new(mut setup: JobSetup) -> Self {
         let caches = setup.cache.map(|mut p| {
             p.max_nodes_total = p.max_nodes_total.min(setup.plan.cache_nodes as usize);
             LeafCaches::new(setup.map.tree.leaves.len(), p)
         });
+        // Checked with the rest of the setup; moved out so that the
+        // records are held once.
+        let irradiance = setup
+            .irradiance
+            .take()
+            .and_then(|set| IrradianceCache::from_set(set).ok());
         let locality = Locality::new(&setup);
         Self {
             workers: setup.peers.len(),
             setup,
             caches,
+            irradiance,
             locality,
         }
     }
@@ -97,7 +107,7 @@ impl EngineJob {
                 octree: &s.map.tree,
                 caches: c,
             }),
-            irradiance: None,
+            irradiance: self.irradiance.as_ref(),
         }
     }
 
