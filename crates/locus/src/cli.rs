@@ -658,6 +658,9 @@ pub(crate) struct LocalityArgs {
     pub(crate) policies: Vec<FetchPolicy>,
     #[arg(long, default_value_t = 256)]
     pub(crate) fetch_budget_mib: u64,
+    /// Also render every configuration with the preset's irradiance cache.
+    #[arg(long)]
+    pub(crate) irradiance: bool,
     /// Where the tables, the plot and the reference go; default
     /// bench-out/locality-<scene>.
     #[arg(long)]

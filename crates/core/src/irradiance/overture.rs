@@ -184,6 +184,39 @@ fn level_points(width: u32, height: u32, s: u32, first: bool) -> Vec<(u32, u32)>
     v
 }
 
+/// The points whose first hit scatters diffusely where `cache` has no
+/// record valid, in the order of `points`.
+fn uncovered<T: Tracer + Sync>(
+    kernel: &Kernel,
+    tracer: &T,
+    cache: &IrradianceCache,
+    points: &[(u32, u32)],
+    stats: &mut OvertureStats,
+) -> Vec<Candidate> {
+    use rayon::prelude::*;
+    let w = kernel.camera.width as u64;
+    let found: Vec<(Option<Candidate>, TraceStats)> = points
+        .par_iter()
+        .map(|&(x, y)| {
+            let mut st = TraceStats::default();
+            let c = centre_frame(kernel, tracer, x, y, &mut st)
+                .filter(|(f, _)| cache.interpolate(f.p, f.ns).is_none())
+                .map(|(frame, footprint)| Candidate {
+                    pixel: y as u64 * w + x as u64,
+                    frame,
+                    footprint,
+                });
+            (c, st)
+        })
+        .collect();
+    let mut candidates = Vec::new();
+    for (c, st) in found {
+        stats.trace += st;
+        candidates.extend(c);
+    }
+    candidates
+}
+
 /// Builds the cache for `kernel`'s camera on the calling rayon pool.
 /// `kernel` must have no irradiance cache of its own.
 pub fn build<T: Tracer + Sync>(
@@ -204,25 +237,7 @@ pub fn build<T: Tracer + Sync>(
         let points = level_points(w, h, s, first);
         stats.points += points.len() as u64;
         stats.levels += 1;
-        let found: Vec<(Option<Candidate>, TraceStats)> = points
-            .par_iter()
-            .map(|&(x, y)| {
-                let mut st = TraceStats::default();
-                let c = centre_frame(kernel, tracer, x, y, &mut st)
-                    .filter(|(f, _)| cache.interpolate(f.p, f.ns).is_none())
-                    .map(|(frame, footprint)| Candidate {
-                        pixel: y as u64 * w as u64 + x as u64,
-                        frame,
-                        footprint,
-                    });
-                (c, st)
-            })
-            .collect();
-        let mut candidates = Vec::new();
-        for (c, st) in found {
-            stats.trace += st;
-            candidates.extend(c);
-        }
+        let mut candidates = uncovered(kernel, tracer, &cache, &points, &mut stats);
         let room = params.max_records.saturating_sub(cache.len());
         stats.refused += candidates.len().saturating_sub(room) as u64;
         candidates.truncate(room);

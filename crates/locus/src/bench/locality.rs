@@ -6,7 +6,9 @@
 //! tests, gains against the same preset without cache under `forward`:
 //! Table 1), its error against the reference (RMSE, relative MSE, SSIM:
 //! Table 2), its ray counts (diffuse, local, global, cache lookups, hit
-//! ratio: Table 3) and its traffic (messages, bytes, fetched bytes).
+//! ratio: Table 3) and its traffic (messages, bytes, fetched bytes). With
+//! `irradiance`, every configuration is also rendered with the preset's
+//! irradiance cache (its records' time and bytes counted in the row).
 //! Output: a Markdown table, a CSV and an SVG plot of error against time.
 
 use crate::config::Preset;
@@ -34,6 +36,8 @@ pub struct Plan {
     pub policies: Vec<FetchPolicy>,
     pub fetch_budget: u64,
     pub out_dir: PathBuf,
+    /// Also render every configuration with the preset's irradiance cache.
+    pub irradiance: bool,
 }
 
 /// One configuration's figures. Gains and ratios are against the row of
@@ -43,6 +47,9 @@ pub struct Row {
     pub preset: String,
     pub spp: u32,
     pub cache: bool,
+    /// Ward's irradiance cache on; `render_s` then includes the time the
+    /// scheduler took to make its records.
+    pub irradiance: bool,
     pub policy: String,
     pub render_s: f64,
     pub bvh_nodes: u64,
@@ -70,6 +77,9 @@ pub struct Row {
     pub cache_bytes: u64,
     /// Traffic over the base row's (messages and bytes between workers).
     pub bytes_ratio: f64,
+    /// Irradiance records and their bytes sent to the workers.
+    pub records: u64,
+    pub records_bytes: u64,
 }
 
 #[derive(Serialize, Deserialize, PartialEq)]
@@ -119,7 +129,7 @@ fn reference(plan: &Plan, scene: &Scene, max_depth: u32) -> Result<Image> {
 
 fn row_of(
     preset: &Preset,
-    cache: bool,
+    (cache, irradiance): (bool, bool),
     policy: FetchPolicy,
     f: &FarmReport,
     e: &ErrorMetrics,
@@ -133,8 +143,9 @@ fn row_of(
         preset: preset.name.clone(),
         spp: preset.spp,
         cache,
+        irradiance,
         policy: policy.name().into(),
-        render_s: f.phases.render_s,
+        render_s: f.phases.render_s + f.irradiance.map_or(0.0, |i| i.seconds),
         bvh_nodes: t.trace.bvh_nodes,
         tri_tests: t.trace.tri_tests,
         time_gain: 1.0,
@@ -156,6 +167,8 @@ fn row_of(
         fetched_bytes: t.fetched_bytes,
         cache_bytes: t.cache_memory.bytes,
         bytes_ratio: 1.0,
+        records: f.irradiance.map_or(0, |i| i.records),
+        records_bytes: f.irradiance.map_or(0, |i| i.bytes_sent),
     }
 }
 
@@ -163,7 +176,7 @@ fn row_of(
 pub fn relate(rows: &mut [Row]) {
     let bases: Vec<Row> = rows
         .iter()
-        .filter(|r| !r.cache && r.policy == FetchPolicy::Forward.name())
+        .filter(|r| !r.cache && !r.irradiance && r.policy == FetchPolicy::Forward.name())
         .cloned()
         .collect();
     for r in rows.iter_mut() {
@@ -202,11 +215,17 @@ pub fn run(plan: &Plan) -> Result<Vec<Row>> {
         let mut s = scene.clone();
         s.settings.spp = p.spp;
         s.settings.max_depth = p.max_depth;
-        for cache in [false, true] {
+        let ambient: &[bool] = if plan.irradiance {
+            &[false, true]
+        } else {
+            &[false]
+        };
+        for (&irradiance, cache) in ambient.iter().flat_map(|i| [(i, false), (i, true)]) {
             for &policy in &plan.policies {
                 let opts = JobOptions {
                     workers: plan.workers as u32,
                     cache: cache.then_some(p.cache),
+                    irradiance: irradiance.then_some(p.irradiance),
                     fetch: policy,
                     fetch_budget: plan.fetch_budget,
                     ..JobOptions::default()
@@ -220,10 +239,11 @@ pub fn run(plan: &Plan) -> Result<Vec<Row>> {
                     pixels: r.pixels,
                 };
                 let e = compare(&img, &reference)?;
-                let row = row_of(p, cache, policy, &r.report, &e);
+                let row = row_of(p, (cache, irradiance), policy, &r.report, &e);
                 tracing::info!(
                     preset = %row.preset,
                     cache,
+                    irradiance,
                     policy = %row.policy,
                     seconds = row.render_s,
                     rmse = row.rmse,
@@ -265,14 +285,19 @@ fn table(
     cells: impl Fn(&Row) -> Vec<String>,
 ) {
     let _ = writeln!(s, "{intro}\n");
-    let _ = writeln!(s, "| preset | cache | policy | {} |", header.join(" | "));
-    let _ = writeln!(s, "|---|---|---|{}", "---:|".repeat(header.len()));
+    let _ = writeln!(
+        s,
+        "| preset | cache | irradiance | policy | {} |",
+        header.join(" | ")
+    );
+    let _ = writeln!(s, "|---|---|---|---|{}", "---:|".repeat(header.len()));
     for r in rows {
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} |",
             r.preset,
             on(r.cache),
+            on(r.irradiance),
             r.policy,
             cells(r).join(" | ")
         );
@@ -335,6 +360,8 @@ pub fn markdown(title: &str, rows: &[Row]) -> String {
             "fetched leaves",
             "fetched MB",
             "cache MB",
+            "records",
+            "records MB sent",
         ],
         rows,
         |r| {
@@ -351,13 +378,15 @@ pub fn markdown(title: &str, rows: &[Row]) -> String {
                 r.fetched_leaves.to_string(),
                 format!("{:.2}", r.fetched_bytes as f64 / 1e6),
                 format!("{:.2}", r.cache_bytes as f64 / (1024.0 * 1024.0)),
+                r.records.to_string(),
+                format!("{:.2}", r.records_bytes as f64 / 1e6),
             ]
         },
     );
     s
 }
 
-const CSV_HEADER: &str = "preset,spp,cache,policy,render_s,bvh_nodes,tri_tests,time_gain,tests_gain,rmse,rel_mse,ssim,mse_ratio,efficiency_gain,diffuse,local,global,lookups,hit_ratio,messages,bytes,forwarded,fetched_leaves,fetched_bytes,cache_bytes,bytes_ratio";
+const CSV_HEADER: &str = "preset,spp,cache,irradiance,policy,render_s,bvh_nodes,tri_tests,time_gain,tests_gain,rmse,rel_mse,ssim,mse_ratio,efficiency_gain,diffuse,local,global,lookups,hit_ratio,messages,bytes,forwarded,fetched_leaves,fetched_bytes,cache_bytes,bytes_ratio,records,records_bytes";
 
 pub fn csv(rows: &[Row]) -> String {
     let mut s = String::from(CSV_HEADER);
@@ -365,10 +394,11 @@ pub fn csv(rows: &[Row]) -> String {
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             r.preset,
             r.spp,
             r.cache,
+            r.irradiance,
             r.policy,
             r.render_s,
             r.bvh_nodes,
@@ -391,7 +421,9 @@ pub fn csv(rows: &[Row]) -> String {
             r.fetched_leaves,
             r.fetched_bytes,
             r.cache_bytes,
-            r.bytes_ratio
+            r.bytes_ratio,
+            r.records,
+            r.records_bytes
         );
     }
     s
@@ -401,7 +433,11 @@ pub fn csv(rows: &[Row]) -> String {
 /// presets; lines with the cache on are drawn bold.
 pub fn plot(path: &Path, title: &str, rows: &[Row]) -> Result<()> {
     let series = crate::plot::group(rows.iter().map(|r| {
-        let label = format!("{}, cache {}", r.policy, on(r.cache));
+        let label = if r.irradiance {
+            format!("{}, cache {}, irradiance", r.policy, on(r.cache))
+        } else {
+            format!("{}, cache {}", r.policy, on(r.cache))
+        };
         (label, (r.render_s, r.rmse), r.cache)
     }));
     let axes = crate::plot::Axes {
@@ -422,6 +458,7 @@ mod tests {
             preset: preset.into(),
             spp: 4,
             cache,
+            irradiance: false,
             policy: policy.into(),
             render_s: t,
             bvh_nodes: 100,
@@ -445,6 +482,8 @@ mod tests {
             fetched_bytes: 0,
             cache_bytes: 0,
             bytes_ratio: 0.0,
+            records: 0,
+            records_bytes: 0,
         }
     }
 
@@ -456,8 +495,16 @@ mod tests {
             row("fast", false, "forward", 2.0, 0.2, 1000),
             row("fast", true, "forward", 1.0, 0.4, 250),
             row("low", false, "forward", 1.0, 0.5, 10),
+            // With the irradiance cache: measured against the base, never
+            // one itself.
+            Row {
+                irradiance: true,
+                ..row("fast", false, "forward", 4.0, 0.1, 500)
+            },
         ];
         relate(&mut rows);
+        assert_eq!(rows[3].time_gain, 0.5);
+        assert!((rows[3].mse_ratio - 0.25).abs() < 1e-12);
         assert_eq!(rows[0].time_gain, 1.0);
         assert_eq!(rows[1].time_gain, 2.0);
         assert!((rows[1].mse_ratio - 4.0).abs() < 1e-12);
@@ -465,7 +512,8 @@ mod tests {
         assert_eq!(rows[1].bytes_ratio, 0.25);
         assert_eq!(rows[2].time_gain, 1.0);
         let md = markdown("t", &rows);
-        assert_eq!(md.lines().filter(|l| l.starts_with("| fast")).count(), 6);
+        assert_eq!(md.lines().filter(|l| l.starts_with("| fast")).count(), 9);
+        assert_eq!(md.matches("| fast | off | on | forward |").count(), 3);
         let c = csv(&rows);
         let fields = CSV_HEADER.split(',').count();
         for l in c.lines() {

@@ -51,6 +51,7 @@ pub(crate) fn cmd_bench_locality(a: LocalityArgs) -> Result<()> {
         presets,
         policies: a.policies,
         fetch_budget: a.fetch_budget_mib << 20,
+        irradiance: a.irradiance,
     };
     locality::run(&plan)?;
     let md = plan.out_dir.join("locality.md");
