@@ -155,7 +155,12 @@ impl Frame {
     /// The frame of hit `h` on triangle `tri` by a ray along `dir`.
     #[inline(always)]
     pub fn at(dir: Vec3, tri: &[Vec3; 3], h: &Hit, shading: Vec3) -> Self {
-        let ng = tri_cross(tri).normalize();
+        Self::with_normal(dir, tri, h, shading, tri_cross(tri).normalize())
+    }
+
+    /// [`Frame::at`] with the triangle's unit normal `ng` already known.
+    #[inline(always)]
+    fn with_normal(dir: Vec3, tri: &[Vec3; 3], h: &Hit, shading: Vec3, ng: Vec3) -> Self {
         let p = hit_point(tri, h.b1, h.b2);
         let n = if ng.dot(-dir) >= 0.0 { ng } else { -ng };
         let ns = shading_normal(shading, n);
@@ -219,6 +224,11 @@ pub fn shading_normal(shading: Vec3, n: Vec3) -> Vec3 {
 /// surface it hits first (`emit_within`). That quantity does not depend on
 /// where in the leaf the ray started, which is what lets the leaf's cache
 /// answer it (see [`crate::dircache`]).
+///
+/// With an irradiance cache (`ambient`), a first vertex (`q.depth == 0`)
+/// that its records cover takes its diffuse interreflection from them and
+/// sends no continuation; its next-event estimate then has weight one, as
+/// the records hold no emission (see [`crate::irradiance`]).
 #[allow(clippy::too_many_arguments)]
 pub fn shade(
     q: &PathRay,
@@ -268,7 +278,7 @@ pub fn shade(
         ns,
         origin,
         shaded,
-    } = Frame::at(q.ray.dir, tri, h, shading);
+    } = Frame::with_normal(q.ray.dir, tri, h, shading, ng);
     let base = vertex_dim(vertex);
     let f = mat.albedo / PI;
     // Ward's irradiance cache answers the first vertex's diffuse
