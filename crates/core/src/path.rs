@@ -25,6 +25,7 @@
 //! construction. [`crate::passes`] has the one pixel mean both use.
 
 use crate::accel::{Accel, Surface};
+use crate::accel_set::AccelSet;
 use crate::dircache::LeafCaches;
 use crate::geometry::Ray;
 use crate::integrator::{DIM_PIXEL, PathRay, ShadedVertex, ShadowRay, shade};
@@ -104,10 +105,40 @@ pub trait Tracer {
     ) -> Traced;
 }
 
-/// The tracer of one machine: a BVH over the whole scene.
-pub struct WholeScene<'a>(pub &'a Accel);
+/// Geometry that holds every triangle of the scene: one BVH, or a farm
+/// worker's parts when the scene is replicated to it.
+pub trait WholeGeometry {
+    fn closest_surface(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> Option<Surface>;
+    fn occluded(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> bool;
+}
 
-impl Tracer for WholeScene<'_> {
+impl WholeGeometry for Accel {
+    #[inline]
+    fn closest_surface(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> Option<Surface> {
+        self.closest(ray, t0, t1, st).map(|h| self.surface(&h))
+    }
+    #[inline]
+    fn occluded(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> bool {
+        Accel::occluded(self, ray, t0, t1, st)
+    }
+}
+
+impl WholeGeometry for AccelSet {
+    #[inline]
+    fn closest_surface(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> Option<Surface> {
+        self.closest(ray, t0, t1, st).map(|h| self.surface(&h))
+    }
+    #[inline]
+    fn occluded(&self, ray: &Ray, t0: f32, t1: f32, st: &mut TraceStats) -> bool {
+        AccelSet::occluded(self, ray, t0, t1, st)
+    }
+}
+
+/// The tracer of one machine: geometry holding the whole scene (a BVH
+/// over it, or a replicated worker's parts), so every segment finishes.
+pub struct WholeScene<'a, G: WholeGeometry = Accel>(pub &'a G);
+
+impl<G: WholeGeometry> Tracer for WholeScene<'_, G> {
     #[inline]
     fn trace(
         &self,
@@ -126,8 +157,8 @@ impl Tracer for WholeScene<'_> {
                 Traced::Miss
             }
         } else {
-            match self.0.closest(ray, t0, t_max, stats) {
-                Some(h) => Traced::Hit(self.0.surface(&h)),
+            match self.0.closest_surface(ray, t0, t_max, stats) {
+                Some(s) => Traced::Hit(s),
                 None => Traced::Miss,
             }
         }

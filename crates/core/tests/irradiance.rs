@@ -153,3 +153,79 @@ fn the_cached_image_is_the_same_on_any_number_of_threads() {
     assert_ne!(plain.image.to_bits(), one.image.to_bits());
     assert_eq!(plain.stats.irradiance.interpolated, 0);
 }
+
+/// Members sharing the overture level by level (shares 1, 2 and 1, on
+/// their own threads, exchanging through a barrier as a farm's scheduler
+/// relays) hold exactly the records one machine makes, in the same order;
+/// so does a member that resumes after two levels others measured.
+#[test]
+fn members_sharing_the_overture_hold_the_records_one_machine_makes() {
+    use locus_core::irradiance::overture::{Measured, Share, for_scene, run};
+    use std::collections::HashMap;
+    use std::sync::{Barrier, Mutex};
+    let prep = prepared(24, 4);
+    let params = IrradianceParams {
+        divisions: 64,
+        spacing: 8,
+        ..Default::default()
+    };
+    let alone = cache(&prep, params);
+    let lights = locus_core::light::LightSet::build(&prep.scene);
+    let bounds = locus_core::geometry::Bounds::of_triangles(&prep.scene.tris);
+    let shares = [1u32, 2, 1];
+    let barrier = Barrier::new(shares.len());
+    let levels: Mutex<HashMap<u32, Vec<(u32, Measured)>>> = Mutex::default();
+    let members: Vec<IrradianceCache> = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..shares.len())
+            .map(|me| {
+                let (prep, barrier, levels, bounds) = (&prep, &barrier, &levels, &bounds);
+                s.spawn(move || {
+                    let kernel = prep.kernel(prep.scene.settings.max_depth, None);
+                    let tracer = WholeScene(&prep.accel);
+                    let share = Share {
+                        me,
+                        shares: &shares,
+                        resume: 0,
+                    };
+                    let exchange = |level: u32, mine: Vec<(u32, Measured)>, _: &TraceStats| {
+                        levels
+                            .lock()
+                            .unwrap()
+                            .entry(level)
+                            .or_default()
+                            .extend(mine);
+                        barrier.wait();
+                        let mut all = levels.lock().unwrap()[&level].clone();
+                        all.sort_by_key(|(i, _)| *i);
+                        assert!(all.iter().enumerate().all(|(k, (i, _))| k as u32 == *i));
+                        Ok::<_, ()>(all.into_iter().map(|(_, m)| m).collect())
+                    };
+                    run(&kernel, &tracer, params, bounds, share, exchange)
+                        .unwrap()
+                        .0
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    assert!(alone.len() > 30, "{} records", alone.len());
+    for (me, c) in members.iter().enumerate() {
+        assert_eq!(c.records(), alone.records(), "member {me}");
+    }
+    // Every member measured some of them.
+    let got = levels.into_inner().unwrap();
+    let by_member = |w: usize| {
+        got.values()
+            .flatten()
+            .filter(|(i, _)| locus_core::irradiance::overture::measurer(*i, &shares) == w)
+            .count()
+    };
+    assert!((0..3).all(|w| by_member(w) > 0));
+    // The scheduler's overture, whole and resumed after two levels.
+    let (whole, _, known) = for_scene(&prep.scene, &lights, params, &[]);
+    assert_eq!(whole.records(), alone.records());
+    let (resumed, stats, again) = for_scene(&prep.scene, &lights, params, &known[..2]);
+    assert_eq!(resumed.records(), alone.records());
+    assert_eq!(again, known);
+    assert!(stats.points > 0 && stats.levels as usize == known.len());
+}

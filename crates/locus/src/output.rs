@@ -128,11 +128,17 @@ pub(crate) fn write_farm_result(
     }
     if let Some(o) = &f.irradiance {
         let u = t.trace.irradiance;
+        let by = if o.by_workers {
+            "measured by the workers"
+        } else {
+            "measured on the scheduler"
+        };
         println!(
-            "  irradiance cache: {} records from {} rays in {:.3}s on the scheduler, {:.2} MB sent to the workers; {} first vertices interpolated, {} path traced",
+            "  irradiance cache: {} records from {} rays in {:.3}s {by}, {:.2} MB gathered from and {:.2} MB sent to the workers; {} first vertices interpolated, {} path traced",
             o.records,
             o.rays,
             o.seconds,
+            o.bytes_gathered as f64 / 1e6,
             o.bytes_sent as f64 / 1e6,
             u.interpolated,
             u.traced

@@ -369,10 +369,12 @@ fn random_polling_hands_work_over_and_keeps_the_bits() {
     });
 }
 
-/// With Ward's irradiance cache the scheduler makes the records once and
-/// every worker interpolates the same set, so the farm still gives one
-/// machine's bits (forwarded rays, fetched leaves); the report counts the
-/// records, the bytes sent and every first vertex the cache answered.
+/// With Ward's irradiance cache every worker interpolates the same records,
+/// so the farm still gives one machine's bits: measured on the scheduler
+/// when the workers hold regions (`forward`), and by the workers between
+/// them, level by level, when each holds the whole scene (`fetch`). The
+/// report counts the records, who measured them, the bytes both ways and
+/// every first vertex the cache answered.
 #[test]
 fn the_irradiance_cache_keeps_the_bits_on_the_farm() {
     use locus_core::irradiance::IrradianceParams;
@@ -412,11 +414,20 @@ fn the_irradiance_cache_keeps_the_bits_on_the_farm() {
             let rep = &r.report;
             let ir = rep.irradiance.expect("irradiance report");
             assert_eq!(ir.records, records);
-            let per_record = locus_core::irradiance::RecordSet::RECORD_BYTES;
+            let per_record = locus_core::irradiance::overture::Measured::WIRE_BYTES;
             assert!(
                 ir.bytes_sent >= workers as u64 * records * per_record,
                 "{ir:?}"
             );
+            let by_workers = fetch == FetchPolicy::Fetch;
+            assert_eq!(ir.by_workers, by_workers, "{fetch:?}");
+            // What the workers measured came up once.
+            assert_eq!(
+                ir.bytes_gathered >= records * per_record,
+                by_workers,
+                "{ir:?}"
+            );
+            assert!(ir.rays > records * params.divisions as u64 / 2, "{ir:?}");
             assert_eq!(
                 rep.totals.trace.irradiance, one.stats.irradiance,
                 "{fetch:?}"

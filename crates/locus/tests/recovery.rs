@@ -94,14 +94,22 @@ fn submit_watched(
     workers: u32,
     done: Arc<AtomicU64>,
 ) -> mpsc::Receiver<anyhow::Result<JobResult>> {
-    let req = locus_scheduler::client::request(
-        scene,
-        JobOptions {
-            workers,
-            tile_size: 16,
-            ..Default::default()
-        },
-    );
+    let opts = JobOptions {
+        workers,
+        tile_size: 16,
+        ..Default::default()
+    };
+    submit_options(addr, scene, opts, done)
+}
+
+/// As [`submit_watched`], with the job's options.
+fn submit_options(
+    addr: &str,
+    scene: &locus_core::scene::Scene,
+    opts: JobOptions,
+    done: Arc<AtomicU64>,
+) -> mpsc::Receiver<anyhow::Result<JobResult>> {
+    let req = locus_scheduler::client::request(scene, opts);
     let (tx, rx) = mpsc::channel();
     let addr = addr.to_string();
     std::thread::spawn(move || {
@@ -190,6 +198,81 @@ fn jobs_survive_a_worker_killed_at_random_moments() {
         recovered >= runs / 2,
         "only {recovered} of {runs} kills landed during a job: the test is not testing recovery"
     );
+}
+
+/// A worker killed while the workers measure the irradiance cache's
+/// overture between them (`fetch`: each holds the whole scene): the
+/// attempt is aborted, the levels already merged are kept, and the
+/// workers left measure the rest; the image is one machine's with the
+/// cache on, bit for bit, with the same records.
+#[test]
+fn a_worker_killed_mid_overture_leaves_the_records_one_machine_makes() {
+    use locus_core::irradiance::IrradianceParams;
+    use locus_core::render::{Prepared, RenderOptions, render};
+    use locus_protocol::submit::FetchPolicy;
+    let mut scene = common::small_cornell(96, 72, 5);
+    scene.settings.spp = 2;
+    let params = IrradianceParams {
+        divisions: 2048,
+        spacing: 8,
+        ..Default::default()
+    };
+    let mut o = RenderOptions::from_scene(&scene);
+    o.threads = 2;
+    o.irradiance = Some(params);
+    let one = render(&Prepared::new(scene.clone()), &o, &|_, _| {});
+    let reference = one.image.to_bits();
+    let records = one.irradiance.expect("overture").records;
+    let opts = JobOptions {
+        workers: 3,
+        tile_size: 16,
+        fetch: FetchPolicy::Fetch,
+        irradiance: Some(params),
+        ..Default::default()
+    };
+    let (_sched, addr) = Daemon::scheduler("2");
+    let mut workers: Vec<Daemon> = (0..3).map(|_| Daemon::worker(&addr)).collect();
+    let done = || Arc::new(AtomicU64::new(0));
+    let t = Instant::now();
+    let warm = wait(&submit_options(&addr, &scene, opts.clone(), done()));
+    let whole = t.elapsed();
+    let ir = warm.report.irradiance.expect("irradiance report");
+    assert!(ir.by_workers && ir.records == records, "{ir:?}");
+    assert_eq!(common::bits(&warm), reference);
+    // The overture is most of the job: a kill at 60% of its measuring
+    // lands in it. Other tests share the cores, so a job may run faster
+    // than the one timed: a kill that lands after the job is tried again,
+    // sooner.
+    let mut into = whole.saturating_sub(Duration::from_secs_f64(ir.seconds)) / 2
+        + Duration::from_secs_f64(ir.seconds * 0.6);
+    let mut landed = false;
+    for tries in 0..6 {
+        let rx = submit_options(&addr, &scene, opts.clone(), done());
+        std::thread::sleep(into);
+        workers[1].signal("-KILL");
+        let r = wait(&rx);
+        let rec = &r.report.recovery;
+        let ir2 = r.report.irradiance.expect("irradiance report");
+        eprintln!(
+            "try {tries}: overture {:.2} s of a {:.2} s job; killed at {:.2} s: {} attempts, rays {} against {} undisturbed",
+            ir.seconds,
+            whole.as_secs_f64(),
+            into.as_secs_f64(),
+            rec.attempts,
+            ir2.rays,
+            ir.rays
+        );
+        assert_eq!(ir2.records, records, "{ir2:?}");
+        assert_eq!(common::bits(&r), reference, "the image differs");
+        workers[1] = Daemon::worker(&addr);
+        if rec.attempts >= 2 {
+            landed = true;
+            break;
+        }
+        into /= 2;
+    }
+    assert!(landed, "no kill landed during a job in 6 tries");
+    workers.truncate(0);
 }
 
 /// A worker stopped mid-job (SIGSTOP: its sockets stay open, it just stops

@@ -82,6 +82,8 @@ pub enum WorkerToScheduler {
         job: u64,
         msg: Box<crate::radiosity::ToCoordinator>,
     },
+    /// The worker's measurements of an overture level.
+    Measured(Box<crate::overture::MeasuredChunk>),
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -128,6 +130,8 @@ pub enum SchedulerToWorker {
         job: u64,
         msg: Box<crate::radiosity::ToNode>,
     },
+    /// An overture level's records, every member's merged.
+    Level(Box<crate::overture::LevelChunk>),
 }
 
 /// Heartbeats a link may miss before the other side counts it lost: a
@@ -188,9 +192,10 @@ pub struct JobSetup {
     pub magnitude: f32,
     pub tuning: Tuning,
     pub cache: Option<CacheParams>,
-    /// The irradiance cache's records, made before the render; every
-    /// worker interpolates from the same set.
-    pub irradiance: Option<locus_core::irradiance::RecordSet>,
+    /// The irradiance cache: its records' levels follow the geometry
+    /// ([`SchedulerToWorker::Level`]), and the worker measures its share of
+    /// those not known yet ([`crate::overture`]).
+    pub irradiance: Option<crate::overture::IrradianceSetup>,
     pub fetch: FetchPolicy,
     /// How the worker keeps to its memory budget.
     pub plan: MemoryPlan,

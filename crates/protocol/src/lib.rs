@@ -7,7 +7,8 @@
 //! fresh nonces, so the token never crosses the wire; with [`tls`] on, the
 //! link is TLS first ([`stream`] is either). Then one message
 //! family per kind of link: [`control`] (scheduler and workers), [`submit`]
-//! (client and scheduler), [`rays`] (worker to worker, its ray items in
+//! (client and scheduler), [`overture`] (the irradiance cache's records,
+//! measured and shared level by level), [`rays`] (worker to worker, its ray items in
 //! the compact encoding of [`packet`]), [`radiosity`] (the radiosity job's
 //! shots, sample packets and random polling); [`report`] holds the
 //! counters a job reports. postcard is not self-describing: enum variants
@@ -18,6 +19,7 @@ pub mod connection;
 pub mod control;
 pub mod error;
 pub mod handshake;
+pub mod overture;
 pub mod packet;
 pub mod radiosity;
 pub mod rays;
@@ -31,7 +33,7 @@ pub use connection::{ConnReader, ConnWriter, Connection};
 pub use error::ProtocolError;
 
 /// Bumped on any incompatible change of any message family.
-pub const PROTOCOL_VERSION: u32 = 17;
+pub const PROTOCOL_VERSION: u32 = 18;
 
 /// Default maximum frame length: large enough for a geometry shipment of a
 /// big octree leaf, small enough that a bad length prefix cannot make a peer

@@ -210,15 +210,23 @@ pub struct FarmReport {
     pub irradiance: Option<IrradianceReport>,
 }
 
-/// How the irradiance cache's records were made and shared: made by the
-/// scheduler before the render, and sent to every worker.
+/// How the irradiance cache's records were made and shared: measured
+/// level by level by the workers (where each holds the whole scene) or by
+/// the scheduler, and every level sent to every worker.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct IrradianceReport {
     pub records: u64,
-    /// Rays traced to place and measure them.
+    /// Rays traced to place and measure them, by whoever measured (those
+    /// of an attempt that was cut short included).
     pub rays: u64,
+    /// Seconds of measuring: per level the slowest measurer's, summed.
     pub seconds: f64,
-    /// Bytes of records sent to the workers, all of them together.
+    /// Whether the workers measured them (else the scheduler did).
+    pub by_workers: bool,
+    /// Bytes of measurements the workers sent the scheduler, as encoded.
+    pub bytes_gathered: u64,
+    /// Bytes of records sent to the workers, all of them together, as
+    /// encoded.
     pub bytes_sent: u64,
 }
 

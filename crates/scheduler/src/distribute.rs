@@ -1,11 +1,14 @@
 //! Distribution: each worker gets its job setup (processor map, lights,
 //! materials, own leaves, memory plan) and then its region one BVH part at
 //! a time, each part's triangles cut from the scene as it is sent, so
-//! neither side ever holds a second copy of a whole region.
+//! neither side ever holds a second copy of a whole region. The irradiance
+//! cache's known overture levels follow the region.
 
 use crate::job::Prepared;
+use crate::overture::{Overture, send_levels};
 use locus_core::geometry::FLAT;
 use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
+use locus_protocol::overture::IrradianceSetup;
 use locus_protocol::submit::JobRequest;
 use tokio::sync::mpsc;
 
@@ -17,6 +20,7 @@ pub fn ship(
     req: &JobRequest,
     prep: &mut Prepared,
     txs: Vec<(String, mpsc::Sender<SchedulerToWorker>)>,
+    overture: Option<&Overture>,
 ) {
     let peers: Vec<String> = txs.iter().map(|(a, _)| a.clone()).collect();
     let mut own_leaves = std::mem::take(&mut prep.own_leaves);
@@ -53,7 +57,14 @@ pub fn ship(
                 ..req.options.tuning
             },
             cache: req.options.cache,
-            irradiance: prep.irradiance.as_ref().map(|(set, _)| (**set).clone()),
+            irradiance: overture
+                .zip(prep.irradiance.as_ref())
+                .map(|(o, p)| IrradianceSetup {
+                    params: o.params,
+                    bounds: p.bounds,
+                    known: o.levels.len() as u32,
+                    shares: crate::actor::shares(&prep.member_cores),
+                }),
             fetch: req.options.fetch,
             plan: prep.plans[w],
             own_leaves: own,
@@ -62,6 +73,10 @@ pub fn ship(
             normals: !prep.scene.tri_normals.is_empty(),
         };
         let scene = prep.scene.clone();
+        // The overture's known levels follow the geometry.
+        let (known, sent) = overture.map_or((Vec::new(), Default::default()), |o| {
+            (o.levels.clone(), o.bytes_sent.clone())
+        });
         tokio::spawn(async move {
             tx.send(SchedulerToWorker::StartJob(Box::new(setup)))
                 .await?;
@@ -74,7 +89,8 @@ pub fn ship(
                     chunk: TriangleSet::default(),
                     last: true,
                 };
-                return tx.send(last).await;
+                tx.send(last).await?;
+                return send_levels(&tx, id, 0, &known, &sent).await;
             }
             for (k, (leaves, ids)) in runs.into_iter().enumerate() {
                 let mut chunk = TriangleSet::with_capacity(ids.len());
@@ -91,7 +107,7 @@ pub fn ship(
                 })
                 .await?;
             }
-            Ok::<_, mpsc::error::SendError<SchedulerToWorker>>(())
+            send_levels(&tx, id, 0, &known, &sent).await
         });
     }
 }

@@ -5,9 +5,9 @@
 
 use crate::{cost, memory, partition};
 use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
+use locus_core::geometry::Bounds;
 use locus_core::geometry::FLAT;
-use locus_core::irradiance::RecordSet;
-use locus_core::irradiance::overture::OvertureStats;
+use locus_core::irradiance::overture::{Measured, OvertureStats};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
@@ -47,14 +47,27 @@ pub struct Prepared {
     pub max_inflight: Vec<u32>,
     /// Triangle references per leaf.
     pub leaf_tris: Vec<u32>,
-    /// The irradiance cache's records, when it is on, with what making
-    /// them took.
-    pub irradiance: Option<(Arc<RecordSet>, OvertureStats)>,
+    /// The irradiance cache's overture, when it is on.
+    pub irradiance: Option<PreparedOverture>,
+    /// Each worker's threads.
+    pub member_cores: Vec<u32>,
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
     pub preview_rays: u64,
     pub leaves: u32,
     pub timings: PrepTimings,
+}
+
+/// Who measures an attempt's irradiance records: its workers, where each
+/// holds the whole scene; else the scheduler, here, every level the job
+/// does not know yet.
+pub struct PreparedOverture {
+    pub by_workers: bool,
+    /// The scene's bounds (the record octree's).
+    pub bounds: Bounds,
+    /// Levels measured here, after those known before.
+    pub measured: Vec<Vec<Measured>>,
+    pub stats: Option<OvertureStats>,
 }
 
 /// Where preparation's time went.
@@ -226,6 +239,7 @@ pub fn prepare(
     options: &JobOptions,
     members: &[Member],
     tiles: &[locus_core::render::Tile],
+    known: &[Arc<Vec<Measured>>],
 ) -> Result<Prepared, String> {
     let t = Instant::now();
     let workers = members.len().max(1);
@@ -377,15 +391,33 @@ pub fn prepare(
         parts.push(p);
         region_triangles.push(n);
     }
-    // The irradiance cache's overture, once the job is known to fit, on
-    // every triangle here (a BVH over the whole scene, like one machine's):
-    // the records go to every worker with its setup.
+    // The irradiance cache's overture, once the job is known to fit:
+    // workers that hold the whole scene measure its levels between them;
+    // for others it is measured here, on every triangle (a BVH over the
+    // whole scene, like one machine's), from the first level not known.
+    let bounds = Bounds::of_triangles(&scene.tris);
     let irradiance = options.irradiance.map(|p| {
-        let (cache, stats) = locus_core::irradiance::overture::for_scene(&scene, &lights, p);
-        (Arc::new(cache.to_set()), stats)
+        if replicated || workers == 1 {
+            return PreparedOverture {
+                by_workers: true,
+                bounds,
+                measured: Vec::new(),
+                stats: None,
+            };
+        }
+        let before: Vec<Vec<Measured>> = known.iter().map(|l| l.to_vec()).collect();
+        let (_, stats, mut levels) =
+            locus_core::irradiance::overture::for_scene(&scene, &lights, p, &before);
+        PreparedOverture {
+            by_workers: false,
+            bounds,
+            measured: levels.split_off(before.len()),
+            stats: Some(stats),
+        }
     });
     Ok(Prepared {
         irradiance,
+        member_cores: members.iter().map(|m| m.cores).collect(),
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
         analytic_share: cost::shares(&analytic, &map.owner, workers),
         sampled_share: cost::shares(&sampled, &map.owner, workers),

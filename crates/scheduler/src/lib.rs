@@ -29,6 +29,7 @@ pub mod http;
 pub mod job;
 pub mod memory;
 pub mod metrics;
+pub mod overture;
 pub mod partition;
 pub mod radiosity;
 pub mod report;

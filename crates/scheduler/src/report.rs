@@ -3,9 +3,7 @@
 
 use crate::actor::Running;
 use crate::cost;
-use locus_protocol::report::{
-    FarmReport, IrradianceReport, Phases, Prediction, WorkerStats, WorkerSummary,
-};
+use locus_protocol::report::{FarmReport, Phases, Prediction, WorkerStats, WorkerSummary};
 use std::time::Instant;
 
 /// The report of job `j`, whose last attempt's workers are `names` (their
@@ -112,13 +110,6 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         samples_per_s: samples as f64 / render_s.max(1e-9),
         totals,
         recovery: j.recovery.clone(),
-        irradiance: prep.irradiance.as_ref().map(|(set, o)| IrradianceReport {
-            records: o.records,
-            rays: o.trace.rays(),
-            seconds: o.seconds,
-            // Counted as encoded: every worker got the same set.
-            bytes_sent: postcard::to_allocvec(&**set).map_or(0, |b| b.len() as u64)
-                * names.len() as u64,
-        }),
+        irradiance: j.overture.as_ref().map(|o| o.report()),
     }
 }

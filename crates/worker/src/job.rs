@@ -8,8 +8,10 @@ use crate::sys;
 use anyhow::{Context, bail};
 use locus_core::accel::Accel;
 use locus_core::accel_set::Part;
+use locus_core::irradiance::IrradianceCache;
 use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
 use locus_protocol::handshake::Credentials;
+use locus_protocol::overture::LevelChunk;
 use locus_protocol::rays::PeerMsg;
 use locus_protocol::report::WorkerStats;
 use std::sync::Arc;
@@ -28,6 +30,9 @@ const PEER_OUT: usize = 64;
 /// A job whose region is arriving.
 pub struct Building {
     pub setup: Box<JobSetup>,
+    /// The irradiance overture's levels from the scheduler: the sender
+    /// goes to the control loop when the region is in.
+    pub levels: Option<(flume::Sender<LevelChunk>, flume::Receiver<LevelChunk>)>,
     pub parts: Vec<Arc<Part>>,
     pub received: u64,
     pub bvh_s: f64,
@@ -43,8 +48,12 @@ impl Building {
             // The job's peak is measured from here.
             sys::reset_peak();
         }
+        // Unbounded, but the control loop passes on at most the job's
+        // `max_records` (see `Starting::pass_level`).
+        let levels = setup.irradiance.as_ref().map(|_| flume::unbounded());
         Ok(Self {
             setup,
+            levels,
             parts: Vec::new(),
             received: 0,
             bvh_s: 0.0,
@@ -129,9 +138,9 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
         c.check()
             .map_err(|e| anyhow::anyhow!("cache parameters: {e}"))?;
     }
-    if let Some(set) = &s.irradiance {
-        set.check()
-            .map_err(|e| anyhow::anyhow!("irradiance records: {e}"))?;
+    if let Some(irr) = &s.irradiance {
+        irr.check(n)
+            .map_err(|e| anyhow::anyhow!("irradiance cache: {e}"))?;
     }
     Ok(())
 }
@@ -143,6 +152,8 @@ pub struct Env {
     pub control: flume::Sender<WorkerToScheduler>,
     pub links: Arc<watch::Sender<Option<Arc<JobLink>>>>,
     pub dedicated: bool,
+    /// Tracing threads in all, the engine's included.
+    pub threads: usize,
     /// The job's cancellation: aborting it while the peers are being
     /// dialed (one may be stopped and never answer) ends the start.
     pub cancel: CancellationToken,
@@ -152,6 +163,7 @@ pub struct Env {
 pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
     let Building {
         setup,
+        levels,
         parts,
         bvh_s,
         cpu0,
@@ -188,7 +200,11 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
 
     let (outs, writers) = link_peers(&setup.peers, job, me, &env, &traffic).await?;
 
-    let ej = Arc::new(EngineJob::new(*setup));
+    let irradiance = match (&setup.irradiance, levels) {
+        (Some(_), Some((_, rx))) => Some(irradiance(setup.clone(), parts.clone(), rx, &env).await?),
+        _ => None,
+    };
+    let ej = Arc::new(EngineJob::new(*setup, irradiance));
     let links = Links {
         peers: outs,
         control: env.control.clone(),
@@ -252,6 +268,34 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         .await
         .context("scheduler link closed")?;
     Ok(link)
+}
+
+/// The job's irradiance cache, from its overture on a blocking thread.
+async fn irradiance(
+    setup: Box<JobSetup>,
+    parts: Vec<Arc<Part>>,
+    levels: flume::Receiver<LevelChunk>,
+    env: &Env,
+) -> anyhow::Result<IrradianceCache> {
+    let (control, cancel, threads) = (env.control.clone(), env.cancel.clone(), env.threads);
+    let (cache, stats) = tokio::task::spawn_blocking(move || {
+        let irr = setup.irradiance.as_ref().expect("checked by the caller");
+        let links = crate::overture::Links {
+            control: &control,
+            levels: &levels,
+            cancel: &cancel,
+        };
+        crate::overture::build(&setup, irr, parts, threads, links)
+    })
+    .await
+    .context("the irradiance overture crashed")??;
+    info!(
+        records = stats.records,
+        rays = stats.trace.rays(),
+        seconds = stats.seconds,
+        "irradiance cache built"
+    );
+    Ok(cache)
 }
 
 /// Outgoing peer channels (none for this worker itself) and the tasks

@@ -17,6 +17,7 @@
 pub mod engine;
 pub mod fetch;
 pub mod job;
+pub mod overture;
 pub mod peers;
 pub mod radiosity;
 pub mod reach;
@@ -29,6 +30,7 @@ use locus_protocol::control::{
     HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
 };
 use locus_protocol::handshake::Credentials;
+use locus_protocol::overture::LevelChunk;
 use locus_protocol::tls::Tls;
 use locus_protocol::{Backoff, ConnWriter, MAX_FRAME_LEN, handshake};
 use peers::{Inbox, JobLink};
@@ -249,6 +251,7 @@ impl Session<'_> {
             control: ctl_tx.clone(),
             links: self.links.clone(),
             dedicated: self.cfg.dedicated,
+            threads: self.threads,
             cancel,
         }
     }
@@ -293,9 +296,17 @@ impl Session<'_> {
                     let b = jobs.building.take().expect("checked above");
                     let cancel = CancellationToken::new();
                     let env = self.env(ctl_tx, cancel.clone());
+                    let levels = b.levels.as_ref().map(|(tx, _)| tx.clone());
+                    let room = b
+                        .setup
+                        .irradiance
+                        .as_ref()
+                        .map_or(0, |i| i.params.max_records);
                     jobs.starting = Some(Starting {
                         job,
                         cancel,
+                        levels,
+                        room,
                         task: tokio::spawn(job::start(b, env)),
                     });
                 }
@@ -307,6 +318,8 @@ impl Session<'_> {
                 jobs.starting = Some(Starting {
                     job,
                     cancel: cancel.clone(),
+                    levels: None,
+                    room: 0,
                     task: tokio::spawn(radiosity::daemon::start(s, self.env(ctl_tx, cancel))),
                 });
             }
@@ -323,6 +336,11 @@ impl Session<'_> {
             }
             SchedulerToWorker::EndJob { job } => {
                 jobs.forward(job, Inbound::Engine(Input::End), ctl_tx).await
+            }
+            SchedulerToWorker::Level(c) => {
+                if let Err(e) = jobs.pass_level(*c) {
+                    warn!("{e:#}");
+                }
             }
             SchedulerToWorker::AbortJob { job, reason } => {
                 if jobs.job() == Some(job) {
@@ -353,6 +371,10 @@ struct Jobs {
 struct Starting {
     job: u64,
     cancel: CancellationToken,
+    /// The irradiance overture's levels, to the starting job.
+    levels: Option<flume::Sender<LevelChunk>>,
+    /// Records the overture may still be sent.
+    room: usize,
     task: tokio::task::JoinHandle<anyhow::Result<Arc<JobLink>>>,
 }
 
@@ -374,6 +396,25 @@ impl Jobs {
         if let Some(j) = self.current.take() {
             j.cancel.cancel();
         }
+    }
+
+    /// Passes an overture level's chunk to the starting job, within its
+    /// `max_records`. Past them the job's levels stop, which fails its
+    /// overture and so tells the scheduler; a chunk for no starting job is
+    /// dropped.
+    fn pass_level(&mut self, c: LevelChunk) -> anyhow::Result<()> {
+        let job = c.job;
+        let Some(s) = self.starting.as_mut().filter(|s| s.job == job) else {
+            anyhow::bail!("overture level for job {job}, which is not starting here; dropped");
+        };
+        let Some(tx) = s.levels.as_ref().filter(|_| c.records.len() <= s.room) else {
+            s.levels = None;
+            anyhow::bail!("job {job}: more irradiance records than the job allows");
+        };
+        s.room -= c.records.len();
+        // The overture has ended (failed) if its receiver is gone.
+        let _ = tx.send(c);
+        Ok(())
     }
 
     /// Waits for the starting job's task (only while there is one).

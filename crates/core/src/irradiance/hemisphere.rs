@@ -52,7 +52,7 @@ pub struct Sample {
 }
 
 /// Irradiance, harmonic mean distance and gradients at one point.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Estimate {
     pub e: Vec3,
     pub harmonic: f32,

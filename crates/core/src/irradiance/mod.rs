@@ -159,55 +159,10 @@ impl std::ops::AddAssign for IrradianceUse {
     }
 }
 
-/// A cache's records as they travel to the farm's workers: with the
-/// settings and bounds, the receiver rebuilds the same octree and so
-/// interpolates the same bits.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct RecordSet {
-    pub params: IrradianceParams,
-    pub bounds: Bounds,
-    pub records: Vec<Record>,
-}
-
-impl RecordSet {
-    /// Bytes a record takes on the wire (postcard writes f32 as 4 bytes).
-    pub const RECORD_BYTES: u64 = 4 * (3 * 3 + 1 + 2 * 9);
-
-    /// Checks what a peer sent: settings, and every record finite with a
-    /// positive radius and a unit normal.
-    pub fn check(&self) -> Result<(), String> {
-        self.params.check()?;
-        if self.records.len() > self.params.max_records {
-            return Err(format!(
-                "{} irradiance records, over the {} allowed",
-                self.records.len(),
-                self.params.max_records
-            ));
-        }
-        let finite = |v: &Vec3| v.is_finite();
-        for (i, r) in self.records.iter().enumerate() {
-            let ok = finite(&r.p)
-                && finite(&r.e)
-                && r.grad_t.iter().all(finite)
-                && r.grad_r.iter().all(finite)
-                && (r.n.length() - 1.0).abs() < 1e-3
-                && r.r.is_finite()
-                && r.r > 0.0;
-            if !ok {
-                return Err(format!(
-                    "irradiance record {i} is not finite or not normalised"
-                ));
-            }
-        }
-        Ok(())
-    }
-}
-
 /// Records and the octree that finds them.
 #[derive(Clone, Debug)]
 pub struct IrradianceCache {
     pub params: IrradianceParams,
-    bounds: Bounds,
     records: Vec<Record>,
     octree: RecordOctree,
     /// Bounds on a record's harmonic mean distance.
@@ -228,31 +183,10 @@ impl IrradianceCache {
         let a = params.accuracy;
         Self {
             params,
-            bounds: *bounds,
             records: Vec::new(),
             octree: RecordOctree::new(bounds),
             r_min: extent / (params.resolution * a),
             r_max: (extent / (8.0 * a)).max(extent / (params.resolution * a)),
-        }
-    }
-
-    /// The cache of a checked record set: the same records in the same
-    /// order, so the same octree and the same interpolated bits.
-    pub fn from_set(set: RecordSet) -> Result<Self, String> {
-        set.check()?;
-        let mut c = Self::new(set.params, &set.bounds);
-        for r in set.records {
-            c.push(r);
-        }
-        Ok(c)
-    }
-
-    /// The records to ship.
-    pub fn to_set(&self) -> RecordSet {
-        RecordSet {
-            params: self.params,
-            bounds: self.bounds,
-            records: self.records.clone(),
         }
     }
 
@@ -414,27 +348,38 @@ mod tests {
         );
     }
 
-    /// A cache rebuilt from its shipped records answers the same bits; a
-    /// set with a broken record is refused.
+    /// A cache rebuilt from shipped measurements, added in the same order,
+    /// answers the same bits; a broken measurement is refused.
     #[test]
-    fn a_shipped_record_set_rebuilds_the_same_cache() {
+    fn shipped_measurements_rebuild_the_same_cache() {
+        use overture::Measured;
         let b = Bounds::new(Vec3::ZERO, Vec3::splat(2.0));
         let mut c = IrradianceCache::new(IrradianceParams::default(), &b);
+        let mut sent = Vec::new();
         for i in 0..300u64 {
             let k = SampleKey::independent(i, 0, 5);
-            let est = Estimate {
-                e: Vec3::splat(k.get1d(0) + 0.1),
-                harmonic: 0.1 + k.get1d(1),
-                grad_t: [Vec3::splat(k.get1d(2) - 0.5), Vec3::ZERO, Vec3::ZERO],
-                grad_r: [Vec3::ZERO; 3],
+            let m = Measured {
+                p: Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 2.0,
+                n: Vec3::Z,
+                footprint: 0.0,
+                est: Estimate {
+                    e: Vec3::splat(k.get1d(0) + 0.1),
+                    harmonic: 0.1 + k.get1d(1),
+                    grad_t: [Vec3::splat(k.get1d(2) - 0.5), Vec3::ZERO, Vec3::ZERO],
+                    grad_r: [Vec3::ZERO; 3],
+                },
             };
-            let p = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 2.0;
-            c.insert(p, Vec3::Z, &est, 0.0);
+            assert!(c.add(&m));
+            sent.push(m);
         }
-        let set = c.to_set();
-        let bytes = postcard::to_allocvec(&set).unwrap();
-        assert!(bytes.len() as u64 <= 64 + set.records.len() as u64 * RecordSet::RECORD_BYTES);
-        let back = IrradianceCache::from_set(postcard::from_bytes(&bytes).unwrap()).unwrap();
+        let bytes = postcard::to_allocvec(&sent).unwrap();
+        assert!(bytes.len() as u64 <= 8 + sent.len() as u64 * Measured::WIRE_BYTES);
+        let got: Vec<Measured> = postcard::from_bytes(&bytes).unwrap();
+        let mut back = IrradianceCache::new(IrradianceParams::default(), &b);
+        for m in &got {
+            m.check().unwrap();
+            back.add(m);
+        }
         for i in 0..500u64 {
             let k = SampleKey::independent(i, 1, 5);
             let p = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0;
@@ -444,16 +389,15 @@ mod tests {
                 y.map(|v| v.to_array().map(f32::to_bits))
             );
         }
-        let mut bad = c.to_set();
-        bad.records[7].e.x = f32::NAN;
-        assert!(
-            IrradianceCache::from_set(bad)
-                .unwrap_err()
-                .contains("record 7")
-        );
-        let mut bad = c.to_set();
-        bad.records[3].r = 0.0;
-        assert!(IrradianceCache::from_set(bad).is_err());
+        let mut bad = sent[7];
+        bad.est.e.x = f32::NAN;
+        assert!(bad.check().is_err());
+        let mut bad = sent[3];
+        bad.n = Vec3::splat(2.0);
+        assert!(bad.check().is_err());
+        let mut bad = sent[4];
+        bad.est.harmonic = -1.0;
+        assert!(bad.check().is_err());
     }
 
     #[test]

@@ -10,6 +10,13 @@
 //! both get a record where one would have done; the finer levels then
 //! find them covered, so the waste stays at the coarse levels where
 //! points are few.
+//!
+//! Because a level's records depend only on the levels before it, a farm
+//! shares the overture out level by level ([`run`] with a [`Share`]):
+//! every member finds the same candidates, measures those [`measurer`]
+//! gives it, and the level's [`Measured`] points, every member's merged in
+//! candidate order, come back to all of them; each adds them in that order
+//! and so holds the same cache as one machine.
 
 use super::IrradianceCache;
 use super::hemisphere::{Hemisphere, Sample, Strata};
@@ -20,7 +27,7 @@ use crate::region::Resume;
 use crate::sampler::SampleKey;
 use crate::stats::TraceStats;
 use glam::Vec3;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::f32::consts::PI;
 use std::time::Instant;
 
@@ -50,6 +57,93 @@ struct Candidate {
     pixel: u64,
     frame: Frame,
     footprint: f32,
+}
+
+/// A point measured for a record: where it lies, about which shading
+/// normal, the width of its pixel there, and what its rays found. Any
+/// machine that adds the same measurements in the same order holds the
+/// same records ([`IrradianceCache::add`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Measured {
+    pub p: Vec3,
+    pub n: Vec3,
+    pub footprint: f32,
+    pub est: super::hemisphere::Estimate,
+}
+
+impl Measured {
+    /// Bytes one takes on the wire (postcard writes an f32 as 4 bytes).
+    pub const WIRE_BYTES: u64 = 4 * (3 + 3 + 1 + 3 + 1 + 2 * 9);
+
+    /// Checks a measurement a peer sent: finite, a unit normal, and no
+    /// negative distance or footprint.
+    pub fn check(&self) -> Result<(), String> {
+        let e = &self.est;
+        let ok = self.p.is_finite()
+            && (self.n.length() - 1.0).abs() < 1e-3
+            && self.footprint.is_finite()
+            && self.footprint >= 0.0
+            && e.e.is_finite()
+            && e.grad_t.iter().chain(&e.grad_r).all(|g| g.is_finite())
+            // Infinite (every ray escaped) and NaN are clamped on adding.
+            && (e.harmonic >= 0.0 || e.harmonic.is_nan());
+        if ok {
+            Ok(())
+        } else {
+            Err("an irradiance measurement is not finite or not normalised".into())
+        }
+    }
+}
+
+impl IrradianceCache {
+    /// Adds the record `m` measures; false when the cache is full.
+    pub fn add(&mut self, m: &Measured) -> bool {
+        self.insert(m.p, m.n, &m.est, m.footprint)
+    }
+}
+
+/// The member that measures candidate `i` of a level, members weighted by
+/// `shares` (their threads): a weighted round robin, so that every
+/// member's candidates spread over the whole image and cost alike.
+pub fn measurer(i: u32, shares: &[u32]) -> usize {
+    let total: u64 = shares.iter().map(|&s| s.max(1) as u64).sum();
+    let mut slot = i as u64 % total.max(1);
+    for (w, &s) in shares.iter().enumerate() {
+        let s = s.max(1) as u64;
+        if slot < s {
+            return w;
+        }
+        slot -= s;
+    }
+    0
+}
+
+/// The spacing of each of the overture's levels, coarsest first.
+pub fn level_spacings(params: &super::IrradianceParams) -> Vec<u32> {
+    let mut v = vec![params.spacing.max(1)];
+    while let Some(&s) = v.last().filter(|&&s| s > 1) {
+        v.push(s / 2);
+    }
+    v
+}
+
+/// How one member takes part in an overture: it is member `me` of those
+/// weighted by `shares`, and measures its candidates from level `resume`
+/// on (the levels before are known and only received).
+#[derive(Clone, Copy, Debug)]
+pub struct Share<'a> {
+    pub me: usize,
+    pub shares: &'a [u32],
+    pub resume: u32,
+}
+
+impl Share<'_> {
+    /// One machine: it measures every level.
+    pub const ALONE: Share<'static> = Share {
+        me: 0,
+        shares: &[1],
+        resume: 0,
+    };
 }
 
 /// The camera ray through the centre of pixel `(x, y)`: the frame of its
@@ -130,14 +224,18 @@ fn measure<T: Tracer>(
 }
 
 /// Builds the cache for a whole scene held in memory (the farm's
-/// scheduler, which has every triangle): one BVH over the scene exactly as
-/// one machine builds it, and the kernel the scene's settings give, so the
-/// records are the ones a render on one machine makes.
+/// scheduler, which has every triangle, when its workers do not): one BVH
+/// over the scene exactly as one machine builds it, and the kernel the
+/// scene's settings give, so the records are the ones a render on one
+/// machine makes. The levels in `known` (measured before, by anyone) are
+/// taken as they are; every level's measurements are returned, to be sent
+/// to the workers.
 pub fn for_scene(
     scene: &crate::scene::Scene,
     lights: &crate::light::LightSet,
     params: super::IrradianceParams,
-) -> (IrradianceCache, OvertureStats) {
+    known: &[Vec<Measured>],
+) -> (IrradianceCache, OvertureStats, Vec<Vec<Measured>>) {
     let accel = crate::render::whole_scene_accel(scene);
     let kernel = Kernel {
         materials: &scene.materials,
@@ -150,7 +248,25 @@ pub fn for_scene(
         irradiance: None,
     };
     let bounds = Bounds::of_triangles(&scene.tris);
-    build(&kernel, &crate::path::WholeScene(&accel), params, &bounds)
+    let share = Share {
+        resume: known.len() as u32,
+        ..Share::ALONE
+    };
+    let mut levels = Vec::new();
+    let mut keep = |level: u32, mine: Vec<(u32, Measured)>, _: &TraceStats| {
+        let l = match known.get(level as usize) {
+            Some(k) => k.clone(),
+            None => mine.into_iter().map(|(_, m)| m).collect(),
+        };
+        levels.push(l.clone());
+        Ok::<_, std::convert::Infallible>(l)
+    };
+    let tracer = crate::path::WholeScene(&accel);
+    let (cache, stats) = match run(&kernel, &tracer, params, &bounds, share, &mut keep) {
+        Ok(r) => r,
+        Err(e) => match e {},
+    };
+    (cache, stats, levels)
 }
 
 /// The irradiance at `frame` measured as a record would be, with about
@@ -191,7 +307,7 @@ fn uncovered<T: Tracer + Sync>(
     tracer: &T,
     cache: &IrradianceCache,
     points: &[(u32, u32)],
-    stats: &mut OvertureStats,
+    trace: &mut TraceStats,
 ) -> Vec<Candidate> {
     use rayon::prelude::*;
     let w = kernel.camera.width as u64;
@@ -211,13 +327,13 @@ fn uncovered<T: Tracer + Sync>(
         .collect();
     let mut candidates = Vec::new();
     for (c, st) in found {
-        stats.trace += st;
+        *trace += st;
         candidates.extend(c);
     }
     candidates
 }
 
-/// Builds the cache for `kernel`'s camera on the calling rayon pool.
+/// Builds the cache for `kernel`'s camera on the calling rayon pool, alone.
 /// `kernel` must have no irradiance cache of its own.
 pub fn build<T: Tracer + Sync>(
     kernel: &Kernel,
@@ -225,44 +341,78 @@ pub fn build<T: Tracer + Sync>(
     params: super::IrradianceParams,
     bounds: &Bounds,
 ) -> (IrradianceCache, OvertureStats) {
+    let alone = |_: u32, mine: Vec<(u32, Measured)>, _: &TraceStats| {
+        Ok::<_, std::convert::Infallible>(mine.into_iter().map(|(_, m)| m).collect())
+    };
+    match run(kernel, tracer, params, bounds, Share::ALONE, alone) {
+        Ok(r) => r,
+        Err(e) => match e {},
+    }
+}
+
+/// Runs the overture as one member of `share`: level by level, finds the
+/// candidates and measures its own (from `share.resume` on), hands them to
+/// `exchange` with the rays that measuring them traced, and adds what
+/// `exchange` returns: the level's measurements of every member, in
+/// candidate order. An error from `exchange` ends it.
+pub fn run<T: Tracer + Sync, E>(
+    kernel: &Kernel,
+    tracer: &T,
+    params: super::IrradianceParams,
+    bounds: &Bounds,
+    share: Share,
+    mut exchange: impl FnMut(u32, Vec<(u32, Measured)>, &TraceStats) -> Result<Vec<Measured>, E>,
+) -> Result<(IrradianceCache, OvertureStats), E> {
     use rayon::prelude::*;
     let start = Instant::now();
     let mut cache = IrradianceCache::new(params, bounds);
     let mut stats = OvertureStats::default();
     let strata = Strata::of(params.divisions);
     let (w, h) = (kernel.camera.width, kernel.camera.height);
-    let mut s = params.spacing.max(1);
-    let mut first = true;
-    loop {
-        let points = level_points(w, h, s, first);
-        stats.points += points.len() as u64;
+    for (k, &s) in level_spacings(&params).iter().enumerate() {
+        let level = k as u32;
         stats.levels += 1;
-        let mut candidates = uncovered(kernel, tracer, &cache, &points, &mut stats);
-        let room = params.max_records.saturating_sub(cache.len());
-        stats.refused += candidates.len().saturating_sub(room) as u64;
-        candidates.truncate(room);
-        let measured: Vec<_> = candidates
-            .par_iter()
-            .map(|c| {
-                let mut st = TraceStats::default();
-                let est = measure(kernel, tracer, c, strata, &mut st);
-                (est, st)
-            })
-            .collect();
-        for (c, (est, st)) in candidates.iter().zip(measured) {
-            stats.trace += st;
-            cache.insert(c.frame.p, c.frame.ns, &est, c.footprint);
+        let mut mine = Vec::new();
+        let mut level_trace = TraceStats::default();
+        if level >= share.resume {
+            let points = level_points(w, h, s, k == 0);
+            stats.points += points.len() as u64;
+            let mut candidates = uncovered(kernel, tracer, &cache, &points, &mut level_trace);
+            let room = params.max_records.saturating_sub(cache.len());
+            stats.refused += candidates.len().saturating_sub(room) as u64;
+            candidates.truncate(room);
+            let own: Vec<(u32, &Candidate)> = (0u32..)
+                .zip(&candidates)
+                .filter(|(i, _)| measurer(*i, share.shares) == share.me)
+                .collect();
+            let measured: Vec<_> = own
+                .par_iter()
+                .map(|&(i, c)| {
+                    let mut st = TraceStats::default();
+                    let est = measure(kernel, tracer, c, strata, &mut st);
+                    let m = Measured {
+                        p: c.frame.p,
+                        n: c.frame.ns,
+                        footprint: c.footprint,
+                        est,
+                    };
+                    ((i, m), st)
+                })
+                .collect();
+            for (m, st) in measured {
+                level_trace += st;
+                mine.push(m);
+            }
         }
-        if s == 1 {
-            break;
+        stats.trace += level_trace;
+        for m in exchange(level, mine, &level_trace)? {
+            cache.add(&m);
         }
-        s /= 2;
-        first = false;
     }
     stats.records = cache.len() as u64;
     stats.bytes = cache.bytes() as u64;
     stats.seconds = start.elapsed().as_secs_f64();
-    (cache, stats)
+    Ok((cache, stats))
 }
 
 #[cfg(test)]

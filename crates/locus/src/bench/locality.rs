@@ -168,7 +168,7 @@ fn row_of(
         cache_bytes: t.cache_memory.bytes,
         bytes_ratio: 1.0,
         records: f.irradiance.map_or(0, |i| i.records),
-        records_bytes: f.irradiance.map_or(0, |i| i.bytes_sent),
+        records_bytes: f.irradiance.map_or(0, |i| i.bytes_sent + i.bytes_gathered),
     }
 }
 

@@ -57,10 +57,16 @@ impl Actor {
         let (events, scene, options) =
             (self.events.clone(), j.scene.clone(), j.req.options.clone());
         let rects = j.film.tiles().to_vec();
+        let known = j
+            .overture
+            .as_ref()
+            .map(|o| o.levels.clone())
+            .unwrap_or_default();
         tokio::spawn(async move {
-            let prep =
-                tokio::task::spawn_blocking(move || job::prepare(scene, &options, &info, &rects))
-                    .await;
+            let prep = tokio::task::spawn_blocking(move || {
+                job::prepare(scene, &options, &info, &rects, &known)
+            })
+            .await;
             let prep = match prep {
                 Ok(Ok(p)) => Ok(Box::new(p)),
                 Ok(Err(e)) => Err(e),
@@ -82,6 +88,7 @@ impl Actor {
                 return;
             }
         };
+        j.take_overture(&mut prep);
         let a = &mut j.attempt;
         a.t_prepared = Some(Instant::now());
         a.advance(Phase::Distributing);
@@ -101,7 +108,7 @@ impl Actor {
                 (w.reg.listen.clone(), w.tx.clone())
             })
             .collect();
-        distribute::ship(run, &j.req, &mut prep, txs);
+        distribute::ship(run, &j.req, &mut prep, txs, j.overture.as_ref());
         a.prep = Some(prep);
     }
 
@@ -126,6 +133,7 @@ impl Actor {
             | WorkerToScheduler::Failed { job, .. }
             | WorkerToScheduler::Node { job, .. } => *job,
             WorkerToScheduler::TileDone(t) => t.job,
+            WorkerToScheduler::Measured(c) => c.job,
             WorkerToScheduler::Heartbeat => return,
         };
         let (Some(w), Some(j)) = (self.member(id), self.job.as_mut()) else {
@@ -190,6 +198,7 @@ impl Actor {
                 let why = format!("worker {w} sent a radiosity message in a render job");
                 self.recover(Setback::Failed { w }, why);
             }
+            WorkerToScheduler::Measured(c) => self.on_measured(w, *c),
             WorkerToScheduler::Heartbeat => {}
         }
     }

@@ -18,6 +18,8 @@
 
 mod attempt;
 mod clients;
+mod overture;
+pub(crate) use overture::shares;
 mod radiosity;
 
 pub use clients::FINISHED_KEPT;
@@ -173,6 +175,8 @@ pub struct Running {
     past_runs: Vec<u64>,
     /// Attempts in a row that failed with no worker lost.
     failures: u32,
+    /// The irradiance cache's levels so far, kept across attempts.
+    pub overture: Option<crate::overture::Overture>,
     pub attempt: Attempt,
 }
 
@@ -206,6 +210,8 @@ pub struct Attempt {
     pub(crate) before: (u64, u64),
     told_no_more: Vec<bool>,
     ready: usize,
+    /// The overture level the members are measuring, if they are.
+    round: Option<crate::overture::Round>,
     pub reports: Vec<Option<WorkerStats>>,
     /// On tokio's clock: when a waiting job gives up.
     waiting_since: tokio::time::Instant,
@@ -229,6 +235,7 @@ impl Attempt {
             before,
             told_no_more: Vec::new(),
             ready: 0,
+            round: None,
             reports: Vec::new(),
             waiting_since: tokio::time::Instant::now(),
             started: Instant::now(),
@@ -582,6 +589,7 @@ impl Actor {
             }
         }
         let before = film.done();
+        let req_irradiance = req.options.irradiance;
         self.job = Some(Running {
             id,
             film,
@@ -595,6 +603,7 @@ impl Actor {
             },
             failures: 0,
             past_runs: Vec::new(),
+            overture: req_irradiance.map(crate::overture::Overture::new),
             attempt: Attempt::waiting(before),
         });
         self.start_attempt(idle[..want].to_vec());

@@ -72,17 +72,12 @@ pub struct EngineJob {
 }
 
 impl EngineJob {
-    pub fn new(mut setup: JobSetup) -> Self {
+    /// The engine's job; `irradiance` is the cache its overture built.
+    pub fn new(setup: JobSetup, irradiance: Option<IrradianceCache>) -> Self {
         let caches = setup.cache.map(|mut p| {
             p.max_nodes_total = p.max_nodes_total.min(setup.plan.cache_nodes as usize);
             LeafCaches::new(setup.map.tree.leaves.len(), p)
         });
-        // Checked with the rest of the setup; moved out so that the
-        // records are held once.
-        let irradiance = setup
-            .irradiance
-            .take()
-            .and_then(|set| IrradianceCache::from_set(set).ok());
         let locality = Locality::new(&setup);
         Self {
             workers: setup.peers.len(),
