@@ -229,6 +229,7 @@ pub enum Outcome {
 }
 
 /// Everything that evaluating a vertex needs besides the geometry.
+#[derive(Clone, Copy)]
 pub struct Kernel<'a> {
     pub materials: &'a [Material],
     pub lights: &'a LightSet,

@@ -240,9 +240,15 @@ pub fn render(
         .build()
         .expect("thread pool");
     // The overture fills the irradiance cache; the render only reads it.
+    // It measures without the directional caches, as the farm's measurers
+    // do, so the records are the same wherever they are made.
     let ambient = opts.irradiance.map(|p| {
         let bounds = Bounds::of_triangles(&prep.scene.tris);
-        pool.install(|| overture::build(&kernel, &tracer, p, &bounds))
+        let exact = Kernel {
+            cache: None,
+            ..kernel
+        };
+        pool.install(|| overture::build(&exact, &tracer, p, &bounds))
     });
     kernel.irradiance = ambient.as_ref().map(|a| &a.0);
     let results: Vec<(Tile, Vec<[f32; 3]>, TraceStats)> = pool.install(|| {

@@ -229,3 +229,31 @@ fn members_sharing_the_overture_hold_the_records_one_machine_makes() {
     assert_eq!(again, known);
     assert!(stats.points > 0 && stats.levels as usize == known.len());
 }
+
+/// The overture measures without the directional caches, as the farm's
+/// measurers do: switching them on changes the render, not the records.
+#[test]
+fn the_directional_cache_leaves_the_records_alone() {
+    let prep = prepared(32, 8);
+    let mut opts = RenderOptions::from_scene(&prep.scene);
+    opts.irradiance = Some(IrradianceParams {
+        divisions: 64,
+        ..Default::default()
+    });
+    opts.threads = 2;
+    let plain = render(&prep, &opts, &|_, _| {});
+    opts.cache = Some(locus_core::dircache::CacheParams {
+        radius: 0.5,
+        ..Default::default()
+    });
+    let both = render(&prep, &opts, &|_, _| {});
+    // Rays reached the directional caches' perimeters in the render.
+    let c = both.stats.cache;
+    assert!(c.global + c.lookups > 0, "{c:?}");
+    let (a, b) = (plain.irradiance.unwrap(), both.irradiance.unwrap());
+    assert_eq!(a.records, b.records);
+    assert_eq!(
+        (a.trace.rays(), a.trace.bvh_nodes),
+        (b.trace.rays(), b.trace.bvh_nodes)
+    );
+}

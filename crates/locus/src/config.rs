@@ -370,10 +370,12 @@ certificate = \"x\"\n"
             .map(|n| Preset::load(&dir.join(format!("{n}.toml"))).unwrap())
             .collect();
         assert_eq!(p[0].name, "accurate");
-        // More effort, stricter cache, from accurate to low.
+        // More effort and finer cache cells, from accurate to low.
         assert!(p[0].spp > p[1].spp && p[1].spp > p[2].spp);
-        assert!(p[0].cache.answer_rel_error < p[1].cache.answer_rel_error);
-        assert!(p[0].cache.radius > p[2].cache.radius);
+        let c: Vec<_> = p.iter().map(|p| p.cache).collect();
+        assert!(c[0].fine_solid_angle < c[1].fine_solid_angle);
+        assert!(c[1].fine_solid_angle < c[2].fine_solid_angle);
+        assert!(c[0].max_depth > c[1].max_depth && c[1].max_depth > c[2].max_depth);
         let a: Vec<_> = p.iter().map(|p| p.irradiance).collect();
         assert!(a[0].accuracy < a[1].accuracy && a[1].accuracy < a[2].accuracy);
         assert!(a[0].divisions > a[1].divisions && a[1].divisions > a[2].divisions);
