@@ -7,7 +7,6 @@ use super::{Actor, Running};
 use crate::job::Prepared;
 use crate::overture::{Round, send_levels};
 use locus_core::irradiance::overture::level_spacings;
-use locus_protocol::control::WorkerToScheduler;
 use locus_protocol::overture::MeasuredChunk;
 use std::sync::Arc;
 use tracing::info;
@@ -41,10 +40,9 @@ impl Actor {
     /// Member `w`'s measurements of the level in progress: checked, and
     /// once every member's are in, merged, kept and sent to every member.
     pub(super) fn on_measured(&mut self, w: usize, c: MeasuredChunk) {
-        let bytes = postcard::experimental::serialized_size(&WorkerToScheduler::Measured(Box::new(
-            c.clone(),
-        )))
-        .unwrap_or(0) as u64;
+        // As encoded: the chunk and its one-byte variant tag (no copy of
+        // the chunk to wrap it).
+        let bytes = postcard::experimental::serialized_size(&c).map_or(0, |n| n as u64 + 1);
         let j = self.job.as_mut().expect("a member's job");
         let (Some(o), Some(round)) = (j.overture.as_mut(), j.attempt.round.as_mut()) else {
             let why = format!("worker {w} sent irradiance measurements no level waits for");
