@@ -244,6 +244,39 @@ pub struct Kernel<'a> {
     pub irradiance: Option<&'a IrradianceCache>,
 }
 
+impl<'a> Kernel<'a> {
+    /// A kernel that traces every ray: no directional or irradiance cache.
+    pub fn exact(
+        materials: &'a [Material],
+        lights: &'a LightSet,
+        camera: &'a Camera,
+        seed: u64,
+        sampler: Sampler,
+        max_depth: u32,
+    ) -> Self {
+        Self {
+            materials,
+            lights,
+            camera,
+            seed,
+            sampler,
+            max_depth,
+            cache: None,
+            irradiance: None,
+        }
+    }
+
+    /// This kernel without its caches: what the irradiance overture
+    /// measures with, wherever it runs.
+    pub fn without_caches(&self) -> Self {
+        Self {
+            cache: None,
+            irradiance: None,
+            ..*self
+        }
+    }
+}
+
 impl Kernel<'_> {
     /// The key of a camera sample.
     #[inline]

@@ -90,14 +90,15 @@ impl Prepared {
     /// The path kernel over this scene.
     pub fn kernel<'a>(&'a self, max_depth: u32, cache: Option<CacheUse<'a>>) -> Kernel<'a> {
         Kernel {
-            materials: &self.scene.materials,
-            lights: &self.lights,
-            camera: &self.scene.camera,
-            seed: self.scene.settings.seed,
-            sampler: self.scene.settings.sampler,
-            max_depth,
             cache,
-            irradiance: None,
+            ..Kernel::exact(
+                &self.scene.materials,
+                &self.lights,
+                &self.scene.camera,
+                self.scene.settings.seed,
+                self.scene.settings.sampler,
+                max_depth,
+            )
         }
     }
 }
@@ -244,11 +245,7 @@ pub fn render(
     // do, so the records are the same wherever they are made.
     let ambient = opts.irradiance.map(|p| {
         let bounds = Bounds::of_triangles(&prep.scene.tris);
-        let exact = Kernel {
-            cache: None,
-            ..kernel
-        };
-        pool.install(|| overture::build(&exact, &tracer, p, &bounds))
+        pool.install(|| overture::build(&kernel.without_caches(), &tracer, p, &bounds))
     });
     kernel.irradiance = ambient.as_ref().map(|a| &a.0);
     let results: Vec<(Tile, Vec<[f32; 3]>, TraceStats)> = pool.install(|| {

@@ -200,9 +200,12 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
 
     let (outs, writers) = link_peers(&setup.peers, job, me, &env, &traffic).await?;
 
-    let irradiance = match (&setup.irradiance, levels) {
-        (Some(_), Some((_, rx))) => Some(irradiance(setup.clone(), parts.clone(), rx, &env).await?),
-        _ => None,
+    let (setup, irradiance) = match (setup.irradiance.is_some(), levels) {
+        (true, Some((_, rx))) => {
+            let (setup, cache) = irradiance(setup, parts.clone(), rx, &env).await?;
+            (setup, Some(cache))
+        }
+        _ => (setup, None),
     };
     let ej = Arc::new(EngineJob::new(*setup, irradiance));
     let links = Links {
@@ -270,32 +273,35 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
     Ok(link)
 }
 
-/// The job's irradiance cache, from its overture on a blocking thread.
+/// The job's irradiance cache, from its overture on a blocking thread; the
+/// setup goes there and comes back, as it holds the job's geometry.
 async fn irradiance(
     setup: Box<JobSetup>,
     parts: Vec<Arc<Part>>,
     levels: flume::Receiver<LevelChunk>,
     env: &Env,
-) -> anyhow::Result<IrradianceCache> {
+) -> anyhow::Result<(Box<JobSetup>, IrradianceCache)> {
     let (control, cancel, threads) = (env.control.clone(), env.cancel.clone(), env.threads);
-    let (cache, stats) = tokio::task::spawn_blocking(move || {
+    let (setup, built) = tokio::task::spawn_blocking(move || {
         let irr = setup.irradiance.as_ref().expect("checked by the caller");
         let links = crate::overture::Links {
             control: &control,
             levels: &levels,
             cancel: &cancel,
         };
-        crate::overture::build(&setup, irr, parts, threads, links)
+        let built = crate::overture::build(&setup, irr, parts, threads, links);
+        (setup, built)
     })
     .await
-    .context("the irradiance overture crashed")??;
+    .context("the irradiance overture crashed")?;
+    let (cache, stats) = built?;
     info!(
         records = stats.records,
         rays = stats.trace.rays(),
         seconds = stats.seconds,
         "irradiance cache built"
     );
-    Ok(cache)
+    Ok((setup, cache))
 }
 
 /// Outgoing peer channels (none for this worker itself) and the tasks

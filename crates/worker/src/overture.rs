@@ -43,16 +43,14 @@ pub fn build(
         bail!("asked to measure irradiance records without holding the whole scene");
     }
     let accel = AccelSet::from_parts(parts);
-    let kernel = Kernel {
-        materials: &setup.materials,
-        lights: &setup.lights,
-        camera: &setup.camera,
-        seed: setup.seed,
-        sampler: setup.sampler,
-        max_depth: setup.max_depth,
-        cache: None,
-        irradiance: None,
-    };
+    let kernel = Kernel::exact(
+        &setup.materials,
+        &setup.lights,
+        &setup.camera,
+        setup.seed,
+        setup.sampler,
+        setup.max_depth,
+    );
     let share = Share {
         me: setup.me as usize,
         shares: &irr.shares,

@@ -237,16 +237,14 @@ pub fn for_scene(
     known: &[Vec<Measured>],
 ) -> (IrradianceCache, OvertureStats, Vec<Vec<Measured>>) {
     let accel = crate::render::whole_scene_accel(scene);
-    let kernel = Kernel {
-        materials: &scene.materials,
+    let kernel = Kernel::exact(
+        &scene.materials,
         lights,
-        camera: &scene.camera,
-        seed: scene.settings.seed,
-        sampler: scene.settings.sampler,
-        max_depth: scene.settings.max_depth,
-        cache: None,
-        irradiance: None,
-    };
+        &scene.camera,
+        scene.settings.seed,
+        scene.settings.sampler,
+        scene.settings.max_depth,
+    );
     let bounds = Bounds::of_triangles(&scene.tris);
     let share = Share {
         resume: known.len() as u32,

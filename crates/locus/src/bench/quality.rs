@@ -238,8 +238,14 @@ pub fn run(plan: &Plan) -> Result<Outcome> {
             });
         }
     }
+    // Mitsuba failing (a package missing from its Python, say) loses none
+    // of locus's rows: they are written first, then the error is returned.
+    let mut mitsuba_failed = None;
     if let Some(mi) = &plan.mitsuba {
-        rows.extend(mitsuba(plan, mi, &scene, &reference)?);
+        match mitsuba(plan, mi, &scene, &reference) {
+            Ok(r) => rows.extend(r),
+            Err(e) => mitsuba_failed = Some(e),
+        }
     }
     let title = format!(
         "{} {}x{}, max depth {}, {} threads",
@@ -261,6 +267,12 @@ pub fn run(plan: &Plan) -> Result<Outcome> {
     write(&plan.out_dir.join("quality.md"), &markdown(&out))?;
     write(&plan.out_dir.join("quality.csv"), &csv(&out.rows))?;
     plot(&plan.out_dir.join("quality.svg"), &out.title, &out.rows)?;
+    if let Some(e) = mitsuba_failed {
+        return Err(e.context(format!(
+            "Mitsuba's rows are missing; locus's are in {}",
+            plan.out_dir.join("quality.md").display()
+        )));
+    }
     Ok(out)
 }
 

@@ -60,8 +60,12 @@ impl Actor {
         if !complete {
             return;
         }
-        let round = j.attempt.round.take().expect("checked above");
-        let (level, shares, slowest) = (round.level, round.shares.clone(), round.slowest);
+        let mut round = j.attempt.round.take().expect("checked above");
+        let (level, shares, slowest) = (
+            round.level,
+            std::mem::take(&mut round.shares),
+            round.slowest,
+        );
         let merged = match round.merge() {
             Ok(m) => Arc::new(m),
             Err(e) => return self.recover(Setback::Failed { w }, e),

@@ -92,17 +92,19 @@ impl EngineJob {
     pub fn kernel(&self) -> Kernel<'_> {
         let s = &self.setup;
         Kernel {
-            materials: &s.materials,
-            lights: &s.lights,
-            camera: &s.camera,
-            seed: s.seed,
-            sampler: s.sampler,
-            max_depth: s.max_depth,
             cache: self.caches.as_ref().map(|c| CacheUse {
                 octree: &s.map.tree,
                 caches: c,
             }),
             irradiance: self.irradiance.as_ref(),
+            ..Kernel::exact(
+                &s.materials,
+                &s.lights,
+                &s.camera,
+                s.seed,
+                s.sampler,
+                s.max_depth,
+            )
         }
     }
 
