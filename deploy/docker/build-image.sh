@@ -13,7 +13,12 @@ ctx="$root/target/docker-context"
 if [[ -z "${LOCUS_BIN:-}" ]]; then
     target="$(rustc -vV | sed -n 's/^host: //p')"
     echo "building a static locus for $target" >&2
-    (cd "$root" && RUSTFLAGS="-C target-feature=+crt-static" \
+    flags="-C target-feature=+crt-static"
+    # RUSTFLAGS replaces .cargo/config.toml's flags: its target-cpu is repeated.
+    if [[ "$target" == x86_64-* ]]; then
+        flags="$flags -C target-cpu=x86-64-v2"
+    fi
+    (cd "$root" && RUSTFLAGS="$flags" \
         CARGO_TARGET_DIR="$root/target/static" \
         cargo build --release --locked --target "$target" -p locus)
     LOCUS_BIN="$root/target/static/$target/release/locus"

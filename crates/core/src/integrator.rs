@@ -14,7 +14,7 @@
 //! one state machine of [`crate::path`].
 //!
 //! Sampling dimensions are keyed by path vertex: vertex `d` (1 for the first
-//! surface hit) uses dimensions `vertex_dim(d) ..+6`. Where a vertex is
+//! surface hit) uses dimensions `vertex_dim(d) ..+5`. Where a vertex is
 //! shaded therefore never changes which random numbers it sees.
 
 use crate::accel::Hit;
@@ -31,9 +31,10 @@ use std::f32::consts::PI;
 
 /// Dimensions 0 and 1 jitter the camera ray inside the pixel.
 pub const DIM_PIXEL: u32 = 0;
-/// Dimensions used per path vertex: light selection (1), light point (2),
-/// BSDF direction (2), Russian roulette (1).
-pub const DIMS_PER_VERTEX: u32 = 6;
+/// Dimensions used per path vertex: the light's choice and point (2, one
+/// pattern: see [`LightSet::sample`]), BSDF direction (2), Russian
+/// roulette (1).
+pub const DIMS_PER_VERTEX: u32 = 5;
 
 /// Russian roulette starts at the fifth surface vertex (Mitsuba 3's
 /// `rr_depth`): ending paths earlier, at the third, threw away most of the
@@ -305,7 +306,7 @@ pub fn shade(
         });
 
     // Next-event estimation.
-    if let Some(ls) = lights.sample(key.get1d(base), key.get2d(base + 1)) {
+    if let Some(ls) = lights.sample(key.get2d_bits(base)) {
         let target = ls.point + ls.normal * spawn_offset(&ls.verts);
         let to = ls.point - p;
         let dist2 = to.length_squared();
@@ -335,7 +336,7 @@ pub fn shade(
         return out;
     }
     // Continue by cosine sampling: f cos / pdf = albedo.
-    let wi = cosine_hemisphere(ns, key.get2d(base + 3));
+    let wi = cosine_hemisphere(ns, key.get2d(base + 2));
     let pdf_b = ns.dot(wi) / PI;
     if pdf_b.is_nan() || pdf_b <= 0.0 || (shaded && n.dot(wi) <= 0.0) {
         return out;
@@ -344,7 +345,7 @@ pub fn shade(
     let mut beta = q.beta * mat.albedo;
     if vertex >= RR_START_VERTEX {
         let p = beta.max_element().min(RR_MAX_CONTINUE);
-        if key.get1d(base + 5) >= p {
+        if key.get1d(base + 4) >= p {
             return out;
         }
         scale /= p;

@@ -2,6 +2,13 @@
 //! proportional to its emitted power (area times luminance of emission), then
 //! sampled uniformly by area.
 //!
+//! One 2D sample does both: its first coordinate picks the emitter and,
+//! rescaled to the emitter's share of the unit interval, places the point
+//! with the second. So the points of a low-discrepancy pattern stay
+//! stratified over all emitters together (the two triangles of a quad
+//! light are one light to the pattern), where a separate selection
+//! dimension dealt them out at random between the triangles.
+//!
 //! A `LightSet` carries the emitters' own vertices and emission, so a farm
 //! worker can sample every light of the scene (next-event estimation needs
 //! them all) while holding only its region's geometry.
@@ -35,23 +42,32 @@ pub struct LightSample {
     pub verts: [Vec3; 3],
 }
 
+/// The largest f32 below 1.
+const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
+
 fn luminance(c: Vec3) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
 impl LightSet {
     pub fn build(scene: &Scene) -> Self {
+        Self::from_emitters(scene.tri_material.iter().enumerate().filter_map(|(i, &m)| {
+            let e = scene.materials[m as usize].emission;
+            (e.max_element() > 0.0).then_some((i as u32, scene.tris[i], e))
+        }))
+    }
+
+    /// The emitters `(global triangle id, vertices, emission)`, ids
+    /// ascending.
+    pub fn from_emitters(emitters: impl IntoIterator<Item = (u32, [Vec3; 3], Vec3)>) -> Self {
         let mut s = Self::default();
         let mut power = Vec::new();
-        for (i, &m) in scene.tri_material.iter().enumerate() {
-            let e = scene.materials[m as usize].emission;
+        for (id, v, e) in emitters {
             let l = luminance(e).max(e.max_element() * 1e-3);
-            if e.max_element() > 0.0 {
-                s.tris.push(i as u32);
-                s.verts.push(scene.tris[i]);
-                s.emission.push(e);
-                power.push(tri_area_f64(&scene.tris[i]) * l as f64);
-            }
+            s.tris.push(id);
+            s.verts.push(v);
+            s.emission.push(e);
+            power.push(tri_area_f64(&v) * l as f64);
         }
         let total: f64 = power.iter().sum();
         let mut acc = 0.0;
@@ -81,16 +97,28 @@ impl LightSet {
         }
     }
 
-    pub fn sample(&self, u_select: f32, u_point: [f32; 2]) -> Option<LightSample> {
+    /// A point on an emitter from the 2D sample `u` (32-bit fractions, as
+    /// [`crate::sampler::SampleKey::get2d_bits`] gives them).
+    pub fn sample(&self, u: [u32; 2]) -> Option<LightSample> {
         if self.tris.is_empty() {
             return None;
         }
+        let x = u[0] as f64 * (1.0 / 4_294_967_296.0);
         let k = self
             .cdf
-            .partition_point(|&c| c <= u_select as f64)
+            .partition_point(|&c| c <= x)
             .min(self.tris.len() - 1);
+        let lo = if k == 0 { 0.0 } else { self.cdf[k - 1] };
+        let hi = self.cdf[k];
+        // Where `x` lies within the emitter's share, as a fresh uniform
+        // value (32 bits of `x` keep at least 24 for a share above 2^-8).
+        let rescaled = if hi > lo {
+            (((x - lo) / (hi - lo)) as f32).clamp(0.0, ONE_BELOW)
+        } else {
+            0.5
+        };
         let v = self.verts[k];
-        let (b1, b2) = uniform_triangle(u_point);
+        let (b1, b2) = uniform_triangle([rescaled, (u[1] >> 8) as f32 * (1.0 / 16_777_216.0)]);
         Some(LightSample {
             tri: self.tris[k],
             point: crate::geometry::hit_point(&v, b1, b2),
@@ -99,5 +127,117 @@ impl LightSet {
             pdf_area: self.pdf_area[k],
             verts: v,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sampler::{SampleKey, Sampler};
+
+    /// A 2 x 1 quad light of two triangles, and a small bright triangle
+    /// beside it with three times its power (area 1/8, emission 48).
+    fn lights() -> LightSet {
+        let (a, b, c, d) = (
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(2.0, 0.0, 0.0),
+            Vec3::new(2.0, 1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        );
+        let small = [
+            Vec3::new(3.0, 0.0, 0.0),
+            Vec3::new(3.5, 0.0, 0.0),
+            Vec3::new(3.0, 0.5, 0.0),
+        ];
+        LightSet::from_emitters([
+            (0, [a, b, c], Vec3::ONE),
+            (1, [a, c, d], Vec3::ONE),
+            (7, small, Vec3::splat(48.0)),
+        ])
+    }
+
+    /// The exact mean of `f` over the lights, weighted by power: the
+    /// quad's (x, y) mean is (1, 0.5), the small triangle's its centroid.
+    fn exact_mean_x() -> f64 {
+        0.25 * 1.0 + 0.75 * (3.0 + 0.5 / 3.0)
+    }
+
+    /// Every sample lands on its emitter with that emitter's area pdf, and
+    /// the emitters are chosen in proportion to power: the mean x of the
+    /// points converges to the power-weighted mean. With Sobol the choice
+    /// and the point are one stratified pattern, so its error at 1024
+    /// points is far below independent sampling's standard error (a
+    /// separate choice dimension dealt the pattern's points out between
+    /// the emitters at random and was no better than that error).
+    #[test]
+    fn one_pattern_chooses_the_emitter_and_places_the_point() {
+        let set = lights();
+        let n = 1024u32;
+        let pixels = 64u64;
+        let (mut se_sobol, mut se_indep, mut var_indep) = (0.0f64, 0.0f64, 0.0f64);
+        for sampler in [Sampler::Sobol, Sampler::Independent] {
+            for pixel in 0..pixels {
+                let (mut sum, mut sum2) = (0.0f64, 0.0f64);
+                let mut counts = [0u32; 3];
+                for i in 0..n {
+                    let key = SampleKey::new(pixel, i, 5, sampler);
+                    let s = set.sample(key.get2d_bits(7)).unwrap();
+                    let k = set.tris.binary_search(&s.tri).unwrap();
+                    counts[k] += 1;
+                    assert!((s.pdf_area - set.pdf_area(s.tri)).abs() == 0.0);
+                    let x = s.point.x as f64;
+                    sum += x;
+                    sum2 += x * x;
+                }
+                let mean = sum / n as f64;
+                let err2 = (mean - exact_mean_x()).powi(2);
+                match sampler {
+                    Sampler::Sobol => {
+                        // Power 1 : 1 : 6 over 1024 stratified points.
+                        assert_eq!(counts, [128, 128, 768], "pixel {pixel}");
+                        se_sobol += err2;
+                    }
+                    Sampler::Independent => {
+                        se_indep += err2;
+                        var_indep += (sum2 / n as f64 - mean * mean) / n as f64;
+                    }
+                }
+            }
+        }
+        let (rms_sobol, rms_indep, sigma) = (
+            (se_sobol / pixels as f64).sqrt(),
+            (se_indep / pixels as f64).sqrt(),
+            (var_indep / pixels as f64).sqrt(),
+        );
+        // Independent sampling is unbiased: its RMS error over 64 pixels
+        // is its standard error to within a few tenths.
+        assert!(
+            (rms_indep / sigma - 1.0).abs() < 0.3,
+            "independent: rms {rms_indep}, standard error {sigma}"
+        );
+        assert!(
+            rms_sobol < 0.05 * sigma,
+            "sobol: rms {rms_sobol} against the standard error {sigma}"
+        );
+        // The choice from a dimension of its own, as before: its error
+        // (measured: 0.22 of the standard error, against 0.004 above) stays
+        // above a tenth of it, so the bound above tells the two apart.
+        let mut se_apart = 0.0f64;
+        for pixel in 0..pixels {
+            let mut sum = 0.0f64;
+            for i in 0..n {
+                let key = SampleKey::new(pixel, i, 5, Sampler::Sobol);
+                let u = key.get1d(6) as f64;
+                let k = set.cdf.partition_point(|&c| c <= u);
+                let (b1, b2) = uniform_triangle(key.get2d(7));
+                sum += crate::geometry::hit_point(&set.verts[k], b1, b2).x as f64;
+            }
+            se_apart += (sum / n as f64 - exact_mean_x()).powi(2);
+        }
+        let rms_apart = (se_apart / pixels as f64).sqrt();
+        assert!(
+            rms_apart > 0.1 * sigma,
+            "a separate choice: rms {rms_apart}, standard error {sigma}"
+        );
     }
 }

@@ -138,8 +138,20 @@ impl SampleKey {
     /// Two values from dimensions `dim` and `dim + 1`, one 2D pattern.
     #[inline(always)]
     pub fn get2d(&self, dim: u32) -> [f32; 2] {
+        let [x, y] = self.get2d_bits(dim);
+        [(x >> 8) as f32 * UNIT, (y >> 8) as f32 * UNIT]
+    }
+
+    /// The 2D pattern of [`Self::get2d`] as 32-bit fractions (value times
+    /// 2^32), for a caller that spends part of a coordinate on a discrete
+    /// choice and keeps the rest (see [`crate::light::LightSet::sample`]).
+    #[inline(always)]
+    pub fn get2d_bits(&self, dim: u32) -> [u32; 2] {
         match self.sampler {
-            Sampler::Independent => [self.get1d(dim), self.get1d(dim + 1)],
+            Sampler::Independent => [
+                (self.bits(dim) >> 32) as u32,
+                (self.bits(dim + 1) >> 32) as u32,
+            ],
             Sampler::Sobol => {
                 let (r, h) = self.sobol_pattern(dim);
                 let i = r.reverse_bits();
@@ -148,7 +160,7 @@ impl SampleKey {
                 // reversed is the index itself.
                 let x = laine_karras(i, (h >> 32) as u32).reverse_bits();
                 let y = laine_karras(sobol_dim1_reversed(i), mix64(h) as u32).reverse_bits();
-                [(x >> 8) as f32 * UNIT, (y >> 8) as f32 * UNIT]
+                [x, y]
             }
         }
     }

@@ -19,7 +19,45 @@ use clap::Parser;
 use cli::{Cli, Cmd};
 use commands::{bench::*, daemons::*, render::*, tools::*};
 
+/// Refuses to run on a processor without the instruction-set extensions
+/// this binary was built to use (`.cargo/config.toml` builds for
+/// x86-64-v2), with a message rather than an illegal instruction later.
+#[cfg(target_arch = "x86_64")]
+#[inline(never)]
+fn check_cpu() {
+    use std::arch::is_x86_feature_detected as has;
+    let missing: Vec<&str> = [
+        ("popcnt", cfg!(target_feature = "popcnt") && !has!("popcnt")),
+        ("sse4.2", cfg!(target_feature = "sse4.2") && !has!("sse4.2")),
+        ("sse4.1", cfg!(target_feature = "sse4.1") && !has!("sse4.1")),
+        ("ssse3", cfg!(target_feature = "ssse3") && !has!("ssse3")),
+        (
+            "cmpxchg16b",
+            cfg!(target_feature = "cmpxchg16b") && !has!("cmpxchg16b"),
+        ),
+        ("avx", cfg!(target_feature = "avx") && !has!("avx")),
+        ("avx2", cfg!(target_feature = "avx2") && !has!("avx2")),
+        ("fma", cfg!(target_feature = "fma") && !has!("fma")),
+        ("bmi2", cfg!(target_feature = "bmi2") && !has!("bmi2")),
+    ]
+    .into_iter()
+    .filter_map(|(name, lacking)| lacking.then_some(name))
+    .collect();
+    if !missing.is_empty() {
+        eprintln!(
+            "error: this locus was built for processors with {} and this one lacks them; \
+             build it with RUSTFLAGS=\"-C target-cpu=x86-64\" for any x86-64 processor",
+            missing.join(", ")
+        );
+        std::process::exit(2);
+    }
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn check_cpu() {}
+
 fn main() {
+    check_cpu();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
