@@ -1,8 +1,10 @@
 //! Ray queries through an obvhs CWBVH over a set of triangles.
 //!
-//! The BVH is built over padded triangle boxes (see [`Accel::build`]); the
-//! triangles are stored in BVH order with their global ids and materials,
-//! and the global id stays the identity of a triangle everywhere in locus.
+//! The BVH is built over padded triangle boxes (see [`Accel::build`]), a
+//! large triangle cut into several tighter boxes first (obvhs's spatial
+//! pre-splits, after Embree's); the triangles are stored in BVH order with
+//! their global ids and materials, once per box, and the global id stays
+//! the identity of a triangle everywhere in locus.
 //! Closest hits at equal distance resolve to the smaller global id, so the
 //! answer does not depend on BVH layout, and therefore not on which worker
 //! traced the ray. [`crate::accel_set::AccelSet`] traces several such BVHs
@@ -18,6 +20,8 @@ use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::builder::build_cwbvh;
 use std::ops::ControlFlow;
 use std::time::Duration;
+
+mod cwnode;
 
 /// A closest hit: global triangle id plus distance and barycentrics.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -75,7 +79,8 @@ pub struct Accel {
     material: Vec<u32>,
     /// Shading normals of each BVH primitive; empty when none has any.
     normals: Vec<[Vec3; 3]>,
-    /// Primitive positions ordered by global id, for serving triangles by id.
+    /// One primitive position per triangle, ordered by global id, for
+    /// serving triangles by id (a split triangle's copies are identical).
     by_id: Vec<u32>,
     /// Bounds of the padded triangle boxes.
     bounds: Bounds,
@@ -152,18 +157,15 @@ impl Accel {
         assert!(set.is_consistent(), "one vertex triple and material per id");
         let pad = Vec3A::splat(magnitude * crate::geometry::SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
         let mut bounds = Bounds::EMPTY;
-        let boxes: Vec<Aabb> = set
-            .verts
-            .iter()
-            .map(|t| {
-                let mut b = Aabb::from_points(&[t[0].into(), t[1].into(), t[2].into()]);
-                b.min -= pad;
-                b.max += pad;
-                bounds.grow(b.min.into());
-                bounds.grow(b.max.into());
-                b
-            })
-            .collect();
+        let (mut boxes, of_box) = split_boxes(&set.verts);
+        // Padded after the split: the clipped corners are rounded in f32,
+        // and the pad covers that as it covers a grazing ray's box test.
+        for b in &mut boxes {
+            b.min -= pad;
+            b.max += pad;
+            bounds.grow(b.min.into());
+            bounds.grow(b.max.into());
+        }
         let mut core = Duration::default();
         let mut bvh = if boxes.is_empty() {
             CwBvh::default()
@@ -172,9 +174,12 @@ impl Accel {
         };
         drop(boxes);
         // Traversal reports positions in the primitive order, and the
-        // triangles are stored in that order: the index list is not needed
-        // past this point.
-        let order = std::mem::take(&mut bvh.primitive_indices);
+        // triangles are stored in that order (a split one at each of its
+        // boxes): the index list is not needed past this point.
+        let order: Vec<u32> = std::mem::take(&mut bvh.primitive_indices)
+            .into_iter()
+            .map(|p| of_box[p as usize])
+            .collect();
         bvh.exact_node_aabbs = None;
         let verts = order.iter().map(|&p| set.verts[p as usize]).collect();
         let ids: Vec<u32> = order.iter().map(|&p| set.ids[p as usize]).collect();
@@ -187,6 +192,7 @@ impl Accel {
         drop(set);
         let mut by_id: Vec<u32> = (0..ids.len() as u32).collect();
         by_id.sort_unstable_by_key(|&p| ids[p as usize]);
+        by_id.dedup_by_key(|p| ids[*p as usize]);
         Self {
             bvh,
             verts,
@@ -198,8 +204,15 @@ impl Accel {
         }
     }
 
-    /// Number of triangles the BVH holds.
+    /// Number of triangles the BVH holds (each once, however many boxes it
+    /// was split into).
     pub fn len(&self) -> usize {
+        self.by_id.len()
+    }
+
+    /// Number of boxes (BVH primitives): a triangle split into several
+    /// counts once for each.
+    pub fn boxes(&self) -> usize {
         self.ids.len()
     }
 
@@ -224,7 +237,7 @@ impl Accel {
             + size_of_val(self.by_id.as_slice())
     }
 
-    /// Global ids, in BVH order.
+    /// Global ids, in BVH order (a split triangle's once per box).
     pub fn ids(&self) -> &[u32] {
         &self.ids
     }
@@ -279,6 +292,7 @@ impl Accel {
         }
         let w = WatertightRay::new(ray);
         let mut r = bvh_ray(ray, t1);
+        let nr = cwnode::NodeRay::new(&r);
         let mut best: Option<AccelHit> = None;
         let mut state = self.bvh.new_traversal(r.direction);
         let mut node;
@@ -290,7 +304,7 @@ impl Accel {
             state,
             {
                 nodes += 1;
-                node.intersect_ray(&r, state.oct_inv4)
+                cwnode::intersect(node, &r, &nr, state.oct_inv4)
             },
             {
                 let p = state.primitive_id as usize;
@@ -333,6 +347,7 @@ impl Accel {
         }
         let w = WatertightRay::new(ray);
         let r = bvh_ray(ray, t1);
+        let nr = cwnode::NodeRay::new(&r);
         let mut state = self.bvh.new_traversal(r.direction);
         let mut node;
         let mut nodes = 0u64;
@@ -345,7 +360,7 @@ impl Accel {
                 state,
                 {
                     nodes += 1;
-                    node.intersect_ray(&r, state.oct_inv4)
+                    cwnode::intersect(node, &r, &nr, state.oct_inv4)
                 },
                 {
                     tests += 1;
@@ -425,6 +440,38 @@ impl Accel {
             })
             .collect()
     }
+}
+
+/// Tight boxes of `verts`, a large triangle's replaced by several boxes of
+/// its clipped pieces (obvhs's preset, which splits conservatively enough
+/// not to slow traversal on scenes without large triangles), with the
+/// triangle each box belongs to. Pure function of `verts`: the same set
+/// builds the same BVH on every worker.
+fn split_boxes(verts: &[[Vec3; 3]]) -> (Vec<Aabb>, Vec<u32>) {
+    let mut boxes: Vec<Aabb> = verts
+        .iter()
+        .map(|t| Aabb::from_points(&[t[0].into(), t[1].into(), t[2].into()]))
+        .collect();
+    let mut of_box: Vec<u32> = (0..boxes.len() as u32).collect();
+    if boxes.len() < 2 {
+        return (boxes, of_box);
+    }
+    let tris: Vec<obvhs::triangle::Triangle> = verts
+        .iter()
+        .map(|v| obvhs::triangle::Triangle {
+            v0: v[0].into(),
+            v1: v[1].into(),
+            v2: v[2].into(),
+        })
+        .collect();
+    let (mut largest, mut sum) = (0.0f32, 0.0f64);
+    for b in &boxes {
+        largest = largest.max(b.half_area());
+        sum += f64::from(b.half_area());
+    }
+    let average = (sum / boxes.len() as f64) as f32;
+    obvhs::splits::split_aabbs_preset(&mut boxes, &mut of_box, &tris, average, largest);
+    (boxes, of_box)
 }
 
 // obvhs's traverse! macro names UVec2 unqualified.

@@ -13,7 +13,8 @@ use locus_core::stats::TraceStats;
 
 /// Random triangles of mixed sizes plus an axis-aligned grid whose faces lie
 /// on the octree's splitting planes (the root is a cube around [-10, 10]^3,
-/// so x = 0 and friends are planes of the tree).
+/// so x = 0 and friends are planes of the tree), and long thin triangles
+/// that the BVH splits into several boxes.
 fn scene() -> Vec<[Vec3; 3]> {
     let mut tris = Vec::new();
     for i in 0..3000u64 {
@@ -37,6 +38,15 @@ fn scene() -> Vec<[Vec3; 3]> {
                 Vec3::new(a + 2.0, 0.0, b),
             ]);
         }
+    }
+    // Long thin triangles across the diagonal, whose boxes are mostly
+    // empty: the BVH splits them into several tighter boxes.
+    for i in 0..200u64 {
+        let k = SampleKey::independent(i, 0, 2);
+        let c = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 4.0;
+        let d = Vec3::new(1.0, 1.0, if i % 2 == 0 { 1.0 } else { -1.0 }) * 5.0;
+        let w = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 0.3;
+        tris.push([c - d, c + d, c + w]);
     }
     tris
 }
@@ -95,6 +105,16 @@ fn bvh_matches_brute_force_with_and_without_clipping() {
     let tris = scene();
     let ids: Vec<u32> = (0..tris.len() as u32).collect();
     let accel = Accel::build(&tris, &ids, 12.0);
+    // The large triangles are split into several boxes (spatial pre-splits):
+    // the queries below check that a triangle reached through any of its
+    // boxes gives one answer.
+    assert_eq!(accel.len(), tris.len());
+    assert!(
+        accel.boxes() > tris.len() + 100,
+        "{} boxes for {} triangles: pre-splitting not exercised",
+        accel.boxes(),
+        tris.len()
+    );
     let mut st = TraceStats::default();
     let mut hits = 0;
     for (i, r) in rays(4000, 3).iter().enumerate() {
