@@ -8,8 +8,9 @@
 //!   where it is a call; locus builds for x86-64-v2, see the README);
 //! - which of a child's two planes is near is decided once per ray, as a
 //!   byte offset into the node, not per node;
-//! - the hit children are turned into the traversal mask without a branch
-//!   per child, whose outcome incoherent rays make a coin toss.
+//! - the hit children are turned into the traversal mask in the SIMD
+//!   lanes, without a branch per child (incoherent rays make each one a
+//!   coin toss).
 //!
 //! Elsewhere (no SSE4.1) it is obvhs's own test.
 
@@ -88,7 +89,16 @@ unsafe fn intersect_sse41(node: &CwBvhNode, r: &Ray, nr: &NodeRay, oct_inv4: u32
         let (ix, iy, iz) = (_mm_set1_ps(inv.x), _mm_set1_ps(inv.y), _mm_set1_ps(inv.z));
         let (ox, oy, oz) = (_mm_set1_ps(org.x), _mm_set1_ps(org.y), _mm_set1_ps(org.z));
         let (entry_min, exit_max) = (_mm_set1_ps(ENTRY_MIN), _mm_set1_ps(r.tmax));
-        let mut hits = 0u32;
+        // Each child's contribution to the mask is `bits << at` (its
+        // leaf-or-inner bits at its octant-ordered position), kept where the
+        // box is hit: computed in the lanes, `1 << at` as the float 2^at
+        // truncated (2^31 truncates to 0x8000_0000, which is `1 << 31`).
+        let (child_bits, bit_index) = node.get_child_and_index_bits(oct_inv4);
+        let (bits8, at8) = (
+            _mm_cvtsi64_si128(child_bits as i64),
+            _mm_cvtsi64_si128(bit_index as i64),
+        );
+        let mut mask = _mm_setzero_si128();
         for half in 0..2 {
             let o = half * 4;
             // The same products and sums, in the same order, as obvhs's.
@@ -103,17 +113,22 @@ unsafe fn intersect_sse41(node: &CwBvhNode, r: &Ray, nr: &NodeRay, oct_inv4: u32
             let tmax = _mm_min_ps(tmax_x, _mm_min_ps(tmax_y, tmax_z));
             let tmin = _mm_max_ps(tmin, entry_min);
             let tmax = _mm_min_ps(tmax, exit_max);
-            hits |= (_mm_movemask_ps(_mm_cmple_ps(tmin, tmax)) as u32) << o;
+            let hit = _mm_castps_si128(_mm_cmple_ps(tmin, tmax));
+            let (bits, at) = if half == 0 {
+                (_mm_cvtepu8_epi32(bits8), _mm_cvtepu8_epi32(at8))
+            } else {
+                (
+                    _mm_cvtepu8_epi32(_mm_srli_si128::<4>(bits8)),
+                    _mm_cvtepu8_epi32(_mm_srli_si128::<4>(at8)),
+                )
+            };
+            let exponent = _mm_slli_epi32::<23>(_mm_add_epi32(at, _mm_set1_epi32(127)));
+            let pow2 = _mm_cvttps_epi32(_mm_castsi128_ps(exponent));
+            mask = _mm_or_si128(mask, _mm_and_si128(hit, _mm_mullo_epi32(bits, pow2)));
         }
-        let (child_bits, bit_index) = node.get_child_and_index_bits(oct_inv4);
-        let mut mask = 0u32;
-        for j in 0..8 {
-            let keep = 0u32.wrapping_sub((hits >> j) & 1);
-            let bits = ((child_bits >> (8 * j)) as u32) & 0xff;
-            let at = ((bit_index >> (8 * j)) as u32) & 0xff;
-            mask |= (bits << at) & keep;
-        }
-        mask
+        let mask = _mm_or_si128(mask, _mm_shuffle_epi32::<0b01_00_11_10>(mask));
+        let mask = _mm_or_si128(mask, _mm_shuffle_epi32::<0b10_11_00_01>(mask));
+        _mm_cvtsi128_si32(mask) as u32
     }
 }
 
