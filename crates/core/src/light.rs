@@ -184,7 +184,7 @@ mod tests {
                     let s = set.sample(key.get2d_bits(7)).unwrap();
                     let k = set.tris.binary_search(&s.tri).unwrap();
                     counts[k] += 1;
-                    assert!((s.pdf_area - set.pdf_area(s.tri)).abs() == 0.0);
+                    assert_eq!(s.pdf_area, set.pdf_area(s.tri));
                     let x = s.point.x as f64;
                     sum += x;
                     sum2 += x * x;

@@ -22,8 +22,9 @@ use obvhs::ray::Ray;
 /// exported): the same value keeps the same children.
 const ENTRY_MIN: f32 = 0.0001;
 
-/// What a ray's node tests share: the direction's inverse and, per axis,
-/// the byte offsets in a node of the near and far quantised planes.
+/// What a ray's node tests share: per axis, the byte offsets in a node of
+/// the near and far quantised planes (which depend only on the direction's
+/// signs).
 #[derive(Clone, Copy)]
 pub(crate) struct NodeRay {
     near: [usize; 3],
