@@ -290,6 +290,36 @@ impl Accel {
         if self.ids.is_empty() {
             return None;
         }
+        #[cfg(target_arch = "x86_64")]
+        if cwnode::wide_available() {
+            // SAFETY: this processor has AVX2 (`wide_available`).
+            return unsafe { self.closest_avx2(ray, t0, t1, stats) };
+        }
+        self.closest_with::<cwnode::Narrow>(ray, t0, t1, stats)
+    }
+
+    /// [`Self::closest`]'s traversal compiled for AVX2, around the
+    /// eight-wide node test.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn closest_avx2(
+        &self,
+        ray: &Ray,
+        t0: f32,
+        t1: f32,
+        stats: &mut TraceStats,
+    ) -> Option<AccelHit> {
+        self.closest_with::<cwnode::Wide>(ray, t0, t1, stats)
+    }
+
+    #[inline(always)]
+    fn closest_with<N: cwnode::NodeTest>(
+        &self,
+        ray: &Ray,
+        t0: f32,
+        t1: f32,
+        stats: &mut TraceStats,
+    ) -> Option<AccelHit> {
         let w = WatertightRay::new(ray);
         let mut r = bvh_ray(ray, t1);
         let nr = cwnode::NodeRay::new(&r);
@@ -304,7 +334,7 @@ impl Accel {
             state,
             {
                 nodes += 1;
-                cwnode::intersect(node, &r, &nr, state.oct_inv4)
+                N::intersect(node, &r, &nr, state.oct_inv4)
             },
             {
                 let p = state.primitive_id as usize;
@@ -345,6 +375,29 @@ impl Accel {
         if self.ids.is_empty() {
             return false;
         }
+        #[cfg(target_arch = "x86_64")]
+        if cwnode::wide_available() {
+            // SAFETY: this processor has AVX2 (`wide_available`).
+            return unsafe { self.occluded_avx2(ray, t0, t1, stats) };
+        }
+        self.occluded_with::<cwnode::Narrow>(ray, t0, t1, stats)
+    }
+
+    /// [`Self::occluded`]'s traversal compiled for AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn occluded_avx2(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> bool {
+        self.occluded_with::<cwnode::Wide>(ray, t0, t1, stats)
+    }
+
+    #[inline(always)]
+    fn occluded_with<N: cwnode::NodeTest>(
+        &self,
+        ray: &Ray,
+        t0: f32,
+        t1: f32,
+        stats: &mut TraceStats,
+    ) -> bool {
         let w = WatertightRay::new(ray);
         let r = bvh_ray(ray, t1);
         let nr = cwnode::NodeRay::new(&r);
@@ -360,7 +413,7 @@ impl Accel {
                 state,
                 {
                     nodes += 1;
-                    cwnode::intersect(node, &r, &nr, state.oct_inv4)
+                    N::intersect(node, &r, &nr, state.oct_inv4)
                 },
                 {
                     tests += 1;
@@ -569,6 +622,62 @@ mod tests {
             assert!(seen.iter().all(|&k| k >= 1), "a triangle lost its box");
             // The small triangles are never split.
             assert!(seen[..small as usize].iter().all(|&k| k == 1));
+        }
+    }
+
+    /// The traversal compiled for AVX2 around the eight-wide node test
+    /// gives every query the four-wide one's answer, to the bit, visiting
+    /// the same nodes and testing the same triangles: so processors with
+    /// and without AVX2 render the same image. (The brute-force tests check
+    /// whichever of the two this processor runs.)
+    #[test]
+    fn both_node_tests_trace_alike() {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if !std::arch::is_x86_feature_detected!("avx2") {
+                eprintln!("both_node_tests_trace_alike: no AVX2 here; nothing to compare");
+                return;
+            }
+            let set = soup(3000, 40);
+            let ids: Vec<u32> = (0..set.len() as u32).collect();
+            let accel = Accel::build(&set, &ids, 20.0);
+            let (mut narrow, mut wide) = (TraceStats::default(), TraceStats::default());
+            let mut hits = 0;
+            for i in 0..4000u64 {
+                let k = SampleKey::independent(i, 3, 9);
+                let o = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 12.0;
+                let mut d = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 2.0 - 1.0;
+                if i % 3 != 0 {
+                    // Most rays aim at a triangle, so that many hit.
+                    d = set[(k.get1d(8) * set.len() as f32) as usize % set.len()][0] - o;
+                }
+                if i % 9 == 0 {
+                    d.y = 0.0;
+                }
+                let ray = Ray::new(o, d.normalize());
+                let (t0, t1) = if i % 2 == 0 {
+                    (0.0, f32::INFINITY)
+                } else {
+                    (k.get1d(6) * 4.0, 4.0 + k.get1d(7) * 20.0)
+                };
+                let a = accel.closest_with::<cwnode::Narrow>(&ray, t0, t1, &mut narrow);
+                // SAFETY: AVX2 is present (checked above).
+                let b = unsafe { accel.closest_avx2(&ray, t0, t1, &mut wide) };
+                let bits = |h: Option<AccelHit>| {
+                    h.map(|h| (h.prim, h.hit.tri, h.hit.t.to_bits(), h.hit.b1.to_bits()))
+                };
+                assert_eq!(bits(a), bits(b), "ray {i}");
+                hits += usize::from(a.is_some());
+                let a = accel.occluded_with::<cwnode::Narrow>(&ray, t0, t1, &mut narrow);
+                // SAFETY: as above.
+                let b = unsafe { accel.occluded_avx2(&ray, t0, t1, &mut wide) };
+                assert_eq!(a, b, "ray {i}, occlusion");
+            }
+            assert_eq!(
+                (narrow.bvh_nodes, narrow.tri_tests),
+                (wide.bvh_nodes, wide.tri_tests)
+            );
+            assert!(hits > 1000 && hits < 3900, "{hits} of 4000 rays hit");
         }
     }
 }
