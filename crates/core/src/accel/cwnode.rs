@@ -205,7 +205,7 @@ unsafe fn intersect_avx2(node: &CwBvhNode, r: &Ray, nr: &NodeRay, oct_inv4: u32)
     let org = (Vec3A::from(node.p) - r.origin) * r.inv_direction;
     let base = (node as *const CwBvhNode).cast::<u8>();
     // SAFETY (for the block): AVX2 is enabled here, and every read is
-    // eight bytes inside `node` at a quantised plane's field offset.
+    // eight bytes inside `node` at the offset of a field of eight bytes.
     unsafe {
         let q = |off: usize| {
             let eight = base.add(off).cast::<i64>().read_unaligned();
@@ -234,9 +234,23 @@ unsafe fn intersect_avx2(node: &CwBvhNode, r: &Ray, nr: &NodeRay, oct_inv4: u32)
         let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(r.tmax));
         // `cmpleps`'s predicate: false when either side is NaN.
         let hit = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax));
-        let (child_bits, bit_index) = node.get_child_and_index_bits(oct_inv4);
-        let bits = _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(child_bits as i64));
-        let at = _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(bit_index as i64));
+        // obvhs's `get_child_and_index_bits`, a byte per lane: an inner
+        // child (meta bits 3 and 4 both set) is ordered by the ray's
+        // octant, a leaf by its triangle offset.
+        let meta = base
+            .add(std::mem::offset_of!(CwBvhNode, child_meta))
+            .cast::<i64>()
+            .read_unaligned();
+        let meta = _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(meta));
+        let both = _mm256_and_si256(meta, _mm256_slli_epi32::<1>(meta));
+        let sixteen = _mm256_set1_epi32(0x10);
+        let inner = _mm256_cmpeq_epi32(_mm256_and_si256(both, sixteen), sixteen);
+        let oct = _mm256_set1_epi32((oct_inv4 & 0xff) as i32);
+        let at = _mm256_and_si256(
+            _mm256_xor_si256(meta, _mm256_and_si256(oct, inner)),
+            _mm256_set1_epi32(0x1f),
+        );
+        let bits = _mm256_and_si256(_mm256_srli_epi32::<5>(meta), _mm256_set1_epi32(7));
         let m = _mm256_and_si256(hit, _mm256_sllv_epi32(bits, at));
         let m = _mm_or_si128(_mm256_castsi256_si128(m), _mm256_extracti128_si256::<1>(m));
         let m = _mm_or_si128(m, _mm_shuffle_epi32::<0b01_00_11_10>(m));
