@@ -563,7 +563,16 @@ mod tests {
                 // SAFETY: AVX2 is present (checked above).
                 let b = unsafe { accel.closest_avx2(&ray, t0, t1, &mut wide) };
                 let bits = |h: Option<AccelHit>| {
-                    h.map(|h| (h.prim, h.hit.tri, h.hit.t.to_bits(), h.hit.b1.to_bits()))
+                    h.map(|h| {
+                        let hit = h.hit;
+                        (
+                            h.prim,
+                            hit.tri,
+                            hit.t.to_bits(),
+                            hit.b1.to_bits(),
+                            hit.b2.to_bits(),
+                        )
+                    })
                 };
                 assert_eq!(bits(a), bits(b), "ray {i}");
                 hits += usize::from(a.is_some());
