@@ -140,7 +140,7 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
         )?);
     }
     println!("scene {} ({} triangles)", path.display(), r.triangles);
-    println!("BVH build (obvhs CWBVH, medium): {:.3} s", r.bvh_build_s);
+    println!("BVH build (obvhs CWBVH): {:.3} s", r.bvh_build_s);
     println!(
         "incoherent rays, 1 thread: locus {:.2} Mrays/s, raw obvhs {:.2} Mrays/s, overhead {:+.1}% ({} of {} closest hits agree)",
         r.locus_mrays_per_s,
