@@ -11,6 +11,11 @@ use obvhs::aabb::Aabb;
 /// with about 5% to spare.
 const MAX_SPLIT_GROWTH: usize = 20;
 
+/// obvhs's preset never considers a box whose half area is below three
+/// times the set's average; candidates are taken from a little below that
+/// (twice), a superset, so the preset decides alone which are split.
+const CANDIDATE_AREA: f32 = 2.0;
+
 /// Tight boxes of `verts`, a large triangle's replaced by several boxes of
 /// its clipped pieces (obvhs's preset, which splits conservatively enough
 /// not to slow traversal on scenes without large triangles), with the
@@ -18,63 +23,86 @@ const MAX_SPLIT_GROWTH: usize = 20;
 /// than [`MAX_SPLIT_GROWTH`] allows, the largest triangles keep their
 /// pieces and the rest their tight box. Pure function of `verts`: the same
 /// set builds the same BVH on every worker.
+///
+/// Only the candidates (boxes of at least [`CANDIDATE_AREA`] times the
+/// average half area) go to the preset, with their triangles: its
+/// thresholds are the whole set's, fixed here, and it splits each box on
+/// its own, so the pieces are those it would cut from the whole set. A
+/// split triangle's first piece takes its box's place and the others are
+/// appended, so beside the result the split holds memory for the
+/// candidates alone (a copy of every box and triangle held 116 bytes a
+/// triangle during the build's preparation).
 pub(super) fn split_boxes(verts: &[[Vec3; 3]]) -> (Vec<Aabb>, Vec<u32>) {
-    let tight: Vec<Aabb> = verts
-        .iter()
-        .map(|t| Aabb::from_points(&[t[0].into(), t[1].into(), t[2].into()]))
-        .collect();
+    let tight = |v: &[Vec3; 3]| Aabb::from_points(&[v[0].into(), v[1].into(), v[2].into()]);
     let n = verts.len();
-    let (mut boxes, mut of_box) = (tight.clone(), (0..n as u32).collect::<Vec<u32>>());
+    let mut boxes: Vec<Aabb> = verts.iter().map(tight).collect();
+    let mut of_box: Vec<u32> = (0..n as u32).collect();
     if n < 2 {
         return (boxes, of_box);
     }
-    let tris: Vec<obvhs::triangle::Triangle> = verts
-        .iter()
-        .map(|v| obvhs::triangle::Triangle {
-            v0: v[0].into(),
-            v1: v[1].into(),
-            v2: v[2].into(),
-        })
-        .collect();
     let (mut largest, mut sum) = (0.0f32, 0.0f64);
-    for b in &tight {
+    for b in &boxes {
         largest = largest.max(b.half_area());
         sum += f64::from(b.half_area());
     }
     let average = (sum / n as f64) as f32;
-    obvhs::splits::split_aabbs_preset(&mut boxes, &mut of_box, &tris, average, largest);
-    let allowed = n / MAX_SPLIT_GROWTH;
-    if boxes.len() - n <= allowed {
+    let candidates: Vec<u32> = (0..n as u32)
+        .filter(|&t| boxes[t as usize].half_area() >= CANDIDATE_AREA * average)
+        .collect();
+    if candidates.is_empty() {
         return (boxes, of_box);
     }
-    // Each triangle is split on its own (the preset's thresholds are the
-    // set's, fixed above), so a triangle's pieces do not depend on which
-    // others keep theirs: the largest keep them, within the allowance.
-    let mut pieces = vec![0usize; n];
-    for &t in &of_box {
-        pieces[t as usize] += 1;
+    let tris: Vec<obvhs::triangle::Triangle> = candidates
+        .iter()
+        .map(|&t| {
+            let v = &verts[t as usize];
+            obvhs::triangle::Triangle {
+                v0: v[0].into(),
+                v1: v[1].into(),
+                v2: v[2].into(),
+            }
+        })
+        .collect();
+    let mut pieces: Vec<Aabb> = candidates.iter().map(|&t| boxes[t as usize]).collect();
+    let mut of_piece: Vec<u32> = (0..candidates.len() as u32).collect();
+    obvhs::splits::split_aabbs_preset(&mut pieces, &mut of_piece, &tris, average, largest);
+    drop(tris);
+    // Pieces per candidate; which split candidates keep their pieces:
+    // all of them within the allowance, else the largest first.
+    let mut count = vec![0usize; candidates.len()];
+    for &c in &of_piece {
+        count[c as usize] += 1;
     }
-    let mut split: Vec<usize> = (0..n).filter(|&t| pieces[t] > 1).collect();
+    let mut split: Vec<usize> = (0..candidates.len()).filter(|&c| count[c] > 1).collect();
     split.sort_by(|&a, &b| {
-        let area = |t: usize| tight[t].half_area();
+        let area = |c: usize| boxes[candidates[c] as usize].half_area();
         area(b).total_cmp(&area(a)).then(a.cmp(&b))
     });
-    let mut keep = vec![false; n];
-    let mut extra = 0;
-    for t in split {
-        if extra + pieces[t] - 1 <= allowed {
-            keep[t] = true;
-            extra += pieces[t] - 1;
+    let (allowed, mut extra) = (n / MAX_SPLIT_GROWTH, 0);
+    let mut keep = vec![false; candidates.len()];
+    for c in split {
+        if extra + count[c] - 1 <= allowed {
+            keep[c] = true;
+            extra += count[c] - 1;
         }
     }
-    let kept = boxes
-        .into_iter()
-        .zip(of_box)
-        .filter(|&(_, t)| keep[t as usize]);
-    let unsplit = (0..n as u32)
-        .filter(|&t| !keep[t as usize])
-        .map(|t| (tight[t as usize], t));
-    unsplit.chain(kept).unzip()
+    let mut placed = vec![false; candidates.len()];
+    boxes.reserve(extra);
+    of_box.reserve(extra);
+    for (b, c) in pieces.into_iter().zip(of_piece) {
+        let (c, t) = (c as usize, candidates[c as usize]);
+        if !keep[c] {
+            continue;
+        }
+        if placed[c] {
+            boxes.push(b);
+            of_box.push(t);
+        } else {
+            boxes[t as usize] = b;
+            placed[c] = true;
+        }
+    }
+    (boxes, of_box)
 }
 
 #[cfg(test)]
