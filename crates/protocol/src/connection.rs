@@ -216,4 +216,36 @@ impl ConnWriter {
     pub async fn write_msg<T: Serialize>(&mut self, msg: &T) -> Result<usize, ProtocolError> {
         send(&mut self.framed, msg, self.peer, self.max_frame).await
     }
+
+    /// Writes `first` and up to `most - 1` more messages that `next` has
+    /// ready, then flushes once: a burst goes out in one write where each
+    /// message alone would be a write of its own and, on the other side, a
+    /// wake-up of its own. Returns the bytes written.
+    pub async fn write_burst<T: Serialize>(
+        &mut self,
+        first: &T,
+        mut next: impl FnMut() -> Option<T>,
+        most: usize,
+    ) -> Result<usize, ProtocolError> {
+        let io = |e| ProtocolError::Io {
+            peer: self.peer,
+            source: e,
+        };
+        let mut n = 0;
+        let mut feed = |b: bytes::Bytes| {
+            n += b.len() + FRAME_HEADER_LEN;
+            b
+        };
+        let b = feed(encode(first, self.peer, self.max_frame)?);
+        self.framed.feed(b).await.map_err(io)?;
+        for _ in 1..most {
+            let Some(m) = next() else { break };
+            let b = feed(encode(&m, self.peer, self.max_frame)?);
+            self.framed.feed(b).await.map_err(io)?;
+        }
+        SinkExt::<bytes::Bytes>::flush(&mut self.framed)
+            .await
+            .map_err(io)?;
+        Ok(n)
+    }
 }

@@ -136,9 +136,14 @@ async fn write_worker(
             Ok(None) => return Ok(()),
             Err(_) => SchedulerToWorker::Heartbeat,
         };
-        w.write_msg(&m).await?;
+        // The tiles of one request (and whatever else is queued) go in one
+        // write: the worker's runtime wakes once for them.
+        w.write_burst(&m, || rx.try_recv().ok(), BURST).await?;
     }
 }
+
+/// The most messages written to a worker with one flush.
+const BURST: usize = 64;
 
 /// Reads a worker's messages into the actor until the link ends; returns
 /// why it ended.

@@ -528,6 +528,9 @@ async fn connect(
     }
 }
 
+/// The most messages written to the scheduler with one flush.
+const BURST: usize = 64;
+
 /// Writes the worker's messages to the scheduler, and a heartbeat whenever
 /// the link has been quiet for `every`; a failed write ends the session
 /// (`link`).
@@ -546,9 +549,10 @@ async fn control_writer(
                 Err(_) => WorkerToScheduler::Heartbeat,
             },
         };
+        // What the engine sent meanwhile goes in the same write.
         let written = tokio::select! {
             _ = link.cancelled() => break,
-            r = w.write_msg(&m) => r,
+            r = w.write_burst(&m, || rx.try_recv().ok(), BURST) => r,
         };
         if let Err(e) = written {
             warn!("scheduler link: {e}");

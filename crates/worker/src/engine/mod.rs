@@ -11,7 +11,9 @@
 //! - `state`: the engine's bookkeeping (samples, batches, answers,
 //!   routing); `fetching`: fetch requests, served leaves, and the builder
 //!   thread that merges fetched leaves into BVH parts; `polling`: random
-//!   polling, which hands the queued work of a hot region to idle peers.
+//!   polling, which hands the queued work of a hot region to idle peers;
+//!   `tiles`: tiles asked for ahead of need and finished ones sent back
+//!   in bursts.
 //! - this module: the loop. It hands batches to the pool, two per pool
 //!   thread, so that none waits for the books. In a worker of fewer than
 //!   [`DEDICATED_ENGINE_THREADS`] threads the engine's own thread traces
@@ -38,6 +40,7 @@ pub mod outbox;
 mod polling;
 pub mod slots;
 mod state;
+mod tiles;
 
 use crate::fetch::{FetchedLeaf, Locality};
 use crate::sys;
@@ -349,6 +352,7 @@ fn turns<'a: 's, 's>(
             // Nothing is being traced: what waits in packets must go, and
             // a peer may have queries to spare.
             e.outbox.flush_all()?;
+            e.send_tiles_done()?;
             e.now = Instant::now();
             e.maybe_poll()?;
         }
@@ -417,6 +421,7 @@ fn turns<'a: 's, 's>(
             }
         }
         e.outbox.flush_due(e.now)?;
+        e.send_tiles_due(e.now)?;
     }
 }
 

@@ -14,20 +14,16 @@ use locus_core::accel_set::{AccelSet, Part};
 use locus_core::integrator::PathRay;
 use locus_core::path::{Answer, CacheKey, Dest, Outcome, Query, Task};
 use locus_core::region::{Resume, WorkerId};
-use locus_protocol::control::WorkerToScheduler;
+use locus_protocol::control::{TileResult, WorkerToScheduler};
 use locus_protocol::rays::{PeerMsg, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// Samples' worth of tiles a worker may hold, in units of `max_inflight`,
-/// besides the tiles ahead (see [`Engine::top_up_tiles`]).
-const TILES_PER_INFLIGHT: usize = 8;
-
 /// Camera samples in flight per tracing thread of a worker that traces
 /// everything itself: two of the largest pool batches.
-const LOCAL_INFLIGHT_PER_THREAD: usize = 2 * super::BATCH;
+pub(super) const LOCAL_INFLIGHT_PER_THREAD: usize = 2 * super::BATCH;
 
 /// How many items ahead an answer's slot is prefetched: far enough for
 /// a load from memory to land while the items between are applied.
@@ -83,6 +79,9 @@ pub(super) struct Engine<'a> {
     /// Threads tracing for this engine: its own and the pool's.
     pub(super) threads: usize,
     pub(super) polling: Polling,
+    /// Finished tiles not yet sent, and when the first of them finished.
+    pub(super) tiles_done: Vec<TileResult>,
+    pub(super) tiles_done_since: Option<Instant>,
 }
 
 impl<'a> Engine<'a> {
@@ -161,6 +160,8 @@ impl<'a> Engine<'a> {
             now: Instant::now(),
             threads: threads.max(1),
             polling: Polling::new(s.tuning.random_polling, job.workers, s.me, s.seed),
+            tiles_done: Vec::new(),
+            tiles_done_since: None,
         }
     }
 
@@ -168,37 +169,6 @@ impl<'a> Engine<'a> {
         self.control
             .send(m)
             .map_err(|_| EngineError::LinkClosed("the scheduler"))
-    }
-
-    /// Asks the scheduler for tiles so that `tiles_ahead` tiles with
-    /// samples not yet started are held or on their way. A tile is asked
-    /// for when the last sample of another has started, not when another
-    /// finishes: a tile's last samples wait for answers from other workers,
-    /// and a worker holding only such tiles would sit idle. A tile is done
-    /// only when its slowest sample is, so tiles whose samples have all
-    /// started pile up; they are bounded at `TILES_PER_INFLIGHT` times
-    /// `max_inflight` samples' worth beyond the tiles ahead (12 bytes a
-    /// sample).
-    pub(super) fn top_up_tiles(&mut self) -> Result<(), EngineError> {
-        if self.no_more_tiles {
-            return Ok(());
-        }
-        let t = &self.job.setup.tuning;
-        let ahead = t.tiles_ahead.max(1) as usize;
-        let (held, fresh, tile) = self.slots.tiles_held();
-        let cap =
-            ahead + TILES_PER_INFLIGHT * (t.max_inflight.max(1) as usize).div_ceil(tile.max(1));
-        let want = ahead
-            .saturating_sub(fresh + self.tiles_asked)
-            .min(cap.saturating_sub(held + self.tiles_asked));
-        if want > 0 {
-            self.tiles_asked += want;
-            self.control(WorkerToScheduler::NeedTiles {
-                job: self.job.setup.job,
-                count: want as u32,
-            })?;
-        }
-        Ok(())
     }
 
     /// Starts camera samples until `max_inflight` are open; a worker that
@@ -396,10 +366,7 @@ impl<'a> Engine<'a> {
                             c.update(leaf, dir, v);
                         }
                     }
-                    Effect::TileDone(r) => {
-                        self.stats.tiles += 1;
-                        self.control(WorkerToScheduler::TileDone(r))?;
-                    }
+                    Effect::TileDone(r) => self.tile_done(r)?,
                     Effect::Beyond { slot, key, ray } => self.beyond(slot, key, ray)?,
                 }
             }
@@ -522,6 +489,9 @@ impl<'a> Engine<'a> {
         }
         if let Some(p) = self.polling.wake(now) {
             w = w.min(p);
+        }
+        if let Some(t) = self.tiles_done_since {
+            w = w.min((t + super::tiles::TILES_DONE_HOLD).saturating_duration_since(now));
         }
         w
     }
