@@ -273,11 +273,15 @@ pub fn prepare(
         && all_refs * tb.region <= options.fetch_budget
         && caps.iter().all(|c| c.is_none_or(|c| c >= all_refs));
     let replicate_now = options.fetch == FetchPolicy::Fetch && fits_everywhere;
+    // A lone worker holds every leaf: there is nothing to partition and no
+    // ray to forward, so the preview (a quarter of a second on the room)
+    // would predict nothing the job uses.
+    let needs_preview = workers > 1 && !replicate_now;
     let t_pre = Instant::now();
     let lights = LightSet::build(&scene);
     let analytic = cost::analytic(&tree);
     let (sampled, preview_rays, preview_paths, crossings) = match options.cost_model {
-        _ if replicate_now => (analytic.clone(), 0, 0, Default::default()),
+        _ if !needs_preview => (analytic.clone(), 0, 0, Default::default()),
         CostModel::Analytic => (analytic.clone(), 0, 0, Default::default()),
         CostModel::Sampled => {
             let leaves: Vec<(u32, &[u32])> = tree
@@ -516,6 +520,50 @@ pub fn part_triangles(run: &[(u32, Vec<u32>)]) -> Vec<u32> {
 mod tests {
     use super::*;
     use locus_core::geometry::TRIANGLE_BYTES;
+
+    /// The preview runs only where a partition or a rent-or-buy decision
+    /// needs it: a lone worker holds every leaf, and `fetch` ships the
+    /// whole scene to every worker that can hold it.
+    #[test]
+    fn the_preview_runs_only_where_its_prediction_is_used() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenes/cornell-box/cornell.toml"
+        );
+        let scene = Arc::new(Scene::load(std::path::Path::new(path)).expect("the Cornell box"));
+        let c = &scene.camera;
+        let tiles = locus_core::render::tiles(
+            c.width,
+            c.height,
+            16,
+            locus_core::render::TileOrder::Scanline,
+        );
+        let member = Member {
+            cores: 1,
+            budget: 0,
+            resident: 0,
+        };
+        let rays = |workers: usize, fetch: FetchPolicy| {
+            let options = JobOptions {
+                fetch,
+                ..JobOptions::default()
+            };
+            let members = vec![member; workers];
+            let p = prepare(scene.clone(), &options, &members, &tiles, &[]).expect("prepared");
+            assert_eq!(p.map.owner.len(), p.leaf_tris.len());
+            p.preview_rays
+        };
+        for fetch in [
+            FetchPolicy::Forward,
+            FetchPolicy::Adaptive,
+            FetchPolicy::Fetch,
+        ] {
+            assert_eq!(rays(1, fetch), 0, "one worker, {fetch:?}");
+        }
+        assert_eq!(rays(2, FetchPolicy::Fetch), 0);
+        assert!(rays(2, FetchPolicy::Forward) > 0);
+        assert!(rays(2, FetchPolicy::Adaptive) > 0);
+    }
 
     /// Rent or buy for the whole scene: buying pays once the predicted
     /// forwards cost as many bytes as the references every worker lacks.
