@@ -20,7 +20,7 @@ valgrind and callgrind_annotate on the PATH.
 
     python3 crates/locus/src/bench/forward_cost.py [--locus target/release/locus]
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
-        [--fetch forward] [--out bench-out/forward-cost]
+        [--fetch forward] [--cost sampled|analytic] [--out bench-out/forward-cost]
 """
 
 import argparse
@@ -83,6 +83,9 @@ def main():
     ap.add_argument("--height", type=int, default=72)
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--fetch", default="forward")
+    ap.add_argument("--cost", default="sampled",
+                    help="the partition's cost model: `analytic` keeps the partition of a "
+                         "build whose tracer counts nodes differently, for comparing two builds")
     ap.add_argument("--out", default="bench-out/forward-cost")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -112,7 +115,8 @@ def main():
     try:
         # The client waits for both workers to register.
         subprocess.run([locus, "submit", "--scheduler", f"127.0.0.1:{port}", scene,
-                        "--workers", "2", "--fetch", a.fetch, "-o", farm_exr] + token,
+                        "--workers", "2", "--fetch", a.fetch, "--cost", a.cost,
+                        "-o", farm_exr] + token,
                        check=True, stdout=log, stderr=log, timeout=1800)
     finally:
         for w in workers:
@@ -139,7 +143,8 @@ def main():
         render = total - blocking + turns - setup
         rows.append((f"w{i}", turns, total - blocking - setup, render))
         farm += render
-    print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, 2 workers x 1 thread, {a.fetch}")
+    print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, 2 workers x 1 thread, "
+          f"{a.fetch}, {a.cost} cost")
     print(f"one machine's render: {one / 1e6:.1f} M instructions")
     for name, turns, runtime, render in rows:
         print(f"{name}: engine {turns / 1e6:.1f} M, runtime {runtime / 1e6:.1f} M, "
