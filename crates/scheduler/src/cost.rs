@@ -5,9 +5,13 @@
 //!   triangle count, so cost = area x (1 + triangles). The 1 keeps empty
 //!   leaves, which rays still cross, from costing nothing.
 //! - Sampled, after Reinhard, Kok and Chalmers: trace a low-resolution
-//!   preview of the real workload (camera rays, shadow rays, one bounce)
-//!   leaf by leaf, and count the BVH node visits and triangle tests each
-//!   leaf's interval costs.
+//!   preview of the real workload (camera rays, then each path's shadow
+//!   rays and bounces to the scene's depth) leaf by leaf, and count the BVH
+//!   node visits and triangle tests each leaf's interval costs, plus what
+//!   the work that is not tracing costs where it happens: shading each hit
+//!   ([`VERTEX_COST`]) in the leaf hit, and starting each camera sample
+//!   ([`ORIGIN_COST`]) in the leaf its ray starts in, whose owner renders
+//!   the sample's tile.
 //!
 //! [`preview`] at full resolution is also how the bench measures per-leaf
 //! cost to judge both predictions.
@@ -100,6 +104,27 @@ impl Tally {
     }
 }
 
+/// What a path vertex costs beyond the BVH work of its rays, in BVH steps
+/// (node visits and triangle tests), charged to the leaf of the hit: its
+/// shading and the light's sample, and, on a farm, starting its shadow
+/// and continuation queries through the worker's route and path kernel.
+/// On one machine the render of the room at 96x72 and 4 spp spends
+/// 545 M instructions (callgrind), 345 M of them in BVH queries that make
+/// 2.75 M steps (125 instructions a step), over 135,809 vertices: 12
+/// steps' worth a vertex beside the BVH; a farm worker's two query starts
+/// (routing, the kernel's dispatch: 400-500 instructions each in
+/// `crates/locus/src/bench/forward_cost.py`'s profile) add about 8.
+/// Counted as BVH work alone, a leaf where many paths bounce looked cheap
+/// next to one that rays only cross.
+pub const VERTEX_COST: u64 = 20;
+
+/// What starting a camera sample costs the worker that renders its tile,
+/// in BVH steps: the camera ray, the sample's slot, its radiance added
+/// to the tile, the tile's bookkeeping. A tile goes to the owner of the
+/// leaves its camera rays start in (see `tiles::affinity`), so the leaf a
+/// camera ray starts in is charged.
+pub const ORIGIN_COST: u64 = 6;
+
 /// Bounces the preview follows at most: paths past a dozen vertices carry
 /// too little of the work to change the prediction.
 const PREVIEW_BOUNCES: u32 = 12;
@@ -189,12 +214,17 @@ pub fn preview(
                     let key =
                         SampleKey::independent(y as u64 * cam.width as u64 + x as u64, 0, seed);
                     let mut q = PathRay::camera(cam.ray(x, y, key.get2d(DIM_PIXEL)), key);
-                    for _ in 0..=bounces {
+                    for bounce in 0..=bounces {
                         t.rays += 1;
-                        let Some(hit) = leafwise(tree, accel, &q.ray, f32::INFINITY, false, &mut t)
-                        else {
+                        let (found, first) =
+                            leafwise(tree, accel, &q.ray, f32::INFINITY, false, &mut t);
+                        if let Some(l) = first.filter(|_| bounce == 0) {
+                            t.cost[l as usize] += ORIGIN_COST;
+                        }
+                        let Some((hit, leaf)) = found else {
                             break;
                         };
+                        t.cost[leaf as usize] += VERTEX_COST;
                         let i = hit.tri as usize;
                         let mat = &scene.materials[scene.tri_material[i] as usize];
                         let s = shade(
@@ -233,7 +263,8 @@ pub fn preview(
 }
 
 /// Traces `ray` one leaf interval at a time, adding each interval's BVH
-/// work to its leaf.
+/// work to its leaf; returns the hit with its leaf (for any-hit rays:
+/// none), and the first leaf along the ray.
 fn leafwise(
     tree: &Octree,
     accel: &dyn Geometry,
@@ -241,10 +272,12 @@ fn leafwise(
     t_max: f32,
     any: bool,
     t: &mut Tally,
-) -> Option<locus_core::accel::Hit> {
+) -> (Option<(locus_core::accel::Hit, u32)>, Option<u32>) {
     let mut found = None;
+    let mut first = None;
     let mut prev: Option<u32> = None;
     let _ = tree.walk(ray, 0.0, t_max, |leaf, ta, tb| {
+        first.get_or_insert(leaf);
         if let Some(p) = prev.replace(leaf)
             && p != leaf
         {
@@ -259,13 +292,13 @@ fn leafwise(
         t.cost[leaf as usize] += st.bvh_nodes + st.tri_tests;
         match hit {
             Some(h) => {
-                found = h;
+                found = h.map(|h| (h, leaf));
                 ControlFlow::Break(())
             }
             None => ControlFlow::Continue(()),
         }
     });
-    found
+    (found, first)
 }
 
 /// Pearson correlation; 0 when either side has no variance.
@@ -299,4 +332,58 @@ pub fn shares(cost: &[f64], owner: &[u16], workers: usize) -> Vec<f64> {
         s.iter_mut().for_each(|x| *x /= total);
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    /// The scene's BVH with its work left uncounted, and its hits counted:
+    /// what the preview then charges is the work that is not tracing.
+    struct Untraced(Accel, AtomicU64);
+
+    impl Geometry for Untraced {
+        fn closest(&self, ray: &Ray, t0: f32, t1: f32, _: &mut TraceStats) -> Option<Hit> {
+            let h = self.0.intersect(ray, t0, t1, &mut TraceStats::default());
+            self.1.fetch_add(u64::from(h.is_some()), Ordering::Relaxed);
+            h
+        }
+        fn occluded(&self, ray: &Ray, t0: f32, t1: f32, _: &mut TraceStats) -> bool {
+            self.0.occluded(ray, t0, t1, &mut TraceStats::default())
+        }
+    }
+
+    /// Besides the BVH work, every path vertex is charged [`VERTEX_COST`]
+    /// and every camera sample [`ORIGIN_COST`]: with the BVH's work left
+    /// uncounted, the preview's costs add up to exactly those.
+    #[test]
+    fn the_preview_charges_shading_where_paths_bounce() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenes/cornell-box/cornell.toml"
+        );
+        let scene = Scene::load(std::path::Path::new(path)).expect("the Cornell box");
+        let tree = crate::job::octree_for(&scene, 4);
+        let lights = LightSet::build(&scene);
+        let g = Untraced(
+            locus_core::render::whole_scene_accel(&scene),
+            AtomicU64::new(0),
+        );
+        let pv = preview(&scene, &tree, &g, &lights, 16, 3, 7);
+        let vertices = g.1.load(Ordering::Relaxed);
+        assert!(vertices > pv.paths && pv.paths > 100);
+        let charged = pv.cost.iter().sum::<f64>() as u64;
+        // What is not shading is starting samples: one for each camera
+        // ray that enters the scene's octree, which all but the few along
+        // the image's edges do.
+        let starts = charged - VERTEX_COST * vertices;
+        assert_eq!(starts % ORIGIN_COST, 0, "{charged} charged");
+        let started = starts / ORIGIN_COST;
+        assert!(
+            started <= pv.paths && started * 10 >= pv.paths * 9,
+            "{started} of {} samples started",
+            pv.paths
+        );
+    }
 }

@@ -8,7 +8,7 @@ not. This script renders a small version of a scene three ways, each under
 
   - one machine (`locus render --threads 2`), counting the render's
     instructions (`locus_core::passes::pixel_mean`, inclusive);
-  - a farm of a scheduler and two `locus worker --threads 1` processes
+  - a farm of a scheduler and two (`--workers`) `locus worker --threads 1` processes
     (the workers under callgrind; the scheduler natively, with a worker
     timeout long enough for valgrind's pace), counting each worker's
     render phase: its engine (`locus_worker::engine::turns`) plus what its
@@ -20,7 +20,7 @@ valgrind and callgrind_annotate on the PATH.
 
     python3 crates/locus/src/bench/forward_cost.py [--locus target/release/locus]
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
-        [--fetch forward] [--cost sampled|analytic] [--out bench-out/forward-cost]
+        [--fetch forward] [--workers 2] [--cost sampled|analytic] [--out bench-out/forward-cost]
 """
 
 import argparse
@@ -83,6 +83,7 @@ def main():
     ap.add_argument("--height", type=int, default=72)
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--fetch", default="forward")
+    ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--cost", default="sampled",
                     help="the partition's cost model: `analytic` keeps the partition of a "
                          "build whose tracer counts nodes differently, for comparing two builds")
@@ -110,12 +111,12 @@ def main():
                                       "--scheduler", f"127.0.0.1:{port}",
                                       "--listen", "127.0.0.1:0", "--threads", "1",
                                       "--name", f"w{i}"] + token, stdout=log, stderr=log)
-               for i in (1, 2)]
+               for i in range(1, a.workers + 1)]
     farm_exr = os.path.join(out, "farm.exr")
     try:
         # The client waits for both workers to register.
         subprocess.run([locus, "submit", "--scheduler", f"127.0.0.1:{port}", scene,
-                        "--workers", "2", "--fetch", a.fetch, "--cost", a.cost,
+                        "--workers", str(a.workers), "--fetch", a.fetch, "--cost", a.cost,
                         "-o", farm_exr] + token,
                        check=True, stdout=log, stderr=log, timeout=1800)
     finally:
@@ -131,7 +132,7 @@ def main():
                           capture_output=True, text=True).returncode == 0
     rows = []
     farm = 0
-    for i in (1, 2):
+    for i in range(1, a.workers + 1):
         costs, total = inclusive(f"{out}/w{i}.cg")
         # Everything the worker did but its setup: the blocking pool holds
         # the BVH builds and the engine, the async side the job's setup
@@ -143,7 +144,7 @@ def main():
         render = total - blocking + turns - setup
         rows.append((f"w{i}", turns, total - blocking - setup, render))
         farm += render
-    print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, 2 workers x 1 thread, "
+    print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, {a.workers} workers x 1 thread, "
           f"{a.fetch}, {a.cost} cost")
     print(f"one machine's render: {one / 1e6:.1f} M instructions")
     for name, turns, runtime, render in rows:
@@ -152,8 +153,12 @@ def main():
     print(f"forwarded queries: {forwards}")
     per = (farm - one) / max(forwards, 1)
     print(f"instructions per forwarded query beyond one machine: {per:.0f}")
+    busiest = max(r[3] for r in rows)
+    print(f"busiest worker's render phase over the workers' mean: "
+          f"{busiest * len(rows) / max(farm, 1):.3f} ({busiest / 1e6:.1f} M)")
     print(f"farm image bit-identical to one machine's: {'yes' if same else 'NO'}")
     json.dump({"one": one, "workers": rows, "forwards": forwards, "per_forward": per,
+               "busiest": busiest,
                "identical": same}, open(os.path.join(out, "forward-cost.json"), "w"), indent=1)
     return 0 if same else 1
 
