@@ -359,11 +359,7 @@ mod tests {
     /// uncounted, the preview's costs add up to exactly those.
     #[test]
     fn the_preview_charges_shading_where_paths_bounce() {
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../../scenes/cornell-box/cornell.toml"
-        );
-        let scene = Scene::load(std::path::Path::new(path)).expect("the Cornell box");
+        let scene = crate::cornell_box();
         let tree = crate::job::octree_for(&scene, 4);
         let lights = LightSet::build(&scene);
         let g = Untraced(
@@ -377,7 +373,9 @@ mod tests {
         // What is not shading is starting samples: one for each camera
         // ray that enters the scene's octree, which all but the few along
         // the image's edges do.
-        let starts = charged - VERTEX_COST * vertices;
+        let starts = charged
+            .checked_sub(VERTEX_COST * vertices)
+            .unwrap_or_else(|| panic!("{charged} charged for {vertices} vertices"));
         assert_eq!(starts % ORIGIN_COST, 0, "{charged} charged");
         let started = starts / ORIGIN_COST;
         assert!(

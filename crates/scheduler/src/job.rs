@@ -281,9 +281,7 @@ pub fn prepare(
     let lights = LightSet::build(&scene);
     let analytic = cost::analytic(&tree);
     let (sampled, preview_rays, preview_paths, crossings) = match options.cost_model {
-        _ if !needs_preview => (analytic.clone(), 0, 0, Default::default()),
-        CostModel::Analytic => (analytic.clone(), 0, 0, Default::default()),
-        CostModel::Sampled => {
+        CostModel::Sampled if needs_preview => {
             let leaves: Vec<(u32, &[u32])> = tree
                 .leaves
                 .iter()
@@ -304,6 +302,7 @@ pub fn prepare(
             let pv = cost::sampled(&scene, &tree, &accel, &lights);
             (pv.cost, pv.rays, pv.paths, pv.crossings)
         }
+        _ => (analytic.clone(), 0, 0, Default::default()),
     };
     let preview_s = t_pre.elapsed().as_secs_f64();
     let t_part = Instant::now();
@@ -526,11 +525,7 @@ mod tests {
     /// whole scene to every worker that can hold it.
     #[test]
     fn the_preview_runs_only_where_its_prediction_is_used() {
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../../scenes/cornell-box/cornell.toml"
-        );
-        let scene = Arc::new(Scene::load(std::path::Path::new(path)).expect("the Cornell box"));
+        let scene = Arc::new(crate::cornell_box());
         let c = &scene.camera;
         let tiles = locus_core::render::tiles(
             c.width,

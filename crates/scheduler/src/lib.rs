@@ -38,6 +38,14 @@ pub mod status;
 pub mod store;
 pub mod tiles;
 
+/// The Cornell box of `scenes/`, which the unit tests plan jobs over.
+#[cfg(test)]
+pub(crate) fn cornell_box() -> locus_core::scene::Scene {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    locus_core::scene::Scene::load(&root.join("scenes/cornell-box/cornell.toml"))
+        .expect("the Cornell box in scenes/")
+}
+
 use actor::{Actor, Event};
 use anyhow::Context;
 use locus_protocol::submit::{JobRequest, SchedulerToClient};

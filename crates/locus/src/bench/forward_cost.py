@@ -8,7 +8,7 @@ not. This script renders a small version of a scene three ways, each under
 
   - one machine (`locus render --threads 2`), counting the render's
     instructions (`locus_core::passes::pixel_mean`, inclusive);
-  - a farm of a scheduler and two (`--workers`) `locus worker --threads 1` processes
+  - a farm of a scheduler and `--workers` (two) `locus worker --threads 1` processes
     (the workers under callgrind; the scheduler natively, with a worker
     timeout long enough for valgrind's pace), counting each worker's
     render phase: its engine (`locus_worker::engine::turns`) plus what its
@@ -114,7 +114,7 @@ def main():
                for i in range(1, a.workers + 1)]
     farm_exr = os.path.join(out, "farm.exr")
     try:
-        # The client waits for both workers to register.
+        # The client waits for every worker to register.
         subprocess.run([locus, "submit", "--scheduler", f"127.0.0.1:{port}", scene,
                         "--workers", str(a.workers), "--fetch", a.fetch, "--cost", a.cost,
                         "-o", farm_exr] + token,

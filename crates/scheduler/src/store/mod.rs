@@ -268,9 +268,7 @@ mod tests {
     use super::*;
 
     fn request(name: &str) -> Box<JobRequest> {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-        let scene =
-            locus_core::scene::Scene::load(&root.join("scenes/cornell-box/cornell.toml")).unwrap();
+        let scene = crate::cornell_box();
         let mut r = crate::client::request(&scene, Default::default());
         r.name = name.into();
         Box::new(r)
