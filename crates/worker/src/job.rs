@@ -3,7 +3,7 @@
 //! every peer, and starting the [`crate::engine`] on its own thread.
 
 use crate::engine::{self, EngineError, EngineJob, Event, Links};
-use crate::peers::{self, Inbox, JobLink, Traffic};
+use crate::peers::{self, Inbox, JobLink, OnBreak, Traffic};
 use crate::sys;
 use anyhow::{Context, bail};
 use locus_core::accel::Accel;
@@ -198,7 +198,8 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
     // Publish before dialing: peers dial us at the same time.
     env.links.send_replace(Some(link.clone()));
 
-    let (outs, writers) = link_peers(&setup.peers, job, me, &env, &traffic).await?;
+    let (outs, writers) =
+        link_peers(&setup.peers, job, me, &env, &traffic, OnBreak::CancelJob).await?;
 
     let (setup, irradiance) = match (setup.irradiance.is_some(), levels) {
         (true, Some((_, rx))) => {
@@ -320,6 +321,7 @@ pub async fn link_peers(
     me: u16,
     env: &Env,
     traffic: &Arc<Traffic>,
+    on_break: OnBreak,
 ) -> anyhow::Result<PeerLinks> {
     let mut outs = Vec::with_capacity(peers.len());
     let mut writers = Vec::with_capacity(peers.len());
@@ -338,6 +340,7 @@ pub async fn link_peers(
             rx,
             traffic.clone(),
             env.cancel.clone(),
+            on_break,
         );
         let h = tokio::select! {
             _ = env.cancel.cancelled() => bail!("the job was aborted while linking to its peers"),

@@ -60,8 +60,24 @@ impl Traffic {
     }
 }
 
+/// What a job does when a write to one of its peers fails.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OnBreak {
+    /// The job ends: a render job's engine stops and reports what it did,
+    /// and the scheduler recovers the rest (its fault tolerance).
+    CancelJob,
+    /// Only that link ends; what is sent to it after fails at once (its
+    /// receiver is gone), so the sender never waits on it. A radiosity
+    /// node: a peer that has finished closes its links, and a poll
+    /// answered to it a moment later must not end the node before it has
+    /// sent its patches back. A peer lost for real is the coordinator's to
+    /// find (the worker's scheduler link, or the node's stall).
+    DropPeer,
+}
+
 /// Dials peer `to` and starts the task that writes our packets to it; the
-/// task ends when the engine drops its sender, after the last write.
+/// task ends when the engine drops its sender, after the last write, or
+/// when a write fails (then as `on_break` says).
 #[allow(clippy::too_many_arguments)]
 pub async fn dial(
     addr: &str,
@@ -72,6 +88,7 @@ pub async fn dial(
     rx: flume::Receiver<PeerMsg>,
     traffic: Arc<Traffic>,
     cancel: CancellationToken,
+    on_break: OnBreak,
 ) -> Result<tokio::task::JoinHandle<()>, ProtocolError> {
     let mut conn = handshake::dial(addr, creds, MAX_FRAME_LEN).await?;
     conn.write_msg(&PeerMsg::Hello { job, from: me }).await?;
@@ -95,8 +112,15 @@ pub async fn dial(
                     c.bytes_sent.fetch_add(n as u64, Relaxed);
                 }
                 Err(e) => {
-                    warn!(peer = to, "peer link: {e}");
-                    cancel.cancel();
+                    match on_break {
+                        OnBreak::CancelJob => {
+                            warn!(peer = to, "peer link: {e}");
+                            cancel.cancel();
+                        }
+                        // Usually a peer that has finished; a loss that
+                        // matters is said when the node stalls.
+                        OnBreak::DropPeer => debug!(peer = to, "peer link closed: {e}"),
+                    }
                     break;
                 }
             }
@@ -212,6 +236,69 @@ async fn serve_peer(
         };
         if engine.send_async(Event::Input(input)).await.is_err() {
             return Ok(());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A peer that reads the `Hello` and closes its end (as a finished
+    /// peer does): the writer's failed write cancels a render job, but only
+    /// drops the link of a radiosity node; either way later sends fail at
+    /// once rather than wait.
+    #[tokio::test]
+    async fn a_broken_link_ends_the_job_or_only_itself() {
+        for (on_break, cancels) in [(OnBreak::CancelJob, true), (OnBreak::DropPeer, false)] {
+            let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+            let addr = listener.local_addr().unwrap().to_string();
+            let creds = Arc::new(Credentials::new("token", None));
+            let server = creds.clone();
+            let peer = tokio::spawn(async move {
+                let (stream, _) = listener.accept().await.unwrap();
+                let mut conn = handshake::accept(stream, &server, MAX_FRAME_LEN)
+                    .await
+                    .unwrap();
+                let hello = conn.read_msg::<PeerMsg>("peer").await.unwrap();
+                assert!(matches!(hello, Some(PeerMsg::Hello { job: 7, from: 0 })));
+            });
+            let (tx, rx) = flume::bounded(4);
+            let cancel = CancellationToken::new();
+            let traffic = Arc::new(Traffic::new(2));
+            let writer = dial(
+                &addr,
+                &creds,
+                7,
+                0,
+                1,
+                rx,
+                traffic,
+                cancel.clone(),
+                on_break,
+            )
+            .await
+            .unwrap();
+            peer.await.unwrap();
+            let mut sent = 0;
+            let gave_up = tokio::time::timeout(Duration::from_secs(20), async {
+                while tx.send_async(PeerMsg::Poll).await.is_ok() {
+                    sent += 1;
+                    tokio::time::sleep(Duration::from_millis(5)).await;
+                }
+            })
+            .await;
+            assert!(gave_up.is_ok(), "{on_break:?}: the writer never gave up");
+            writer.await.unwrap();
+            assert_eq!(
+                cancel.is_cancelled(),
+                cancels,
+                "{on_break:?} after {sent} sends"
+            );
+            assert!(
+                tx.send(PeerMsg::Poll).is_err(),
+                "a send after the break fails"
+            );
         }
     }
 }

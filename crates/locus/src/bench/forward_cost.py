@@ -20,7 +20,8 @@ valgrind and callgrind_annotate on the PATH.
 
     python3 crates/locus/src/bench/forward_cost.py [--locus target/release/locus]
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
-        [--fetch forward] [--workers 2] [--cost sampled|analytic] [--out bench-out/forward-cost]
+        [--fetch forward] [--workers 2] [--cost sampled|analytic]
+        [--partitioner region-growing|morton] [--out bench-out/forward-cost]
 """
 
 import argparse
@@ -87,6 +88,7 @@ def main():
     ap.add_argument("--cost", default="sampled",
                     help="the partition's cost model: `analytic` keeps the partition of a "
                          "build whose tracer counts nodes differently, for comparing two builds")
+    ap.add_argument("--partitioner", default="region-growing")
     ap.add_argument("--out", default="bench-out/forward-cost")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -117,6 +119,7 @@ def main():
         # The client waits for every worker to register.
         subprocess.run([locus, "submit", "--scheduler", f"127.0.0.1:{port}", scene,
                         "--workers", str(a.workers), "--fetch", a.fetch, "--cost", a.cost,
+                        "--partitioner", a.partitioner,
                         "-o", farm_exr] + token,
                        check=True, stdout=log, stderr=log, timeout=1800)
     finally:
@@ -145,7 +148,7 @@ def main():
         rows.append((f"w{i}", turns, total - blocking - setup, render))
         farm += render
     print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, {a.workers} workers x 1 thread, "
-          f"{a.fetch}, {a.cost} cost")
+          f"{a.fetch}, {a.cost} cost, {a.partitioner}")
     print(f"one machine's render: {one / 1e6:.1f} M instructions")
     for name, turns, runtime, render in rows:
         print(f"{name}: engine {turns / 1e6:.1f} M, runtime {runtime / 1e6:.1f} M, "

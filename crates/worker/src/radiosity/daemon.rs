@@ -9,7 +9,7 @@ use super::farm::inbox_capacity;
 use super::node::{Layout, Node, NodeSetup, Outbox};
 use super::runner::run_node;
 use crate::job::{Env, link_peers};
-use crate::peers::{Inbox, JobLink, Traffic};
+use crate::peers::{Inbox, JobLink, OnBreak, Traffic};
 use anyhow::bail;
 use locus_core::accel::Accel;
 use locus_core::accel_set::AccelSet;
@@ -63,7 +63,17 @@ pub async fn start(mut setup: Box<NodeJob>, env: Env) -> anyhow::Result<Arc<JobL
     });
     // Publish before dialing: peers dial us at the same time.
     env.links.send_replace(Some(link.clone()));
-    let (peers, writers) = link_peers(&setup.peers, job, me as u16, &env, &traffic).await?;
+    // A finished peer closes its links while this node may still answer
+    // its last poll: a broken link drops that peer, not the job.
+    let (peers, writers) = link_peers(
+        &setup.peers,
+        job,
+        me as u16,
+        &env,
+        &traffic,
+        OnBreak::DropPeer,
+    )
+    .await?;
     info!(
         job,
         node = me,
@@ -92,6 +102,7 @@ pub async fn start(mut setup: Box<NodeJob>, env: Env) -> anyhow::Result<Arc<JobL
         peers,
         control: env.control.clone(),
         cancel: cancel.clone(),
+        lost: vec![0; n],
     };
     let ctl = env.control.clone();
     tokio::spawn(async move {
@@ -136,8 +147,11 @@ struct DaemonLinks {
     own: flume::Sender<ToNode>,
     peers: Vec<Option<flume::Sender<PeerMsg>>>,
     control: flume::Sender<WorkerToScheduler>,
-    /// The job's abort: nothing leaves the node after it.
+    /// The job's abort (by the scheduler): nothing leaves the node after
+    /// it. A broken peer link does not set it (`OnBreak::DropPeer`).
     cancel: tokio_util::sync::CancellationToken,
+    /// Messages lost on each peer's broken link.
+    lost: Vec<u64>,
 }
 
 impl Outbox for DaemonLinks {
@@ -150,8 +164,11 @@ impl Outbox for DaemonLinks {
         // the job is ending anyway.
         if to == self.me {
             let _ = self.own.send(msg);
-        } else if let Some(Some(tx)) = self.peers.get(to as usize) {
-            let _ = tx.send(PeerMsg::Node(Box::new(msg)));
+        } else if let Some(Some(tx)) = self.peers.get(to as usize)
+            && tx.send(PeerMsg::Node(Box::new(msg))).is_err()
+        {
+            // Its writer ended on a failed write.
+            self.lost[to as usize] += 1;
         }
     }
 
@@ -163,5 +180,13 @@ impl Outbox for DaemonLinks {
             job: self.job,
             msg: Box::new(msg),
         });
+    }
+
+    fn lost(&self) -> Option<String> {
+        let lost: Vec<String> = (self.lost.iter().enumerate())
+            .filter(|(_, n)| **n > 0)
+            .map(|(p, n)| format!("{n} to node {p}"))
+            .collect();
+        (!lost.is_empty()).then(|| format!("links broke, messages lost: {}", lost.join(", ")))
     }
 }

@@ -33,6 +33,11 @@ pub const WINDOW: usize = 8;
 pub trait Outbox {
     fn to_node(&mut self, to: NodeId, msg: ToNode);
     fn to_coordinator(&mut self, msg: ToCoordinator);
+    /// The links that broke and the messages lost on them, said when the
+    /// node stalls (a lost packet or answer is the likely cause).
+    fn lost(&self) -> Option<String> {
+        None
+    }
 }
 
 /// How the farm is laid out, the same on every node.

@@ -32,7 +32,10 @@ pub fn run_node(
             let m = match inbox.recv_timeout(stall) {
                 Ok(m) => m,
                 Err(flume::RecvTimeoutError::Timeout) => {
-                    let reason = format!("no message for {:.0} s", stall.as_secs_f64());
+                    let mut reason = format!("no message for {:.0} s", stall.as_secs_f64());
+                    if let Some(lost) = out.lost() {
+                        reason += &format!(" ({lost})");
+                    }
                     out.to_coordinator(ToCoordinator::Failed {
                         node: node.id(),
                         reason: reason.clone(),
