@@ -109,9 +109,11 @@ def main():
     log = open(os.path.join(out, "farm.log"), "w")
     sched = subprocess.Popen([locus, "scheduler", "--listen", f"127.0.0.1:{port}",
                               "--worker-timeout", "600"] + token, stdout=log, stderr=log)
+    # Fixed listen addresses tie each process's counts to its report row.
+    listen = {i: f"127.0.0.1:{free_port()}" for i in range(1, a.workers + 1)}
     workers = [subprocess.Popen(cg + [f"--callgrind-out-file={out}/w{i}.cg", locus, "worker",
                                       "--scheduler", f"127.0.0.1:{port}",
-                                      "--listen", "127.0.0.1:0", "--threads", "1",
+                                      "--listen", listen[i], "--threads", "1",
                                       "--name", f"w{i}"] + token, stdout=log, stderr=log)
                for i in range(1, a.workers + 1)]
     farm_exr = os.path.join(out, "farm.exr")
@@ -145,14 +147,18 @@ def main():
         setup = costs.get("locus_protocol::control::_::<impl serde_core::de::Deserialize "
                           "for locus_protocol::control::SchedulerToWorker>::deserialize", 0)
         render = total - blocking + turns - setup
-        rows.append((f"w{i}", turns, total - blocking - setup, render))
+        stats = next((w["stats"] for w in report["workers"] if w["addr"] == listen[i]), {})
+        rows.append((f"w{i}", turns, total - blocking - setup, render, stats))
         farm += render
     print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, {a.workers} workers x 1 thread, "
           f"{a.fetch}, {a.cost} cost, {a.partitioner}")
     print(f"one machine's render: {one / 1e6:.1f} M instructions")
-    for name, turns, runtime, render in rows:
+    for name, turns, runtime, render, st in rows:
+        t = st.get("trace", {})
         print(f"{name}: engine {turns / 1e6:.1f} M, runtime {runtime / 1e6:.1f} M, "
-              f"render phase {render / 1e6:.1f} M")
+              f"render phase {render / 1e6:.1f} M; tiles {st.get('tiles', 0)}, "
+              f"BVH steps {(t.get('bvh_nodes', 0) + t.get('tri_tests', 0)) / 1e6:.2f} M, "
+              f"queries in {st.get('queries_in', 0)}, forwarded {st.get('forwarded_out', 0)}")
     print(f"forwarded queries: {forwards}")
     per = (farm - one) / max(forwards, 1)
     print(f"instructions per forwarded query beyond one machine: {per:.0f}")
