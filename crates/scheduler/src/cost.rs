@@ -104,26 +104,32 @@ impl Tally {
     }
 }
 
-/// What a path vertex costs beyond the BVH work of its rays, in BVH steps
-/// (node visits and triangle tests), charged to the leaf of the hit: its
-/// shading and the light's sample, and, on a farm, starting its shadow
-/// and continuation queries through the worker's route and path kernel.
-/// On one machine the render of the room at 96x72 and 4 spp spends
-/// 545 M instructions (callgrind), 345 M of them in BVH queries that make
-/// 2.75 M steps (125 instructions a step), over 135,809 vertices: 12
-/// steps' worth a vertex beside the BVH; a farm worker's two query starts
-/// (routing, the kernel's dispatch: 400-500 instructions each in
-/// `crates/locus/src/bench/forward_cost.py`'s profile) add about 8.
-/// Counted as BVH work alone, a leaf where many paths bounce looked cheap
-/// next to one that rays only cross.
-pub const VERTEX_COST: u64 = 20;
+/// What a path vertex costs beyond the BVH work of its rays, in the
+/// preview's BVH steps (node visits and triangle tests), charged to the
+/// leaf of the hit: its shading, the light's sample, and starting its
+/// shadow and continuation queries through the worker's route and path
+/// kernel.
+///
+/// Fitted to callgrind (`crates/locus/src/bench/fit_costs.py` over 36
+/// workers of 8 `forward_cost.py` runs, room and conference room, 2 to 8
+/// workers): a worker spends 4,527 instructions a vertex and 76 a step of
+/// its region's BVH. The preview counts about 2.75 steps for each of
+/// those, because every leaf interval of a ray enters the whole scene's
+/// BVH again from its root (35.1 steps a ray on the room against one
+/// machine's 12.3, 31.4 against 11.9 on the conference room): a preview
+/// step is about 28 instructions, and a vertex 164 of them. Charged 20
+/// (the BVH's work taken at one machine's 125 instructions a step), the
+/// preview put too little where paths bounce, and the worker holding the
+/// camera took 0.31 of the work at 4 workers where 0.24 was predicted.
+pub const VERTEX_COST: u64 = 164;
 
 /// What starting a camera sample costs the worker that renders its tile,
-/// in BVH steps: the camera ray, the sample's slot, its radiance added
-/// to the tile, the tile's bookkeeping. A tile goes to the owner of the
-/// leaves its camera rays start in (see `tiles::affinity`), so the leaf a
-/// camera ray starts in is charged.
-pub const ORIGIN_COST: u64 = 6;
+/// in the preview's BVH steps: the camera ray, the sample's slot, its
+/// radiance added to the tile, the tile's bookkeeping (2,304 instructions
+/// in the fit above). A tile goes to the owner of the leaves its camera
+/// rays start in (see `tiles::affinity`), so the leaf a camera ray starts
+/// in is charged.
+pub const ORIGIN_COST: u64 = 83;
 
 /// Bounces the preview follows at most: paths past a dozen vertices carry
 /// too little of the work to change the prediction.

@@ -4,12 +4,15 @@
 
 use super::{BALANCE_SLACK, LeafGraph, Limits, REFINE_PASSES};
 
-/// What a forwarded query costs its receiver beyond the tracing the cost
-/// preview counts (decoding it, walking the route again, restarting a BVH
-/// traversal, answering), in the preview's units of BVH steps. A region's
-/// load is its leaves' cost plus this for every preview crossing of its
-/// border, half of which come in: borders make work.
-pub const FORWARD_COST: f64 = 16.0;
+/// What a forwarded query costs its sender and receiver beyond the
+/// tracing the cost preview counts (sending it; decoding it, walking the
+/// route again, restarting a BVH traversal, answering), in the preview's
+/// units of BVH steps (about 28 instructions, see `cost::VERTEX_COST`):
+/// 813 instructions to forward and 1,676 to receive in
+/// `crates/locus/src/bench/fit_costs.py`'s fit. A region's load is its
+/// leaves' cost plus half of this for every preview crossing of its
+/// border: borders make work.
+pub const FORWARD_COST: f64 = 90.0;
 
 /// Loads that count borders: cost plus [`FORWARD_COST`] for half the
 /// weight crossing each region's border, kept up to date leaf move by leaf
@@ -82,8 +85,8 @@ impl<'a> Loads<'a> {
 /// its share plus [`BALANCE_SLACK`], its border leaf whose move costs the
 /// least cut goes to the neighbour with the most room. Then smooth: a leaf
 /// moves to the neighbouring region it is most tied to when that lowers
-/// the cut and both regions stay within their shares plus the slack (and
-/// their memory).
+/// the cut and both regions stay within their shares plus or minus the
+/// slack (and their memory).
 pub(super) fn refine(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &mut [u16]) {
     let workers = lim.targets.len();
     if workers < 2 {
@@ -92,6 +95,11 @@ pub(super) fn refine(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &mut 
     let mut loads = Loads::new(graph, cost, lim, owner);
     let total: f64 = loads.load.iter().sum();
     let cap = |w: usize| lim.targets[w] * total * (1.0 + BALANCE_SLACK);
+    // A region gives leaves away only down to its share less the slack:
+    // where borders are dear, moving a small region's leaves to its
+    // neighbours cuts the most border of all, down to a worker with
+    // nothing to do.
+    let floor = |w: usize| lim.targets[w] * total * (1.0 - BALANCE_SLACK);
     let neighbours = |l: usize, owner: &[u16]| {
         let mut v: Vec<usize> = graph.edges[l]
             .iter()
@@ -143,6 +151,7 @@ pub(super) fn refine(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &mut 
                 let (la, lb) = loads.after_move(owner, l, b);
                 if lb <= cap(b).max(loads.load[b])
                     && la <= cap(a).max(loads.load[a])
+                    && la >= floor(a).min(loads.load[a])
                     && lim.fits(b, loads.held[b], l)
                 {
                     best = Some((gain, b));
@@ -156,5 +165,32 @@ pub(super) fn refine(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &mut 
         if moved == 0 {
             break;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::HashMap;
+
+    /// Two equal regions of one leaf each with a busy border between them:
+    /// giving one leaf to the other region would end the border, and the
+    /// loads its crossings added would leave room for it, but it would
+    /// also leave a worker with nothing to do.
+    #[test]
+    fn smoothing_leaves_no_region_below_its_share() {
+        let edges: Vec<HashMap<u32, f64>> = vec![[(1, 10.0)].into(), [(0, 10.0)].into()];
+        let graph = LeafGraph::from_maps(edges);
+        let cost = [100.0, 100.0];
+        let lim = Limits {
+            targets: &[0.5, 0.5],
+            caps: &[None, None],
+            refs: &[1, 1],
+        };
+        // The border's crossings load each side more than a leaf costs.
+        const { assert!(0.5 * FORWARD_COST * 10.0 > 100.0) };
+        let mut owner = [0u16, 1];
+        refine(&graph, &cost, &lim, &mut owner);
+        assert_eq!(owner, [0, 1]);
     }
 }
