@@ -70,6 +70,10 @@ pub fn analytic(tree: &Octree) -> Vec<f64> {
 pub struct Preview {
     pub cost: Vec<f64>,
     pub rays: u64,
+    /// BVH steps (node visits and triangle tests) counted, leaf interval
+    /// by leaf interval: more than a BVH of a whole region takes for the
+    /// same rays, since each interval enters the scene's BVH from its root.
+    pub steps: u64,
     /// Paths traced (one per preview pixel), against which crossings scale
     /// to a job's samples.
     pub paths: u64,
@@ -81,6 +85,7 @@ pub struct Preview {
 struct Tally {
     cost: Vec<u64>,
     rays: u64,
+    steps: u64,
     crossings: HashMap<(u32, u32), u32>,
 }
 
@@ -89,6 +94,7 @@ impl Tally {
         Self {
             cost: vec![0; n],
             rays: 0,
+            steps: 0,
             crossings: HashMap::new(),
         }
     }
@@ -97,6 +103,7 @@ impl Tally {
             *x += y;
         }
         self.rays += o.rays;
+        self.steps += o.steps;
         for (k, v) in o.crossings {
             *self.crossings.entry(k).or_default() += v;
         }
@@ -115,8 +122,9 @@ impl Tally {
 /// workers): a worker spends 4,527 instructions a vertex and 76 a step of
 /// its region's BVH. The preview counts about 2.75 steps for each of
 /// those, because every leaf interval of a ray enters the whole scene's
-/// BVH again from its root (35.1 steps a ray on the room against one
-/// machine's 12.3, 31.4 against 11.9 on the conference room): a preview
+/// BVH again from its root (35.2 steps a ray on the room against one
+/// machine's 12.3, 31.4 against 11.9 on the conference room: the last two
+/// columns of `locus bench-farm`'s prediction table): a preview
 /// step is about 28 instructions, and a vertex 164 of them. Charged 20
 /// (the BVH's work taken at one machine's 125 instructions a step), the
 /// preview put too little where paths bounce, and the worker holding the
@@ -164,6 +172,10 @@ pub struct Quality {
     /// Rays the sampled prediction traced, and the measurement.
     pub sampled_rays: u64,
     pub measured_rays: u64,
+    /// BVH steps a ray of the measurement, counted as the preview counts
+    /// them: against what the render's own BVH takes a ray, how many
+    /// instructions a step of the preview's costs stands for.
+    pub measured_steps_per_ray: f64,
 }
 
 /// Measures per-leaf cost with the full workload at one sample per pixel
@@ -187,6 +199,7 @@ pub fn quality(scene: &Scene, tree: &Octree, accel: &dyn Geometry, lights: &Ligh
         sampled_r: correlation(&sampled.cost, &measured.cost),
         sampled_rays: sampled.rays,
         measured_rays: measured.rays,
+        measured_steps_per_ray: measured.steps as f64 / measured.rays.max(1) as f64,
     }
 }
 
@@ -263,6 +276,7 @@ pub fn preview(
     Preview {
         cost: t.cost.into_iter().map(|c| c as f64).collect(),
         rays: t.rays,
+        steps: t.steps,
         paths: w as u64 * h as u64,
         crossings: t.crossings,
     }
@@ -296,6 +310,7 @@ fn leafwise(
             accel.closest(ray, ta, tb, &mut st).map(Some)
         };
         t.cost[leaf as usize] += st.bvh_nodes + st.tri_tests;
+        t.steps += st.bvh_nodes + st.tri_tests;
         match hit {
             Some(h) => {
                 found = h.map(|h| (h, leaf));
@@ -358,6 +373,26 @@ mod tests {
         fn occluded(&self, ray: &Ray, t0: f32, t1: f32, _: &mut TraceStats) -> bool {
             self.0.occluded(ray, t0, t1, &mut TraceStats::default())
         }
+    }
+
+    /// `steps` is the BVH work the preview charged, and only that: the
+    /// same preview with the BVH's work left uncounted charges the rest.
+    #[test]
+    fn the_preview_counts_its_bvh_steps() {
+        let scene = crate::cornell_box();
+        let tree = crate::job::octree_for(&scene, 4);
+        let lights = LightSet::build(&scene);
+        let accel = locus_core::render::whole_scene_accel(&scene);
+        let traced = preview(&scene, &tree, &accel, &lights, 16, 3, 7);
+        let g = Untraced(
+            locus_core::render::whole_scene_accel(&scene),
+            AtomicU64::new(0),
+        );
+        let rest = preview(&scene, &tree, &g, &lights, 16, 3, 7);
+        let sum = |p: &Preview| p.cost.iter().sum::<f64>() as u64;
+        assert!(traced.steps > traced.rays, "{} steps", traced.steps);
+        assert_eq!(rest.steps, 0);
+        assert_eq!(sum(&traced) - sum(&rest), traced.steps);
     }
 
     /// Besides the BVH work, every path vertex is charged [`VERTEX_COST`]

@@ -122,11 +122,16 @@ pub struct Prediction {
     pub sampled_r: f64,
     pub sampled_rays: u64,
     pub measured_rays: u64,
+    /// BVH steps a ray: the measurement's, counted leaf interval by leaf
+    /// interval as the preview counts them, and one machine's render's.
+    pub preview_steps_per_ray: f64,
+    pub render_steps_per_ray: f64,
 }
 
 /// What one machine did: its image's bits and its times.
 struct Single {
     bits: Vec<u32>,
+    steps_per_ray: f64,
     render_s: f64,
     total_s: f64,
     cpu_s: f64,
@@ -142,8 +147,11 @@ fn single(scene: &Scene, cores: usize, repeat: u32) -> Single {
         let cpu0 = locus_worker::sys::process_cpu_s();
         let out = render(&prep, &o, &|_, _| {});
         let cpu_s = locus_worker::sys::process_cpu_s() - cpu0;
+        let st = &out.stats;
+        let rays = st.camera_rays + st.shadow_rays + st.indirect_rays;
         let s = Single {
             bits: out.image.to_bits(),
+            steps_per_ray: (st.bvh_nodes + st.tri_tests) as f64 / rays.max(1) as f64,
             render_s: out.render_s,
             total_s: t.elapsed().as_secs_f64(),
             cpu_s,
@@ -295,6 +303,8 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                 sampled_r: q.sampled_r,
                 sampled_rays: q.sampled_rays,
                 measured_rays: q.measured_rays,
+                preview_steps_per_ray: q.measured_steps_per_ray,
+                render_steps_per_ray: one.steps_per_ray,
             });
         }
         rows.push(Row {
@@ -472,13 +482,20 @@ pub fn markdown(rows: &[Row]) -> String {
 /// The prediction quality as a Markdown table.
 pub fn prediction_markdown(p: &[Prediction]) -> String {
     let mut s = String::from(
-        "| scene | leaves | r analytic vs measured | r sampled vs measured | sampled rays | measured rays |\n|---|---:|---:|---:|---:|---:|\n",
+        "| scene | leaves | r analytic vs measured | r sampled vs measured | sampled rays | measured rays | BVH steps a ray, leaf by leaf | BVH steps a ray, render |\n|---|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for q in p {
         let _ = writeln!(
             s,
-            "| {} | {} | {:.3} | {:.3} | {} | {} |",
-            q.scene, q.leaves, q.analytic_r, q.sampled_r, q.sampled_rays, q.measured_rays
+            "| {} | {} | {:.3} | {:.3} | {} | {} | {:.1} | {:.1} |",
+            q.scene,
+            q.leaves,
+            q.analytic_r,
+            q.sampled_r,
+            q.sampled_rays,
+            q.measured_rays,
+            q.preview_steps_per_ray,
+            q.render_steps_per_ray
         );
     }
     s

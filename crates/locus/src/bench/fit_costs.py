@@ -57,7 +57,9 @@ def rows_of(d):
     out = []
     for w in fc["workers"]:
         if len(w) < 5 or not w[4]:
-            raise SystemExit(f"{d}: written by a forward_cost.py without per-worker counts")
+            raise SystemExit(f"{d}: worker {w[0]} has no counts: run forward_cost.py again "
+                             "(an older one kept none, and a worker whose report row does not "
+                             "carry its --listen address gets none)")
         name, render, st = w[0], w[3], w[4]
         pred = next(r["predicted_cost_share"] for r in report["workers"] if r["stats"] == st)
         out.append((os.path.basename(d.rstrip("/")), name, render,

@@ -160,8 +160,9 @@ impl Outbox for DaemonLinks {
             return;
         }
         // Every inbox holds every message that can be in flight to it
-        // (see `inbox_capacity`), so these waits end; a closed link means
-        // the job is ending anyway.
+        // (see `inbox_capacity`), so these waits end. A peer's link closes
+        // when its writer failed (`OnBreak::DropPeer`): what it would have
+        // carried is counted as lost.
         if to == self.me {
             let _ = self.own.send(msg);
         } else if let Some(Some(tx)) = self.peers.get(to as usize)
