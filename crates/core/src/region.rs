@@ -46,7 +46,17 @@ pub struct Route<L> {
 impl<L: Copy + PartialEq> Route<L> {
     /// `label[leaf]` for every leaf of `tree`.
     pub fn new(tree: &Octree, label: &[L]) -> Self {
-        let (tree, labels) = tree.collapse(label);
+        Self::from_collapsed(tree.collapse(label))
+    }
+
+    /// The route over `label` where the leaves `free` accepts (those
+    /// without triangles) take any label, and `fill` where they stand
+    /// apart ([`Octree::collapse_free`]).
+    pub fn new_free(tree: &Octree, label: &[L], free: impl Fn(usize) -> bool, fill: L) -> Self {
+        Self::from_collapsed(tree.collapse_free(label, free, fill))
+    }
+
+    fn from_collapsed((tree, labels): (Octree, Vec<L>)) -> Self {
         let boxes = tree.leaves.iter().map(|l| l.bounds).collect();
         Self {
             tree,
@@ -207,6 +217,15 @@ impl ProcessorMap {
                 ControlFlow::Break(())
             });
         first
+    }
+
+    /// The route by owner where leaves without triangles (`leaf_tris`)
+    /// take any owner, as every worker's own route treats them: each node
+    /// is labelled with the one owner of its leaves with triangles, or
+    /// `None` where it holds none (whoever holds a ray crosses it).
+    pub fn holders(&self, leaf_tris: &[u32]) -> Route<Option<WorkerId>> {
+        let label: Vec<Option<WorkerId>> = self.owner.iter().map(|&o| Some(o)).collect();
+        Route::new_free(&self.tree, &label, |l| leaf_tris.get(l) == Some(&0), None)
     }
 
     /// Triangles (global ids, ascending) referenced by the leaves of `w`.

@@ -10,8 +10,10 @@
 //!   node visits and triangle tests each leaf's interval costs, plus what
 //!   the work that is not tracing costs where it happens: shading each hit
 //!   ([`VERTEX_COST`]) in the leaf hit, and starting each camera sample
-//!   ([`ORIGIN_COST`]) in the leaf its ray starts in, whose owner renders
-//!   the sample's tile.
+//!   ([`ORIGIN_COST`]) in the first leaf with triangles its ray meets,
+//!   whose owner renders the sample's tile. A leaf without triangles is
+//!   crossed by whoever holds the ray, so its work and its crossings count
+//!   for the leaves with triangles on either side of it.
 //!
 //! [`preview`] at full resolution is also how the bench measures per-leaf
 //! cost to judge both predictions.
@@ -77,7 +79,10 @@ pub struct Preview {
     /// Paths traced (one per preview pixel), against which crossings scale
     /// to a job's samples.
     pub paths: u64,
-    /// Crossings per pair of leaves `(a, b)` with `a < b`, either way.
+    /// Crossings per ordered pair of leaves `(from, into)`: a ray that
+    /// went on from leaf `from` straight into leaf `into`. The direction
+    /// matters because the two ends of a forwarded query pay unequally
+    /// (see `partition::FORWARD_COST`).
     pub crossings: HashMap<(u32, u32), u32>,
 }
 
@@ -134,9 +139,9 @@ pub const VERTEX_COST: u64 = 164;
 /// What starting a camera sample costs the worker that renders its tile,
 /// in the preview's BVH steps: the camera ray, the sample's slot, its
 /// radiance added to the tile, the tile's bookkeeping (2,304 instructions
-/// in the fit above). A tile goes to the owner of the leaves its camera
-/// rays start in (see `tiles::affinity`), so the leaf a camera ray starts
-/// in is charged.
+/// in the fit above). A tile goes to the owner of the first leaf with
+/// triangles along its camera rays (see `tiles::affinity`), so that leaf
+/// is charged.
 pub const ORIGIN_COST: u64 = 83;
 
 /// Bounces the preview follows at most: paths past a dozen vertices carry
@@ -284,7 +289,13 @@ pub fn preview(
 
 /// Traces `ray` one leaf interval at a time, adding each interval's BVH
 /// work to its leaf; returns the hit with its leaf (for any-hit rays:
-/// none), and the first leaf along the ray.
+/// none), and the first leaf with triangles along the ray.
+///
+/// A leaf without triangles is everyone's on the farm: whoever holds the
+/// ray crosses it, so no query is forwarded into it. Its interval's work
+/// goes to the leaf with triangles the ray last left (or, before the
+/// first, the first it enters), and a crossing is counted between leaves
+/// with triangles, however much empty space lies between them.
 fn leafwise(
     tree: &Octree,
     accel: &dyn Geometry,
@@ -296,12 +307,22 @@ fn leafwise(
     let mut found = None;
     let mut first = None;
     let mut prev: Option<u32> = None;
+    // Work in empty leaves before the first leaf with triangles, and the
+    // last leaf crossed (which takes that work if no such leaf follows).
+    let mut unowned = 0;
+    let mut last = None;
     let _ = tree.walk(ray, 0.0, t_max, |leaf, ta, tb| {
-        first.get_or_insert(leaf);
-        if let Some(p) = prev.replace(leaf)
-            && p != leaf
-        {
-            *t.crossings.entry((p.min(leaf), p.max(leaf))).or_default() += 1;
+        last = Some(leaf);
+        let held = !tree.leaves[leaf as usize].tris.is_empty();
+        if held {
+            first.get_or_insert(leaf);
+            match prev.replace(leaf) {
+                Some(p) if p != leaf => {
+                    *t.crossings.entry((p, leaf)).or_default() += 1;
+                }
+                Some(_) => {}
+                None => t.cost[leaf as usize] += std::mem::take(&mut unowned),
+            }
         }
         let mut st = TraceStats::default();
         let hit = if any {
@@ -309,8 +330,12 @@ fn leafwise(
         } else {
             accel.closest(ray, ta, tb, &mut st).map(Some)
         };
-        t.cost[leaf as usize] += st.bvh_nodes + st.tri_tests;
-        t.steps += st.bvh_nodes + st.tri_tests;
+        let steps = st.bvh_nodes + st.tri_tests;
+        match prev {
+            Some(p) => t.cost[p as usize] += steps,
+            None => unowned += steps,
+        }
+        t.steps += steps;
         match hit {
             Some(h) => {
                 found = h.map(|h| (h, leaf));
@@ -319,6 +344,9 @@ fn leafwise(
             None => ControlFlow::Continue(()),
         }
     });
+    if let Some(l) = last.filter(|_| unowned > 0) {
+        t.cost[l as usize] += unowned;
+    }
     (found, first)
 }
 
@@ -423,6 +451,45 @@ mod tests {
             started <= pv.paths && started * 10 >= pv.paths * 9,
             "{started} of {} samples started",
             pv.paths
+        );
+    }
+
+    /// A leaf without triangles is crossed by whoever holds the ray: the
+    /// preview counts crossings between leaves with triangles only, and
+    /// charges empty leaves nothing of their own beyond what no leaf with
+    /// triangles could take.
+    #[test]
+    fn crossings_skip_empty_leaves() {
+        let scene = crate::cornell_box();
+        let tree = crate::job::octree_for(&scene, 8);
+        let empty: Vec<bool> = tree.leaves.iter().map(|l| l.tris.is_empty()).collect();
+        assert!(empty.iter().any(|&e| e), "the test needs empty leaves");
+        let lights = LightSet::build(&scene);
+        let accel = locus_core::render::whole_scene_accel(&scene);
+        let pv = preview(&scene, &tree, &accel, &lights, 8, 3, 7);
+        assert!(!pv.crossings.is_empty());
+        for &(a, b) in pv.crossings.keys() {
+            assert!(!empty[a as usize] && !empty[b as usize], "{a} -> {b}");
+        }
+        let on_empty: f64 = (0..empty.len())
+            .filter(|&l| empty[l])
+            .map(|l| pv.cost[l])
+            .sum();
+        let all: f64 = pv.cost.iter().sum();
+        assert!(on_empty < 0.01 * all, "{on_empty} of {all} on empty leaves");
+        assert_eq!(
+            all as u64,
+            pv.steps + {
+                // With the BVH's work uncounted the rest is shading and starts.
+                let g = Untraced(
+                    locus_core::render::whole_scene_accel(&scene),
+                    AtomicU64::new(0),
+                );
+                preview(&scene, &tree, &g, &lights, 8, 3, 7)
+                    .cost
+                    .iter()
+                    .sum::<f64>() as u64
+            }
         );
     }
 }

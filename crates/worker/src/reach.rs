@@ -49,10 +49,14 @@ pub struct Reach {
 impl Reach {
     /// The snapshot for parts `accel` holding the leaves marked in `local`,
     /// and `pending` fetched leaves. With `per_leaf` remote leaves keep
-    /// their identity (a fetch policy asks for them by leaf).
+    /// their identity (a fetch policy asks for them by leaf). A leaf with
+    /// no triangles (`leaf_tris`) is anyone's: it joins its neighbours'
+    /// route node, or is local where it stands apart, so a ray is never
+    /// forwarded (nor its leaf fetched) for empty space alone.
     pub fn new(
         tree: &Octree,
         owner: &[WorkerId],
+        leaf_tris: &[u32],
         local: &[bool],
         accel: AccelSet,
         pending: Vec<Arc<FetchedLeaf>>,
@@ -75,8 +79,12 @@ impl Reach {
         for (i, p) in pending.iter().enumerate() {
             label[p.leaf as usize] = Label::Pending(i as u32);
         }
-        let all_local = label.iter().all(|&l| l == Label::Local);
-        let mut route = Route::new(tree, &label);
+        let free = |l: usize| leaf_tris.get(l) == Some(&0);
+        let all_local = label
+            .iter()
+            .enumerate()
+            .all(|(l, &x)| x == Label::Local || free(l));
+        let mut route = Route::new_free(tree, &label, free, Label::Local);
         // Grown boxes spare most walks; they are worth their cost on a
         // route that will be traced many times (not one that changes with
         // every fetched leaf) and not too large to grow quickly.
@@ -321,5 +329,61 @@ mod tests {
             hits += a.is_some() as usize;
         }
         assert!(hits > 1000);
+    }
+
+    /// Empty space is anyone's: a worker that holds every leaf with
+    /// triangles traces as one machine does, whoever owns the empty ones,
+    /// and is never sent to fetch them.
+    #[test]
+    fn empty_leaves_of_others_are_local() {
+        let tris: Vec<[Vec3; 3]> = (0..200)
+            .map(|i| {
+                let p = Vec3::new((i % 20) as f32, 0.0, (i / 20) as f32);
+                [p, p + Vec3::X * 0.9, p + Vec3::Z * 0.9]
+            })
+            .collect();
+        let oct = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 8,
+                max_depth: 6,
+            },
+        );
+        let leaf_tris: Vec<u32> = oct.leaves.iter().map(|l| l.tris.len() as u32).collect();
+        assert!(
+            leaf_tris.contains(&0),
+            "the floor leaves empty space above it"
+        );
+        let owner: Vec<WorkerId> = leaf_tris.iter().map(|&n| u16::from(n == 0)).collect();
+        let local: Vec<bool> = owner.iter().map(|&o| o == 0).collect();
+        let own: Vec<(u32, &[u32])> = (0..oct.leaves.len())
+            .filter(|&l| local[l])
+            .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
+            .collect();
+        let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
+        let parts = locus_core::accel_set::build_parts(&own, 1000, 20.0, &tri);
+        for per_leaf in [false, true] {
+            let r = Reach::new(
+                &oct,
+                &owner,
+                &leaf_tris,
+                &local,
+                AccelSet::from_parts(parts.clone()),
+                Vec::new(),
+                per_leaf,
+            );
+            assert!(r.all_local && r.route.leaves() == 1, "per leaf: {per_leaf}");
+            // Counted as holding triangles, the same leaves are remote.
+            let r = Reach::new(
+                &oct,
+                &owner,
+                &vec![1; leaf_tris.len()],
+                &local,
+                AccelSet::from_parts(parts.clone()),
+                Vec::new(),
+                per_leaf,
+            );
+            assert!(!r.all_local && r.route.leaves() > 1, "per leaf: {per_leaf}");
+        }
     }
 }

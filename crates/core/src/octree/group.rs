@@ -15,23 +15,61 @@ impl Octree {
     /// the label changes: the processor map walks far fewer nodes this way.
     pub fn collapse<L: Copy + PartialEq>(&self, label: &[L]) -> (Octree, Vec<L>) {
         assert_eq!(label.len(), self.leaves.len(), "one label per leaf");
-        let mut uniform: Vec<Option<L>> = vec![None; self.nodes.len()];
+        self.collapse_free(label, |_| false, label[0])
+    }
+
+    /// [`Self::collapse`] where the leaves `free` accepts take any label: a
+    /// subtree merges when its other leaves carry one label, and takes that
+    /// label; a subtree of free leaves alone takes `fill`. Leaves without
+    /// triangles are free on a farm (nothing in them can be hit, so whoever
+    /// holds a ray may cross them): merged into a neighbour's node they make
+    /// no route node of their own, and where they stand apart they are
+    /// crossed here, never forwarded.
+    pub fn collapse_free<L: Copy + PartialEq>(
+        &self,
+        label: &[L],
+        free: impl Fn(usize) -> bool,
+        fill: L,
+    ) -> (Octree, Vec<L>) {
+        assert_eq!(label.len(), self.leaves.len(), "one label per leaf");
+        /// What a subtree's leaves carry.
+        #[derive(Clone, Copy, PartialEq)]
+        enum Uniform<L> {
+            /// Free leaves only.
+            Any,
+            One(L),
+            Mixed,
+        }
+        let mut uniform: Vec<Uniform<L>> = vec![Uniform::Mixed; self.nodes.len()];
         // Children are stored after their parent, so a reverse sweep sees
         // every child before its parent.
         for n in (0..self.nodes.len()).rev() {
             uniform[n] = match self.nodes[n] {
-                Node::Leaf { leaf } => Some(label[leaf as usize]),
+                Node::Leaf { leaf } if free(leaf as usize) => Uniform::Any,
+                Node::Leaf { leaf } => Uniform::One(label[leaf as usize]),
                 Node::Interior { first_child } => {
                     let f = first_child as usize;
-                    let l0 = uniform[f];
-                    if l0.is_some() && (f + 1..f + 8).all(|c| uniform[c] == l0) {
-                        l0
-                    } else {
-                        None
-                    }
+                    uniform[f..f + 8]
+                        .iter()
+                        .try_fold(Uniform::Any, |acc, &u| match (acc, u) {
+                            (_, Uniform::Mixed) => None,
+                            (a, Uniform::Any) => Some(a),
+                            (Uniform::Any, u) => Some(u),
+                            (a, u) if a == u => Some(a),
+                            _ => None,
+                        })
+                        .unwrap_or(Uniform::Mixed)
                 }
             };
         }
+        let uniform: Vec<Option<L>> = uniform
+            .into_iter()
+            .map(|u| match u {
+                Uniform::Any => Some(fill),
+                Uniform::One(l) => Some(l),
+                Uniform::Mixed => None,
+            })
+            .collect();
         let mut out = Octree {
             bounds: self.bounds,
             nodes: vec![Node::Leaf { leaf: u32::MAX }],
@@ -253,5 +291,77 @@ mod tests {
         // One label everywhere: the whole tree is one leaf.
         let (one, l) = o.collapse(&vec![3u8; o.leaves.len()]);
         assert_eq!((one.leaves.len(), l), (1, vec![3]));
+    }
+
+    /// Free leaves take their neighbours' label: every leaf that is not
+    /// free keeps its own wherever a ray crosses it, free leaves never add
+    /// a route node, and free space apart from any other label is `fill`.
+    #[test]
+    fn free_leaves_join_their_neighbours() {
+        let o = Octree::build(
+            &grid_tris(30),
+            OctreeParams {
+                max_leaf_tris: 4,
+                max_depth: 7,
+            },
+        );
+        let c = o.bounds.center();
+        // Halves by x, with a scattered minority that ragged borders (and
+        // free leaves that are not really free) would keep apart.
+        let labels: Vec<u8> = o
+            .leaves
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                if i % 17 == 0 {
+                    9
+                } else {
+                    (l.bounds.center().x > c.x) as u8
+                }
+            })
+            .collect();
+        // The empty leaves, and every third leaf besides.
+        let free = |l: usize| o.leaves[l].tris.is_empty() || l.is_multiple_of(3);
+        let (small, small_labels) = o.collapse_free(&labels, free, 7);
+        small.check_structure().unwrap();
+        let (plain, _) = o.collapse(&labels);
+        assert!(small.leaves.len() < plain.leaves.len(), "free leaves merge");
+        // Empty space above the grid, under nodes of both labels.
+        assert!(small_labels.contains(&7), "free space apart takes the fill");
+        let mut rng = 0x2545f4914f6cdd1du64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let (lo, ext) = (o.bounds.min - Vec3::ONE, o.bounds.extent() + 2.0);
+        let mut checked = 0;
+        for _ in 0..2000 {
+            let p = lo + Vec3::new(next(), next(), next()) * ext;
+            let d = Vec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+            if d.length() < 1e-3 {
+                continue;
+            }
+            let r = Ray::new(p, d.normalize());
+            let route = small.leaves_along(&r, 0.0, f32::INFINITY);
+            for (l, ta, tb) in o.leaves_along(&r, 0.0, f32::INFINITY) {
+                if free(l as usize) {
+                    continue;
+                }
+                // Every route interval overlapping a kept leaf's carries
+                // the leaf's label.
+                for &(n, a, b) in &route {
+                    if a < tb && b > ta {
+                        assert_eq!(small_labels[n as usize], labels[l as usize]);
+                        checked += 1;
+                    }
+                }
+            }
+        }
+        assert!(checked > 1000, "{checked}");
+        // Nothing but free leaves: one node of the fill label.
+        let (one, l) = o.collapse_free(&labels, |_| true, 7);
+        assert_eq!((one.leaves.len(), l), (1, vec![7]));
     }
 }

@@ -61,14 +61,26 @@ fn overflow(lim: &Limits, leaf: usize) -> String {
 /// workers turns each such crossing into a forwarded query), plus a small
 /// share by shared face area so that space no preview ray crossed still
 /// stays together; without a preview, face area alone.
+///
+/// Each border also keeps how much of its weight leaves through it
+/// (`out`): the sender and the receiver of a forwarded query pay unequal
+/// parts of it, so the load a border adds to each side depends on which
+/// way its rays go.
 pub struct LeafGraph {
     pub edges: Vec<Vec<(u32, f64)>>,
+    /// Per edge of `edges`, in the same order: the weight of the crossings
+    /// from this leaf into the neighbour (the rest goes the other way; a
+    /// border's area share counts half each way).
+    pub out: Vec<Vec<f64>>,
 }
 
 impl LeafGraph {
+    /// The graph of `tree`'s leaves with the preview's `crossings`, per
+    /// ordered pair `(from, into)`.
     pub fn new(tree: &Octree, crossings: &HashMap<(u32, u32), u32>) -> Self {
         let n = tree.leaves.len();
-        let mut edges: Vec<HashMap<u32, f64>> = vec![HashMap::new(); n];
+        // Per neighbour: (weight either way, weight out of this leaf).
+        let mut edges: Vec<HashMap<u32, (f64, f64)>> = vec![HashMap::new(); n];
         let nb = tree.face_neighbours();
         let contact = |a: usize, b: usize| {
             let (p, q) = (&tree.leaves[a].bounds, &tree.leaves[b].bounds);
@@ -89,30 +101,40 @@ impl LeafGraph {
         };
         for a in 0..n {
             for &b in &nb[a] {
-                *edges[a].entry(b).or_default() += contact(a, b as usize) * area_scale;
+                // Face neighbours are listed both ways, so each side of a
+                // border adds the area's weight to its own edge; half of
+                // it counts as going out of this side.
+                let w = contact(a, b as usize) * area_scale;
+                let e = edges[a].entry(b).or_default();
+                e.0 += w;
+                e.1 += 0.5 * w;
             }
         }
         for (&(a, b), &c) in crossings {
             if (a as usize) < n && (b as usize) < n && a != b {
-                *edges[a as usize].entry(b).or_default() += c as f64;
-                *edges[b as usize].entry(a).or_default() += c as f64;
+                let c = c as f64;
+                let e = edges[a as usize].entry(b).or_default();
+                e.0 += c;
+                e.1 += c;
+                edges[b as usize].entry(a).or_default().0 += c;
             }
         }
         Self::from_maps(edges)
     }
 
-    /// The graph of per-node neighbour weights, each list sorted by
-    /// neighbour so that every walk over it is deterministic.
-    fn from_maps(edges: Vec<HashMap<u32, f64>>) -> Self {
-        let edges = edges
+    /// The graph of per-node neighbour weights (either way, and out of the
+    /// node), each list sorted by neighbour so that every walk over it is
+    /// deterministic.
+    fn from_maps(edges: Vec<HashMap<u32, (f64, f64)>>) -> Self {
+        let (edges, out) = edges
             .into_iter()
             .map(|m| {
-                let mut v: Vec<(u32, f64)> = m.into_iter().collect();
+                let mut v: Vec<(u32, (f64, f64))> = m.into_iter().collect();
                 v.sort_by_key(|e| e.0);
-                v
+                v.into_iter().map(|(b, (w, o))| ((b, w), o)).unzip()
             })
-            .collect();
-        Self { edges }
+            .unzip();
+        Self { edges, out }
     }
 
     /// Total weight of the borders between different owners.
@@ -286,14 +308,16 @@ impl Units {
         };
         let n = bounds.len();
         let (mut ucost, mut refs) = (vec![0.0; n], vec![0u64; n]);
-        let mut edges: Vec<HashMap<u32, f64>> = vec![HashMap::new(); n];
+        let mut edges: Vec<HashMap<u32, (f64, f64)>> = vec![HashMap::new(); n];
         for (l, &g) in group.iter().enumerate() {
             ucost[g as usize] += cost[l];
             refs[g as usize] += lim.refs[l];
-            for &(b, w) in &graph.edges[l] {
+            for (&(b, w), &o) in graph.edges[l].iter().zip(&graph.out[l]) {
                 let h = group[b as usize];
                 if h != g {
-                    *edges[g as usize].entry(h).or_default() += w;
+                    let e = edges[g as usize].entry(h).or_default();
+                    e.0 += w;
+                    e.1 += o;
                 }
             }
         }

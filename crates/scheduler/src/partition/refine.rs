@@ -10,18 +10,40 @@ use super::{BALANCE_SLACK, LeafGraph, Limits, REFINE_PASSES};
 /// units of BVH steps (about 28 instructions, see `cost::VERTEX_COST`):
 /// 813 instructions to forward and 1,676 to receive in
 /// `crates/locus/src/bench/fit_costs.py`'s fit. A region's load is its
-/// leaves' cost plus half of this for every preview crossing of its
-/// border: borders make work.
+/// leaves' cost plus, for every preview crossing of its border, the
+/// sender's part of this ([`SENDER_SHARE`]) where the ray leaves it and
+/// the receiver's where it enters: borders make work.
 pub const FORWARD_COST: f64 = 90.0;
 
-/// Loads that count borders: cost plus [`FORWARD_COST`] for half the
-/// weight crossing each region's border, kept up to date leaf move by leaf
-/// move.
+/// The sender's part of [`FORWARD_COST`] (813 of 813 + 1,676
+/// instructions); the receiver pays the rest. Charged half and half, the
+/// worker that starts the camera samples (whose rays mostly leave its
+/// region) was given too much else to do, and the other waited on it
+/// less than it waited on the other: on the conference room at two
+/// workers it idled 11-14% of the render.
+pub const SENDER_SHARE: f64 = 813.0 / (813.0 + 1676.0);
+
+/// Loads that count borders: cost plus each region's part of
+/// [`FORWARD_COST`] for the weight crossing its border, kept up to date
+/// leaf move by leaf move.
 struct Loads<'a> {
     graph: &'a LeafGraph,
     cost: &'a [f64],
     load: Vec<f64>,
     held: Vec<u64>,
+}
+
+/// What the border between a leaf and its `i`-th neighbour loads the
+/// leaf's region with, and the neighbour's, when they differ.
+#[inline]
+fn border_loads(graph: &LeafGraph, l: usize, i: usize) -> (f64, f64) {
+    let w = graph.edges[l][i].1;
+    let out = graph.out[l][i];
+    let (send, recv) = (
+        SENDER_SHARE * FORWARD_COST,
+        (1.0 - SENDER_SHARE) * FORWARD_COST,
+    );
+    (send * out + recv * (w - out), recv * out + send * (w - out))
 }
 
 impl<'a> Loads<'a> {
@@ -31,9 +53,9 @@ impl<'a> Loads<'a> {
         for (l, &o) in owner.iter().enumerate() {
             load[o as usize] += cost[l];
             held[o as usize] += lim.refs[l];
-            for &(b, x) in &graph.edges[l] {
+            for (i, &(b, _)) in graph.edges[l].iter().enumerate() {
                 if owner[b as usize] != o {
-                    load[o as usize] += 0.5 * FORWARD_COST * x;
+                    load[o as usize] += border_loads(graph, l, i).0;
                 }
             }
         }
@@ -49,21 +71,22 @@ impl<'a> Loads<'a> {
     fn after_move(&self, owner: &[u16], l: usize, b: usize) -> (f64, f64) {
         let a = owner[l] as usize;
         let (mut la, mut lb) = (self.load[a] - self.cost[l], self.load[b] + self.cost[l]);
-        let f = 0.5 * FORWARD_COST;
-        for &(n, x) in &self.graph.edges[l] {
+        for (i, &(n, _)) in self.graph.edges[l].iter().enumerate() {
             let o = owner[n as usize] as usize;
+            // What the border loads l's side with, and n's.
+            let (mine, theirs) = border_loads(self.graph, l, i);
             if o == a {
                 // Internal to a, now a border of both.
-                la += f * x;
-                lb += f * x;
+                la += theirs;
+                lb += mine;
             } else if o == b {
                 // A border of both, now internal to b.
-                la -= f * x;
-                lb -= f * x;
+                la -= mine;
+                lb -= theirs;
             } else {
                 // A border of a with c, now of b with c.
-                la -= f * x;
-                lb += f * x;
+                la -= mine;
+                lb += mine;
             }
         }
         (la, lb)
@@ -179,7 +202,8 @@ mod tests {
     /// also leave a worker with nothing to do.
     #[test]
     fn smoothing_leaves_no_region_below_its_share() {
-        let edges: Vec<HashMap<u32, f64>> = vec![[(1, 10.0)].into(), [(0, 10.0)].into()];
+        let edges: Vec<HashMap<u32, (f64, f64)>> =
+            vec![[(1, (10.0, 5.0))].into(), [(0, (10.0, 5.0))].into()];
         let graph = LeafGraph::from_maps(edges);
         let cost = [100.0, 100.0];
         let lim = Limits {

@@ -388,6 +388,7 @@ impl<'a> Engine<'a> {
         self.reach = Arc::new(Reach::new(
             &s.map.tree,
             &s.map.owner,
+            &s.leaf_tris,
             &self.local,
             AccelSet::from_parts(self.parts.clone()),
             self.pending.clone(),

@@ -113,6 +113,7 @@ impl<'a> Engine<'a> {
         let reach = Arc::new(Reach::new(
             &s.map.tree,
             &s.map.owner,
+            &s.leaf_tris,
             &local,
             own,
             Vec::new(),
