@@ -219,15 +219,6 @@ impl ProcessorMap {
         first
     }
 
-    /// The route by owner where leaves without triangles (`leaf_tris`)
-    /// take any owner, as every worker's own route treats them: each node
-    /// is labelled with the one owner of its leaves with triangles, or
-    /// `None` where it holds none (whoever holds a ray crosses it).
-    pub fn holders(&self, leaf_tris: &[u32]) -> Route<Option<WorkerId>> {
-        let label: Vec<Option<WorkerId>> = self.owner.iter().map(|&o| Some(o)).collect();
-        Route::new_free(&self.tree, &label, |l| leaf_tris.get(l) == Some(&0), None)
-    }
-
     /// Triangles (global ids, ascending) referenced by the leaves of `w`.
     pub fn region_triangles(tree: &Octree, owner: &[WorkerId], w: WorkerId) -> Vec<u32> {
         let mut ids: Vec<u32> = tree

@@ -358,7 +358,6 @@ pub fn prepare(
         Vec::new()
     };
     let map = ProcessorMap::new(&tree, owner);
-    let leaf_tris: Vec<u32> = tree.leaves.iter().map(|l| l.tris.len() as u32).collect();
     // Under random polling tiles go to whoever asks: a worker that has
     // fetched a hot region's leaves renders its tiles, and the owner's
     // queued work is handed to idle pollers. With affinity, a worker with
@@ -367,10 +366,9 @@ pub fn prepare(
         vec![None; tiles.len()]
     } else {
         use rayon::prelude::*;
-        let holders = map.holders(&leaf_tris);
         tiles
             .par_iter()
-            .map(|t| crate::tiles::affinity(&scene.camera, &holders, t))
+            .map(|t| crate::tiles::affinity(&scene.camera, &map, t))
             .collect()
     };
     let mut plans = Vec::with_capacity(workers);
@@ -423,7 +421,7 @@ pub fn prepare(
     Ok(Prepared {
         irradiance,
         member_cores: members.iter().map(|m| m.cores).collect(),
-        leaf_tris,
+        leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
         analytic_share: cost::shares(&analytic, &map.owner, workers),
         sampled_share: cost::shares(&sampled, &map.owner, workers),
         preview_rays,

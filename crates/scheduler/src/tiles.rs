@@ -2,15 +2,11 @@
 //!
 //! Any worker can render any sample (sampling is a pure function of pixel,
 //! sample and seed), but a camera ray is traced first by the owner of the
-//! first leaf with triangles along it (a leaf without any is everyone's:
-//! whoever holds a ray crosses it): a tile rendered by another worker costs
-//! a forward per camera ray before any work is done. So each tile has an
-//! affinity, the owner of the first such leaf along its camera rays (the
-//! majority of its centre and corner rays), and a worker asking for tiles
-//! gets the tiles of its affinity, then tiles without one (rays that meet
-//! no triangle's leaf). A camera in empty space thus spreads its tiles over
-//! the workers whose geometry it sees, not all to the owner of the leaf it
-//! stands in.
+//! leaves it starts in: a tile rendered by another worker costs a forward
+//! per camera ray before any work is done. So each tile has an affinity,
+//! the owner of the first leaf along its camera rays (the majority of its
+//! centre and corner rays), and a worker asking for tiles gets the tiles
+//! of its affinity, then tiles without one (rays that miss the scene).
 //! Workers with no such tiles left get none: they still work, on the
 //! queries the others forward them, and the partition balanced that work
 //! (camera rays included) before any tile was handed out.
@@ -19,17 +15,15 @@
 //! tiles in flight at any moment are spread over the image.
 
 use crate::film::Unit;
-use locus_core::region::{Route, WorkerId};
+use locus_core::region::{ProcessorMap, WorkerId};
 use locus_core::render::Tile;
 use locus_core::scene::Camera;
 use std::collections::VecDeque;
-use std::ops::ControlFlow;
 
-/// The first owner along most of a tile's camera rays (its centre and its
-/// four corners; the centre's wins a tie) on `holders`
-/// ([`locus_core::region::ProcessorMap::holders`]: the route where leaves without triangles
-/// are anyone's), or None when most of them meet no leaf with triangles.
-pub fn affinity(camera: &Camera, holders: &Route<Option<WorkerId>>, t: &Tile) -> Option<WorkerId> {
+/// The owner of the first leaf along most of a tile's camera rays (its
+/// centre and its four corners; the centre's wins a tie), or None when
+/// most of them miss the scene.
+pub fn affinity(camera: &Camera, map: &ProcessorMap, t: &Tile) -> Option<WorkerId> {
     let (x1, y1) = (t.x1.saturating_sub(1), t.y1.saturating_sub(1));
     let points = [
         ((t.x0 + x1) / 2, (t.y0 + y1) / 2),
@@ -42,16 +36,7 @@ pub fn affinity(camera: &Camera, holders: &Route<Option<WorkerId>>, t: &Tile) ->
         .iter()
         .map(|&(x, y)| {
             let ray = camera.ray(x, y, [0.5, 0.5]);
-            let mut first = None;
-            let _ = holders.walk(&ray, 0.0, f32::INFINITY, f32::NEG_INFINITY, |o, _, _| {
-                first = o;
-                if o.is_some() {
-                    ControlFlow::Break(())
-                } else {
-                    ControlFlow::Continue(())
-                }
-            });
-            first
+            map.first_owner(&ray, f32::INFINITY).map(|(o, _)| o)
         })
         .collect();
     let count = |o: Option<WorkerId>| owners.iter().filter(|&&x| x == o).count();
@@ -199,7 +184,6 @@ mod tests {
     fn a_tile_belongs_to_the_owner_its_camera_rays_meet_first() {
         use glam::Vec3;
         use locus_core::octree::{Octree, OctreeParams};
-        use locus_core::region::ProcessorMap;
         // A floor of triangles from x = -10 to 10; the left half (x < 0)
         // is worker 0's, the right half worker 1's.
         let mut tris = Vec::new();
@@ -224,8 +208,6 @@ mod tests {
             .map(|l| (l.bounds.center().x >= 0.0) as WorkerId)
             .collect();
         let map = ProcessorMap::new(&tree, owner);
-        let leaf_tris: Vec<u32> = tree.leaves.iter().map(|l| l.tris.len() as u32).collect();
-        let holders = map.holders(&leaf_tris);
         // A camera far above the floor's left half, looking down: every
         // ray starts outside the octree and first enters a left leaf.
         let camera = Camera {
@@ -242,28 +224,13 @@ mod tests {
             x1: x0 + 8,
             y1: y0 + 8,
         };
-        assert_eq!(affinity(&camera, &holders, &tile(0, 0)), Some(0));
-        assert_eq!(affinity(&camera, &holders, &tile(24, 24)), Some(0));
-        // Empty space is anyone's: with every leaf above the floor given
-        // to worker 1, the rays still go first to worker 0's floor.
-        let owner: Vec<WorkerId> = tree
-            .leaves
-            .iter()
-            .map(|l| l.tris.is_empty() || l.bounds.center().x >= 0.0)
-            .map(WorkerId::from)
-            .collect();
-        let empty_is_1 = ProcessorMap::new(&tree, owner);
-        let centre = camera.ray(16, 16, [0.5, 0.5]);
-        let first = empty_is_1.first_owner(&centre, f32::INFINITY);
-        assert_eq!(first.map(|f| f.0), Some(1), "the first leaf is empty");
-        let holders = empty_is_1.holders(&leaf_tris);
-        assert_eq!(affinity(&camera, &holders, &tile(0, 0)), Some(0));
-        assert_eq!(affinity(&camera, &holders, &tile(16, 16)), Some(0));
+        assert_eq!(affinity(&camera, &map, &tile(0, 0)), Some(0));
+        assert_eq!(affinity(&camera, &map, &tile(24, 24)), Some(0));
         // Looking away from the scene: no affinity.
         let away = Camera {
             look_at: Vec3::new(-5.0, 40.0, 0.0),
             ..camera
         };
-        assert_eq!(affinity(&away, &holders, &tile(8, 8)), None);
+        assert_eq!(affinity(&away, &map, &tile(8, 8)), None);
     }
 }
