@@ -51,8 +51,9 @@ impl Reach {
     /// and `pending` fetched leaves. With `per_leaf` remote leaves keep
     /// their identity (a fetch policy asks for them by leaf). A leaf with
     /// no triangles (`leaf_tris`) is anyone's: it joins its neighbours'
-    /// route node, or is local where it stands apart, so a ray is never
-    /// forwarded (nor its leaf fetched) for empty space alone.
+    /// route node, or is local where it stands apart, so a ray crosses
+    /// empty space between regions without a forward, and no empty leaf is
+    /// fetched.
     pub fn new(
         tree: &Octree,
         owner: &[WorkerId],

@@ -62,14 +62,6 @@ impl Octree {
                 }
             };
         }
-        let uniform: Vec<Option<L>> = uniform
-            .into_iter()
-            .map(|u| match u {
-                Uniform::Any => Some(fill),
-                Uniform::One(l) => Some(l),
-                Uniform::Mixed => None,
-            })
-            .collect();
         let mut out = Octree {
             bounds: self.bounds,
             nodes: vec![Node::Leaf { leaf: u32::MAX }],
@@ -80,7 +72,12 @@ impl Octree {
         let mut labels = Vec::new();
         let mut stack = vec![(0usize, 0usize, 0u32)];
         while let Some((src, dst, depth)) = stack.pop() {
-            match (uniform[src], self.nodes[src]) {
+            let one = match uniform[src] {
+                Uniform::Any => Some(fill),
+                Uniform::One(l) => Some(l),
+                Uniform::Mixed => None,
+            };
+            match (one, self.nodes[src]) {
                 (Some(l), _) => {
                     out.nodes[dst] = Node::Leaf {
                         leaf: out.leaves.len() as u32,
@@ -208,6 +205,17 @@ mod tests {
         }
     }
 
+    /// Deterministic uniform numbers in [0, 1) (xorshift64) for test rays.
+    fn uniform(seed: u64) -> impl FnMut() -> f32 {
+        let mut rng = seed;
+        move || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
     /// Label-change points along a walk: (label before, label after, t).
     fn changes(o: &Octree, labels: &[u8], r: &Ray) -> Vec<(u8, u8, u32)> {
         let segs = o.leaves_along(r, 0.0, f32::INFINITY);
@@ -255,13 +263,7 @@ mod tests {
         let (small, small_labels) = o.collapse(&labels);
         small.check_structure().unwrap();
         assert!(small.leaves.len() < o.leaves.len());
-        let mut rng = 0x9e3779b97f4a7c15u64;
-        let mut next = || {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            (rng >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut next = uniform(0x9e3779b97f4a7c15);
         let lo = o.bounds.min - Vec3::ONE;
         let ext = o.bounds.extent() + 2.0;
         let mut tested = 0;
@@ -328,13 +330,7 @@ mod tests {
         assert!(small.leaves.len() < plain.leaves.len(), "free leaves merge");
         // Empty space above the grid, under nodes of both labels.
         assert!(small_labels.contains(&7), "free space apart takes the fill");
-        let mut rng = 0x2545f4914f6cdd1du64;
-        let mut next = || {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            (rng >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut next = uniform(0x2545f4914f6cdd1d);
         let (lo, ext) = (o.bounds.min - Vec3::ONE, o.bounds.extent() + 2.0);
         let mut checked = 0;
         for _ in 0..2000 {
