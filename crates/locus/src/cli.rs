@@ -102,6 +102,10 @@ pub(crate) struct BenchFarmArgs {
     /// Also measure `forward` with random polling for hot regions.
     #[arg(long)]
     pub(crate) random_polling: bool,
+    /// Leave out the Morton baseline's `forward` rows (to compare two
+    /// builds of a change in less time).
+    #[arg(long)]
+    pub(crate) no_morton: bool,
     /// Cores one machine uses and the farms share (0: all of them).
     #[arg(long, default_value_t = 0)]
     pub(crate) cores: usize,

@@ -200,6 +200,16 @@ impl Packet {
         self.bytes.is_empty()
     }
 
+    /// A packet of bytes as they came (decoding checks them).
+    pub fn from_bytes(bytes: Vec<u8>) -> Self {
+        Self { bytes }
+    }
+
+    /// The encoded items.
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.bytes
+    }
+
     /// Encoded bytes.
     pub fn len(&self) -> usize {
         self.bytes.len()
@@ -269,6 +279,12 @@ impl Packet {
             }
         };
         self.bytes.extend_from_slice(w.done());
+    }
+
+    /// Appends another packet's items after this one's (items carry their
+    /// own tags and lengths, so packets concatenate).
+    pub fn append(&mut self, other: &Packet) {
+        self.bytes.extend_from_slice(&other.bytes);
     }
 
     /// The items, in order; path queries get `seed` and `sampler` (the
@@ -535,6 +551,13 @@ mod tests {
         // Through postcard, as a frame carries it.
         let wire = postcard::to_stdvec(&p).unwrap();
         assert_eq!(postcard::from_bytes::<Packet>(&wire).unwrap(), p);
+        // Packets encoded apart (on pool threads) concatenate to the
+        // packet of all their items.
+        for cut in 0..=src.len() {
+            let mut joined = packet(&src[..cut]);
+            joined.append(&packet(&src[cut..]));
+            assert_eq!(joined, p, "cut at item {cut}");
+        }
     }
 
     #[test]

@@ -27,6 +27,12 @@ pub struct WorkerStats {
     pub peers: Vec<PeerTraffic>,
     pub busy_s: f64,
     pub idle_s: f64,
+    /// Of `busy_s`, the time the engine's thread waited for batches out on
+    /// its tracing pool with nothing else to do. An engine that never
+    /// waits holds its pool back: its serial bookkeeping, not its tracing
+    /// threads, sets the pace.
+    #[serde(default)]
+    pub engine_wait_s: f64,
     /// Times origination stopped because a peer's queue was full.
     pub backpressure_stalls: u64,
     pub tiles: u32,
@@ -91,6 +97,7 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.answers_out += o.answers_out;
         self.busy_s += o.busy_s;
         self.idle_s += o.idle_s;
+        self.engine_wait_s += o.engine_wait_s;
         self.backpressure_stalls += o.backpressure_stalls;
         self.tiles += o.tiles;
         self.triangles += o.triangles;

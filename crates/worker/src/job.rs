@@ -191,7 +191,12 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
     let (events_tx, events_rx) = flume::bounded::<Event>(EVENTS);
     let link = Arc::new(JobLink {
         job,
-        inbox: Inbox::Engine(events_tx.clone()),
+        inbox: Inbox::Engine {
+            tx: events_tx.clone(),
+            seed: setup.seed,
+            sampler: setup.sampler,
+            workers: n,
+        },
         traffic: traffic.clone(),
         cancel: cancel.clone(),
     });

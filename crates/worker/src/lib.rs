@@ -441,7 +441,7 @@ impl Jobs {
     /// here: a message for the starting job waits for the start.
     async fn forward(&mut self, job: u64, msg: Inbound, ctl: &flume::Sender<WorkerToScheduler>) {
         let sent = match (self.running(job, ctl).await.map(|j| &j.inbox), msg) {
-            (Some(Inbox::Engine(tx)), Inbound::Engine(input)) => {
+            (Some(Inbox::Engine { tx, .. }), Inbound::Engine(input)) => {
                 tx.send_async(Event::Input(input)).await.is_ok()
             }
             (Some(Inbox::Node(tx)), Inbound::Node(m)) => tx.send_async(m).await.is_ok(),

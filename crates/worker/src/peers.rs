@@ -3,7 +3,8 @@
 //! authenticated handshake and a `Hello` naming the job and the sender.
 //! Frames and bytes are counted per peer as they cross the socket.
 
-use crate::engine::{Event, Input};
+use crate::engine::{Event, Input, Received};
+use locus_core::sampler::Sampler;
 use locus_protocol::handshake::Credentials;
 use locus_protocol::radiosity::ToNode;
 use locus_protocol::rays::PeerMsg;
@@ -25,9 +26,15 @@ pub struct JobLink {
     pub cancel: CancellationToken,
 }
 
-/// A render job's engine, or a radiosity job's node.
+/// A render job's engine (with the job's seed and sampler, which the
+/// packets' path queries leave out), or a radiosity job's node.
 pub enum Inbox {
-    Engine(flume::Sender<Event>),
+    Engine {
+        tx: flume::Sender<Event>,
+        seed: u64,
+        sampler: Sampler,
+        workers: usize,
+    },
     Node(flume::Sender<ToNode>),
 }
 
@@ -204,8 +211,13 @@ async fn serve_peer(
         };
         c.msgs_recv.fetch_add(1, Relaxed);
         c.bytes_recv.fetch_add(n as u64, Relaxed);
-        let engine = match &link.inbox {
-            Inbox::Engine(tx) => tx,
+        let (engine, seed, sampler, workers) = match &link.inbox {
+            Inbox::Engine {
+                tx,
+                seed,
+                sampler,
+                workers,
+            } => (tx, *seed, *sampler, *workers),
             Inbox::Node(tx) => {
                 let PeerMsg::Node(msg) = m else {
                     anyhow::bail!("{}: a render message in a radiosity job", r.peer());
@@ -218,7 +230,10 @@ async fn serve_peer(
         };
         let input = match m {
             PeerMsg::Node(_) => anyhow::bail!("{}: a radiosity message in a render job", r.peer()),
-            PeerMsg::Packet(packet) => Input::Packet { from, packet },
+            PeerMsg::Packet(packet) => Input::Packet {
+                from,
+                items: Received::decode(from, &packet, seed, sampler, workers),
+            },
             PeerMsg::Fetch(leaves) => Input::Fetch { from, leaves },
             PeerMsg::Leaf(leaf) => Input::Leaf {
                 from,

@@ -45,6 +45,9 @@ pub struct Plan {
     pub policies: Vec<FetchPolicy>,
     /// Also `forward` with random polling for hot regions.
     pub random_polling: bool,
+    /// `forward` over the Morton baseline's partition beside region
+    /// growing's.
+    pub morton: bool,
     /// Cores the single machine uses and the farms share.
     pub cores: usize,
     /// The large generated scene and its workers' budget, if wanted.
@@ -85,6 +88,10 @@ pub struct Row {
     pub imbalance: f64,
     /// Of the workers' render time, the share they sat idle.
     pub idle_share: f64,
+    /// The busiest engine thread's share of its worker's render time
+    /// (`WorkerStats::engine_wait_s`): near 1, the serial bookkeeping
+    /// holds the tracing pool back.
+    pub engine_busy: f64,
     /// Random polling: polls sent, and queries handed to pollers.
     pub polls: u64,
     pub handed: u64,
@@ -255,6 +262,14 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
             .then(|| (fwd + t.answers_out) as f64 / messages as f64),
         imbalance: f.load_imbalance,
         idle_share: t.idle_s / (t.busy_s + t.idle_s).max(1e-9),
+        engine_busy: f
+            .workers
+            .iter()
+            .map(|w| {
+                let s = &w.stats;
+                (s.busy_s - s.engine_wait_s) / (s.busy_s + s.idle_s).max(1e-9)
+            })
+            .fold(0.0, f64::max),
         polls: t.polls,
         handed: t.handed_out,
         route_nodes: f.route_leaves,
@@ -325,6 +340,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             items_per_message: None,
             imbalance: 1.0,
             idle_share: 0.0,
+            engine_busy: 0.0,
             polls: 0,
             handed: 0,
             route_nodes: 0,
@@ -363,12 +379,14 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                         });
                     }
                     if w > 1 && plan.policies.contains(&FetchPolicy::Forward) {
-                        runs.push(FarmRun {
-                            spec: spec(plan, w, 0),
-                            policy: FetchPolicy::Forward,
-                            partitioner: Partitioner::Morton,
-                            random_polling: false,
-                        });
+                        if plan.morton {
+                            runs.push(FarmRun {
+                                spec: spec(plan, w, 0),
+                                policy: FetchPolicy::Forward,
+                                partitioner: Partitioner::Morton,
+                                random_polling: false,
+                            });
+                        }
                         if plan.random_polling {
                             runs.push(FarmRun {
                                 spec: spec(plan, w, 0),
@@ -437,11 +455,11 @@ pub fn markdown(rows: &[Row]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | items / message | imbalance | idle | handed | peak MiB per process (budget) | bit-identical |"
+        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | items / message | imbalance | idle | engine busy | handed | peak MiB per process (budget) | bit-identical |"
     );
     let _ = writeln!(
         s,
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
     );
     for r in rows {
         let peaks = r
@@ -457,7 +475,7 @@ pub fn markdown(rows: &[Row]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {} | {:.2} | {:.0}% | {} | {}{} | {} |",
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {} | {:.2} | {:.0}% | {:.0}% | {} | {}{} | {} |",
             r.scene,
             r.config,
             r.render_s,
@@ -470,6 +488,7 @@ pub fn markdown(rows: &[Row]) -> String {
             r.items_per_message.map_or("".into(), |m| format!("{m:.0}")),
             r.imbalance,
             r.idle_share * 100.0,
+            r.engine_busy * 100.0,
             r.handed,
             peaks,
             budget,

@@ -85,6 +85,9 @@ def main():
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--fetch", default="forward")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1,
+                    help="threads per worker; from 4 on the engine's thread only keeps the books, "
+                         "so its instructions against the pool's say whether it holds the pool back")
     ap.add_argument("--cost", default="sampled",
                     help="the partition's cost model: `analytic` keeps the partition of a "
                          "build whose tracer counts nodes differently, for comparing two builds")
@@ -113,7 +116,7 @@ def main():
     listen = {i: f"127.0.0.1:{free_port()}" for i in range(1, a.workers + 1)}
     workers = [subprocess.Popen(cg + [f"--callgrind-out-file={out}/w{i}.cg", locus, "worker",
                                       "--scheduler", f"127.0.0.1:{port}",
-                                      "--listen", listen[i], "--threads", "1",
+                                      "--listen", listen[i], "--threads", str(a.threads),
                                       "--name", f"w{i}"] + token, stdout=log, stderr=log)
                for i in range(1, a.workers + 1)]
     farm_exr = os.path.join(out, "farm.exr")
@@ -150,7 +153,7 @@ def main():
         stats = next((w["stats"] for w in report["workers"] if w["addr"] == listen[i]), {})
         rows.append((f"w{i}", turns, total - blocking - setup, render, stats))
         farm += render
-    print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, {a.workers} workers x 1 thread, "
+    print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, {a.workers} workers x {a.threads} threads, "
           f"{a.fetch}, {a.cost} cost, {a.partitioner}")
     print(f"one machine's render: {one / 1e6:.1f} M instructions")
     for name, turns, runtime, render, st in rows:

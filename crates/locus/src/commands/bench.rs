@@ -214,6 +214,7 @@ pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
         workers: a.workers.clone(),
         policies: a.policies.clone(),
         random_polling: a.random_polling,
+        morton: !a.no_morton,
         cores,
         large,
         exe: std::env::current_exe().context("finding the locus executable")?,

@@ -80,6 +80,36 @@ impl Outbox {
         Ok(())
     }
 
+    /// Adds `n` items encoded elsewhere (by the pool) to `peer`'s packet:
+    /// a packet that would exceed the packet size leaves first, so that
+    /// packets never hold more items than that when the chunks hold no
+    /// more.
+    pub fn push_encoded(
+        &mut self,
+        peer: WorkerId,
+        items: &Packet,
+        n: usize,
+        now: Instant,
+    ) -> Result<(), LinkClosed> {
+        let p = peer as usize;
+        if p >= self.out.len() {
+            return Err(LinkClosed(peer));
+        }
+        if self.out[p].1 > 0 && self.out[p].1 + n > self.packet_items {
+            self.send_packet(p)?;
+        }
+        let (packet, k) = &mut self.out[p];
+        if *k == 0 {
+            self.since[p] = Some(now);
+        }
+        packet.append(items);
+        *k += n;
+        if *k >= self.packet_items {
+            self.send_packet(p)?;
+        }
+        Ok(())
+    }
+
     fn send_packet(&mut self, p: usize) -> Result<(), LinkClosed> {
         self.since[p] = None;
         let (packet, n) = &mut self.out[p];
@@ -247,5 +277,46 @@ mod tests {
         assert_eq!(o.push(0, item(5), now), Err(LinkClosed(0)));
         // No channel to itself: a bug, reported, not a panic.
         assert_eq!(o.push(1, item(5), now), Err(LinkClosed(1)));
+    }
+
+    fn encoded(ks: std::ops::Range<u32>) -> (Packet, usize) {
+        let mut p = Packet::default();
+        for k in ks.clone() {
+            p.push(&item(k));
+        }
+        (p, ks.len())
+    }
+
+    #[test]
+    fn chunks_encoded_elsewhere_join_packets_without_overfilling_them() {
+        let (tx, rx) = flume::bounded(16);
+        let mut o = Outbox::new(vec![None, Some(tx)], 4, Duration::from_millis(5));
+        let t0 = Instant::now();
+        o.push(1, item(0), t0).unwrap();
+        let (p, n) = encoded(1..3);
+        o.push_encoded(1, &p, n, t0).unwrap();
+        assert!(rx.try_recv().is_err(), "3 of 4 items wait");
+        // Two more would make 5: the packet of 3 leaves first.
+        let (p, n) = encoded(3..5);
+        o.push_encoded(1, &p, n, t0).unwrap();
+        assert_eq!(items(rx.try_recv().unwrap()), [0, 1, 2]);
+        // A full chunk fills the packet it joins and leaves at once.
+        let (p, n) = encoded(5..7);
+        o.push_encoded(1, &p, n, t0 + Duration::from_millis(1))
+            .unwrap();
+        assert_eq!(items(rx.try_recv().unwrap()), [3, 4, 5, 6]);
+        let (p, n) = encoded(7..8);
+        o.push_encoded(1, &p, n, t0 + Duration::from_millis(2))
+            .unwrap();
+        assert_eq!(
+            o.next_deadline(),
+            Some(t0 + Duration::from_millis(7)),
+            "an empty packet's deadline starts with its first chunk"
+        );
+        o.flush_all().unwrap();
+        assert_eq!(items(rx.try_recv().unwrap()), [7]);
+        assert_eq!(o.packets, 3);
+        // A peer outside the job: an error, not a panic.
+        assert_eq!(o.push_encoded(2, &p, n, t0), Err(LinkClosed(2)));
     }
 }

@@ -225,6 +225,10 @@ impl Engine<'_> {
             else {
                 return Err(bad("an answer".into()));
             };
+            if reply.worker as usize >= job.workers {
+                let worker = reply.worker;
+                return Err(EngineError::BadReply { from, worker });
+            }
             self.stats.handed_in += 1;
             self.work.push_front(Work {
                 task: Task::Query(query),

@@ -7,7 +7,7 @@ use super::kernel::{Batch, Work};
 use super::outbox::Outbox;
 use super::polling::Polling;
 use super::slots::{Effect, Slots, UnknownSlot};
-use super::{EngineError, EngineJob, Event, Input, Links};
+use super::{EngineError, EngineJob, Event, Input, Links, Received};
 use crate::fetch::FetchedLeaf;
 use crate::reach::Reach;
 use locus_core::accel_set::{AccelSet, Part};
@@ -45,8 +45,6 @@ pub(super) struct Engine<'a> {
     pub(super) tiles_asked: usize,
     pub(super) stats: WorkerStats,
     pub(super) effects: Vec<Effect>,
-    /// A packet's answers, decoded (kept to reuse its allocation).
-    pub(super) answers: Vec<(u32, Answer)>,
     pub(super) children: Vec<(Dest, Query, Resume, ReplyTo)>,
     pub(super) traffic: Arc<crate::peers::Traffic>,
     /// Packets received from each peer.
@@ -139,7 +137,6 @@ impl<'a> Engine<'a> {
                 ..Default::default()
             },
             effects: Vec::new(),
-            answers: Vec::new(),
             children: Vec::new(),
             traffic: links.traffic.clone(),
             received: vec![0; job.workers],
@@ -212,39 +209,28 @@ impl<'a> Engine<'a> {
         'a: 's,
     {
         match i {
-            Input::Packet { from, packet } => {
+            Input::Packet { from, items } => {
                 if let Some(r) = self.received.get_mut(from as usize) {
                     *r += 1;
                 }
-                // Queries go straight into the work queue; answers are
-                // gathered, so that each one's slot can be fetched from
-                // memory a few answers ahead (answers arrive for slots at
-                // random), and what it will write next half as far ahead.
-                let mut answers = std::mem::take(&mut self.answers);
-                for it in packet.items(self.job.setup.seed, self.job.setup.sampler) {
-                    match it.map_err(|why| EngineError::BadPacket { from, why })? {
-                        RayItem::Trace {
-                            query,
-                            resume,
-                            reply,
-                        } => {
-                            self.stats.queries_in += 1;
-                            // Peers' queries go first, new camera samples
-                            // last: a peer whose samples all wait here
-                            // would otherwise run dry while they queue
-                            // behind samples this worker started.
-                            self.work.push_front(Work {
-                                task: Task::Query(query),
-                                resume,
-                                reply,
-                                from,
-                                pinned: None,
-                                handed_by: None,
-                            });
-                        }
-                        RayItem::Answer { to, answer } => answers.push((to, answer)),
-                    }
+                let Received { queries, answers } = items?;
+                self.stats.queries_in += queries.len() as u64;
+                // Peers' queries go first, new camera samples last: a peer
+                // whose samples all wait here would otherwise run dry while
+                // they queue behind samples this worker started.
+                for (query, resume, reply) in queries {
+                    self.work.push_front(Work {
+                        task: Task::Query(query),
+                        resume,
+                        reply,
+                        from,
+                        pinned: None,
+                        handed_by: None,
+                    });
                 }
+                // Each answer's slot is fetched from memory a few answers
+                // ahead (answers arrive for slots at random), and what it
+                // will write next half as far ahead.
                 for i in 0..answers.len() {
                     if let Some(&(to, _)) = answers.get(i + AHEAD) {
                         self.slots.prefetch(to);
@@ -262,8 +248,6 @@ impl<'a> Engine<'a> {
                     )?;
                     self.effects()?;
                 }
-                answers.clear();
-                self.answers = answers;
             }
             Input::Fetch { from, leaves } => self.serve(from, leaves)?,
             Input::Poll { from } => self.polled(from)?,
@@ -293,6 +277,17 @@ impl<'a> Engine<'a> {
         self.stats.fetched_leaf_traces += b.fetched_leaf_traces;
         self.crossings += b.fetched_leaf_traces;
         self.cpu_s += b.cpu_s;
+        self.stats.forwarded_out += b.sends.forwards;
+        self.stats.answers_out += b.sends.answers;
+        for (to, packet, n) in &b.sends.full {
+            self.outbox.push_encoded(*to, packet, *n, self.now)?;
+        }
+        for (to, (packet, n)) in b.sends.open.iter().enumerate() {
+            if *n > 0 {
+                self.outbox
+                    .push_encoded(to as WorkerId, packet, *n, self.now)?;
+            }
+        }
         let me = self.job.setup.me;
         // As for a packet's answers: slots a few items ahead.
         let mine = |i: usize| match b.items.get(i) {
@@ -520,9 +515,15 @@ impl<'a> Engine<'a> {
         );
     }
 
-    pub(super) fn finish(&mut self, total: Duration, idle: Duration) -> WorkerStats {
+    pub(super) fn finish(
+        &mut self,
+        total: Duration,
+        idle: Duration,
+        waited: Duration,
+    ) -> WorkerStats {
         let mut st = std::mem::take(&mut self.stats);
         st.idle_s = idle.as_secs_f64();
+        st.engine_wait_s = waited.as_secs_f64();
         st.busy_s = (total - idle.min(total)).as_secs_f64();
         if let Some(c) = &self.job.caches {
             st.cache_memory = c.memory();
