@@ -7,10 +7,9 @@
 //! small. Nothing is spent on a serde visitor per field. The sample key's
 //! seed is the job's and is not sent (the receiver supplies it), and a path
 //! query whose emission bound is infinite (no directional cache) leaves it
-//! out and says so in its tag. The
-//! sender encodes straight into the packet it is filling and the receiver
-//! decodes straight into its work queue, so an item is copied once on each
-//! side. A malformed packet (an unknown tag, a cut-off item) is an error
+//! out and says so in its tag. Items are
+//! self-delimiting, so packets encoded apart (on a worker's tracing
+//! threads) concatenate ([`Packet::append`]). A malformed packet (an unknown tag, a cut-off item) is an error
 //! naming the byte where it went wrong, never a panic.
 //!
 //! | item | fields | bytes, typically |
