@@ -199,6 +199,15 @@ impl Packet {
         self.bytes.is_empty()
     }
 
+    /// The packet of `items`, in order.
+    pub fn from_items<'a>(items: impl IntoIterator<Item = &'a RayItem>) -> Self {
+        let mut p = Self::default();
+        for i in items {
+            p.push(i);
+        }
+        p
+    }
+
     /// A packet of bytes as they came (decoding checks them).
     pub fn from_bytes(bytes: Vec<u8>) -> Self {
         Self { bytes }
@@ -528,11 +537,7 @@ mod tests {
     }
 
     fn packet(items: &[RayItem]) -> Packet {
-        let mut p = Packet::default();
-        for i in items {
-            p.push(i);
-        }
-        p
+        Packet::from_items(items)
     }
 
     #[test]

@@ -31,7 +31,6 @@ pub struct WorkerStats {
     /// its tracing pool with nothing else to do. An engine that never
     /// waits holds its pool back: its serial bookkeeping, not its tracing
     /// threads, sets the pace.
-    #[serde(default)]
     pub engine_wait_s: f64,
     /// Times origination stopped because a peer's queue was full.
     pub backpressure_stalls: u64,

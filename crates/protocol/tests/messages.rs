@@ -181,10 +181,7 @@ proptest! {
     #[test]
     fn peer_messages_roundtrip(items in proptest::collection::vec(ray_item(), 0..60), job in any::<u64>(), from in any::<u16>()) {
         let n = items.len();
-        let mut packet = Packet::default();
-        for i in &items {
-            packet.push(i);
-        }
+        let packet = Packet::from_items(&items);
         roundtrip(&PeerMsg::Packet(packet.clone()));
         // Items come back as they went, the seed supplied by the receiver
         // (the generated keys carry arbitrary seeds; compare without them).

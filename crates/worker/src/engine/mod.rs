@@ -167,7 +167,7 @@ pub enum Input {
 /// A packet's items as the reader of its link sorted them: queries to trace
 /// here and answers for this worker's slots. Decoding there keeps it off the
 /// engine's thread, which is serial: in a worker of 8 tracing threads on the
-/// room, decoding took a quarter of that thread's instructions, and the
+/// room, decoding took 17-28% of that thread's instructions, and the
 /// engine fed its pool more slowly than the pool traced.
 #[derive(Default)]
 pub struct Received {
@@ -278,7 +278,7 @@ const EVENTS_PER_TURN: usize = 512;
 /// A worker of at least this many threads gives its pool all of them, and
 /// its engine's thread only keeps the books (about 1% of a tracing
 /// thread's time per thread it feeds when its rays stay local; under
-/// `forward` on 16 cores, 73-88% of its time at 2 x 8 and 4 x 4 threads,
+/// `forward` on 16 cores, 73-89% of its time at 2 x 8 and 4 x 4 threads,
 /// which `WorkerStats::engine_wait_s` shows). A thread that traced a batch of its
 /// own each turn answered the pool late: on 16 cores, a worker of 16
 /// threads traced at 0.8 of one machine with it.
@@ -517,17 +517,9 @@ mod tests {
         }
     }
 
-    fn packet(items: &[RayItem]) -> Packet {
-        let mut p = Packet::default();
-        for i in items {
-            p.push(i);
-        }
-        p
-    }
-
     #[test]
     fn a_received_packet_is_sorted_in_order_and_checked_against_the_job() {
-        let p = packet(&[shadow(0, 4), answer(7), shadow(2, 5), answer(8)]);
+        let p = Packet::from_items(&[shadow(0, 4), answer(7), shadow(2, 5), answer(8)]);
         let r = Received::decode(1, &p, 3, Sampler::Independent, 3).unwrap();
         let replies: Vec<_> = r
             .queries
@@ -548,7 +540,7 @@ mod tests {
             e.err()
         );
         // The shadow query's last byte cut off.
-        let whole = packet(&[answer(7), shadow(0, 1)]);
+        let whole = Packet::from_items(&[answer(7), shadow(0, 1)]);
         let short = Packet::from_bytes(whole.as_bytes()[..whole.len() - 1].to_vec());
         let e = Received::decode(1, &short, 3, Sampler::Independent, 3);
         assert!(

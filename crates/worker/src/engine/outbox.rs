@@ -67,23 +67,10 @@ impl Outbox {
 
     /// Adds an item to `peer`'s packet, sending it when full.
     pub fn push(&mut self, peer: WorkerId, item: RayItem, now: Instant) -> Result<(), LinkClosed> {
-        let p = peer as usize;
-        let (packet, n) = &mut self.out[p];
-        if *n == 0 {
-            self.since[p] = Some(now);
-        }
-        packet.push(&item);
-        *n += 1;
-        if *n >= self.packet_items {
-            self.send_packet(p)?;
-        }
-        Ok(())
+        self.add(peer, 1, now, |p| p.push(&item))
     }
 
-    /// Adds `n` items encoded elsewhere (by the pool) to `peer`'s packet:
-    /// a packet that would exceed the packet size leaves first, so that
-    /// packets never hold more items than that when the chunks hold no
-    /// more.
+    /// Adds `n` items encoded elsewhere (by the pool) to `peer`'s packet.
     pub fn push_encoded(
         &mut self,
         peer: WorkerId,
@@ -91,18 +78,32 @@ impl Outbox {
         n: usize,
         now: Instant,
     ) -> Result<(), LinkClosed> {
+        self.add(peer, n, now, |p| p.append(items))
+    }
+
+    /// Writes `n` items into `peer`'s packet with `write`: a packet that
+    /// would exceed the packet size leaves first (so packets never hold
+    /// more than that when no write does), and one that reaches it leaves
+    /// after.
+    fn add(
+        &mut self,
+        peer: WorkerId,
+        n: usize,
+        now: Instant,
+        write: impl FnOnce(&mut Packet),
+    ) -> Result<(), LinkClosed> {
         let p = peer as usize;
-        if p >= self.out.len() {
+        let Some(&(_, held)) = self.out.get(p) else {
             return Err(LinkClosed(peer));
-        }
-        if self.out[p].1 > 0 && self.out[p].1 + n > self.packet_items {
+        };
+        if held > 0 && held + n > self.packet_items {
             self.send_packet(p)?;
         }
         let (packet, k) = &mut self.out[p];
         if *k == 0 {
             self.since[p] = Some(now);
         }
-        packet.append(items);
+        write(packet);
         *k += n;
         if *k >= self.packet_items {
             self.send_packet(p)?;
@@ -280,11 +281,8 @@ mod tests {
     }
 
     fn encoded(ks: std::ops::Range<u32>) -> (Packet, usize) {
-        let mut p = Packet::default();
-        for k in ks.clone() {
-            p.push(&item(k));
-        }
-        (p, ks.len())
+        let items: Vec<RayItem> = ks.map(item).collect();
+        (Packet::from_items(&items), items.len())
     }
 
     #[test]

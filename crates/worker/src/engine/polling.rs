@@ -18,9 +18,9 @@
 //! to samples open at its origin, and a worker polls only while it has
 //! fewer than `max_inflight` slots waiting.
 
-use super::EngineError;
 use super::kernel::Work;
 use super::state::Engine;
+use super::{EngineError, Received};
 use locus_core::path::Task;
 use locus_core::region::{Resume, WorkerId};
 use locus_protocol::rays::{HandedSample, Packet, PeerMsg, RayItem, ReplyTo};
@@ -215,20 +215,11 @@ impl Engine<'_> {
         let job = self.job;
         let s = &job.setup;
         let bad = |what: String| EngineError::BadHanded { from, what };
-        for it in queries.items(s.seed, s.sampler) {
-            let it = it.map_err(|why| EngineError::BadPacket { from, why })?;
-            let RayItem::Trace {
-                query,
-                resume,
-                reply,
-            } = it
-            else {
-                return Err(bad("an answer".into()));
-            };
-            if reply.worker as usize >= job.workers {
-                let worker = reply.worker;
-                return Err(EngineError::BadReply { from, worker });
-            }
+        let r = Received::decode(from, &queries, s.seed, s.sampler, job.workers)?;
+        if !r.answers.is_empty() {
+            return Err(bad("an answer".into()));
+        }
+        for (query, resume, reply) in r.queries {
             self.stats.handed_in += 1;
             self.work.push_front(Work {
                 task: Task::Query(query),
