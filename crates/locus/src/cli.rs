@@ -617,7 +617,7 @@ pub(crate) struct QualityArgs {
     pub(crate) threads: usize,
     #[arg(long)]
     pub(crate) max_depth: Option<u32>,
-    /// The Python with Mitsuba 3 (`pip install mitsuba`); Mitsuba's rows
+    /// The Python with Mitsuba 3 (`pip install mitsuba numpy`); Mitsuba's rows
     /// are left out when it cannot import it.
     #[arg(long, default_value = "python3", env = "LOCUS_MITSUBA_PYTHON")]
     pub(crate) python: String,

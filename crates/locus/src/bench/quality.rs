@@ -6,7 +6,7 @@
 //! with different seeds, so the reference's own error is measured, not
 //! guessed: the relMSE between the halves, over 4, is that of their mean.
 //! Then the scene is rendered at each sample count with each of locus's
-//! samplers and, when `python3 -c "import mitsuba"` works, with Mitsuba's
+//! samplers and, when `python3 -c "import mitsuba, numpy"` works, with Mitsuba's
 //! `independent` and `ldsampler` on the same threads (the scene exported
 //! as PLY files and a JSON spec, rendered by the script beside this file).
 //! Every row gets its render time, its relMSE against the reference, their
@@ -285,7 +285,9 @@ pub fn mitsuba_available(python: &str, variant: &str) -> bool {
     std::process::Command::new(python)
         .args([
             "-c",
-            "import sys, mitsuba as mi; mi.set_variant(sys.argv[1])",
+            // The render script reads Mitsuba's images through numpy,
+            // which `pip install mitsuba` does not bring.
+            "import sys, numpy, mitsuba as mi; mi.set_variant(sys.argv[1])",
             variant,
         ])
         .stdout(std::process::Stdio::null())

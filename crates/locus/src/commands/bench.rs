@@ -78,8 +78,8 @@ pub(crate) fn cmd_bench_quality(a: QualityArgs) -> Result<()> {
         })
     } else {
         eprintln!(
-            "Mitsuba's rows left out: {} cannot import mitsuba with the {} variant \
-             (pip install mitsuba; llvm variants need libLLVM)",
+            "Mitsuba's rows left out: {} cannot import numpy and mitsuba with the {} \
+             variant (pip install mitsuba numpy; llvm variants need libLLVM)",
             a.python, a.mitsuba_variant
         );
         None

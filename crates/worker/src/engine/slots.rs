@@ -208,6 +208,11 @@ impl Slots {
         match self.free.pop() {
             Some(i) => {
                 self.slots[i as usize] = s;
+                // The next slot handed out is known now: a chain opens a
+                // slot per vertex, and a freed slot is cold by then.
+                if let Some(&next) = self.free.last() {
+                    self.prefetch(next);
+                }
                 i
             }
             None => {
