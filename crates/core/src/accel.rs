@@ -75,10 +75,12 @@ pub struct Accel {
     /// Triangle vertices in BVH primitive order, so leaf visits read
     /// contiguous memory.
     verts: Vec<[Vec3; 3]>,
-    /// Global triangle id of each BVH primitive.
-    ids: Vec<u32>,
-    /// Material of each BVH primitive.
-    material: Vec<u32>,
+    /// Global triangle id and material of each BVH primitive, side by
+    /// side: a traversal reads the id of every triangle it hits, and the
+    /// hit's surface then finds the material in the same cache line
+    /// (apart, the material was a miss of its own on every hit: a tenth
+    /// of a farm worker's tracer, `perf`).
+    meta: Vec<[u32; 2]>,
     /// Shading normals of each BVH primitive; empty when none has any.
     normals: Vec<[Vec3; 3]>,
     /// One primitive position per triangle, ordered by global id, for
@@ -202,22 +204,23 @@ impl Accel {
             .collect();
         bvh.exact_node_aabbs = None;
         let verts = order.iter().map(|&p| set.verts[p as usize]).collect();
-        let ids: Vec<u32> = order.iter().map(|&p| set.ids[p as usize]).collect();
-        let material = order.iter().map(|&p| set.material[p as usize]).collect();
+        let meta: Vec<[u32; 2]> = order
+            .iter()
+            .map(|&p| [set.ids[p as usize], set.material[p as usize]])
+            .collect();
         let normals = if set.normals.is_empty() {
             Vec::new()
         } else {
             order.iter().map(|&p| set.normals[p as usize]).collect()
         };
         drop(set);
-        let mut by_id: Vec<u32> = (0..ids.len() as u32).collect();
-        by_id.sort_unstable_by_key(|&p| ids[p as usize]);
-        by_id.dedup_by_key(|p| ids[*p as usize]);
+        let mut by_id: Vec<u32> = (0..meta.len() as u32).collect();
+        by_id.sort_unstable_by_key(|&p| meta[p as usize][0]);
+        by_id.dedup_by_key(|p| meta[*p as usize][0]);
         Self {
             bvh,
             verts,
-            ids,
-            material,
+            meta,
             normals,
             by_id,
             bounds,
@@ -233,11 +236,11 @@ impl Accel {
     /// Number of boxes (BVH primitives): a triangle split into several
     /// counts once for each. At most a twentieth more than [`Self::len`].
     pub fn boxes(&self) -> usize {
-        self.ids.len()
+        self.meta.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.ids.is_empty()
+        self.meta.is_empty()
     }
 
     /// Bounds of every triangle box (padded); empty for an empty BVH.
@@ -251,21 +254,15 @@ impl Accel {
         use std::mem::size_of_val;
         size_of_val(self.bvh.nodes.as_slice())
             + size_of_val(self.verts.as_slice())
-            + size_of_val(self.ids.as_slice())
-            + size_of_val(self.material.as_slice())
+            + size_of_val(self.meta.as_slice())
             + size_of_val(self.normals.as_slice())
             + size_of_val(self.by_id.as_slice())
-    }
-
-    /// Global ids, in BVH order (a split triangle's once per box).
-    pub fn ids(&self) -> &[u32] {
-        &self.ids
     }
 
     /// The triangle at BVH position `prim`: vertices and material.
     #[inline(always)]
     pub fn triangle(&self, prim: u32) -> ([Vec3; 3], u32) {
-        (self.verts[prim as usize], self.material[prim as usize])
+        (self.verts[prim as usize], self.meta[prim as usize][1])
     }
 
     /// The shading normals of the triangle at BVH position `prim`
@@ -299,7 +296,7 @@ impl Accel {
     /// Position of global id `id`, if this BVH holds it.
     pub fn find(&self, id: u32) -> Option<u32> {
         self.by_id
-            .binary_search_by_key(&id, |&p| self.ids[p as usize])
+            .binary_search_by_key(&id, |&p| self.meta[p as usize][0])
             .ok()
             .map(|k| self.by_id[k])
     }
@@ -307,7 +304,7 @@ impl Accel {
     /// Closest hit with `t0 <= t < t1`; ties in t go to the smaller global id.
     #[inline]
     pub fn closest(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> Option<AccelHit> {
-        if self.ids.is_empty() {
+        if self.meta.is_empty() {
             return None;
         }
         #[cfg(target_arch = "x86_64")]
@@ -360,7 +357,7 @@ impl Accel {
                 let p = state.primitive_id as usize;
                 tests += 1;
                 if let Some(TriHit { t, b1, b2 }) = w.intersect(&self.verts[p], t0, t1) {
-                    let id = self.ids[p];
+                    let id = self.meta[p][0];
                     let better = match best {
                         None => true,
                         Some(b) => t < b.hit.t || (t == b.hit.t && id < b.hit.tri),
@@ -392,7 +389,7 @@ impl Accel {
     /// Whether anything blocks `[t0, t1)`.
     #[inline]
     pub fn occluded(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> bool {
-        if self.ids.is_empty() {
+        if self.meta.is_empty() {
             return false;
         }
         #[cfg(target_arch = "x86_64")]
