@@ -81,7 +81,7 @@ pub struct Accel {
     /// apart, the material was a miss of its own on every hit (`perf`: half
     /// the samples of a farm worker's tracer outside the BVH and the route,
     /// 341 to 170 on the room under `forward`).
-    meta: Vec<[u32; 2]>,
+    meta: Vec<PrimMeta>,
     /// Shading normals of each BVH primitive; empty when none has any.
     normals: Vec<[Vec3; 3]>,
     /// One primitive position per triangle, ordered by global id, for
@@ -89,6 +89,14 @@ pub struct Accel {
     by_id: Vec<u32>,
     /// Bounds of the padded triangle boxes.
     bounds: Bounds,
+}
+
+/// A BVH primitive's global triangle id and material, kept together (see
+/// `Accel::meta`).
+#[derive(Clone, Copy, Debug)]
+struct PrimMeta {
+    id: u32,
+    material: u32,
 }
 
 /// How far (in t) the ray handed to obvhs starts behind the real origin.
@@ -205,9 +213,12 @@ impl Accel {
             .collect();
         bvh.exact_node_aabbs = None;
         let verts = order.iter().map(|&p| set.verts[p as usize]).collect();
-        let meta: Vec<[u32; 2]> = order
+        let meta: Vec<PrimMeta> = order
             .iter()
-            .map(|&p| [set.ids[p as usize], set.material[p as usize]])
+            .map(|&p| PrimMeta {
+                id: set.ids[p as usize],
+                material: set.material[p as usize],
+            })
             .collect();
         let normals = if set.normals.is_empty() {
             Vec::new()
@@ -216,8 +227,8 @@ impl Accel {
         };
         drop(set);
         let mut by_id: Vec<u32> = (0..meta.len() as u32).collect();
-        by_id.sort_unstable_by_key(|&p| meta[p as usize][0]);
-        by_id.dedup_by_key(|p| meta[*p as usize][0]);
+        by_id.sort_unstable_by_key(|&p| meta[p as usize].id);
+        by_id.dedup_by_key(|p| meta[*p as usize].id);
         Self {
             bvh,
             verts,
@@ -263,7 +274,7 @@ impl Accel {
     /// The triangle at BVH position `prim`: vertices and material.
     #[inline(always)]
     pub fn triangle(&self, prim: u32) -> ([Vec3; 3], u32) {
-        (self.verts[prim as usize], self.meta[prim as usize][1])
+        (self.verts[prim as usize], self.meta[prim as usize].material)
     }
 
     /// The shading normals of the triangle at BVH position `prim`
@@ -297,7 +308,7 @@ impl Accel {
     /// Position of global id `id`, if this BVH holds it.
     pub fn find(&self, id: u32) -> Option<u32> {
         self.by_id
-            .binary_search_by_key(&id, |&p| self.meta[p as usize][0])
+            .binary_search_by_key(&id, |&p| self.meta[p as usize].id)
             .ok()
             .map(|k| self.by_id[k])
     }
@@ -358,7 +369,7 @@ impl Accel {
                 let p = state.primitive_id as usize;
                 tests += 1;
                 if let Some(TriHit { t, b1, b2 }) = w.intersect(&self.verts[p], t0, t1) {
-                    let id = self.meta[p][0];
+                    let id = self.meta[p].id;
                     let better = match best {
                         None => true,
                         Some(b) => t < b.hit.t || (t == b.hit.t && id < b.hit.tri),
