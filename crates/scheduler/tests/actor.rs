@@ -454,3 +454,51 @@ async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
     assert_eq!(done.report.recovery.lost.len(), 1);
     farm.shutdown.cancel();
 }
+
+/// A member still receiving its region when another has rendered every
+/// tile is told to end the job only once it says it is ready: before, its
+/// region is shipped by a task of its own and may come after the
+/// `EndJob`, which it would drop for a job it does not have yet, then
+/// start the job and wait for the end for ever (the tiny-job hang).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_member_not_yet_ready_is_told_to_end_once_it_is() {
+    let farm = start();
+    let mut w1 = farm.worker(1).await;
+    let mut w2 = farm.worker(2).await;
+    let mut client = farm.submit(2).await;
+    accepted(&mut client).await;
+    let (run, _) = next_start(&mut w1).await;
+    next_start(&mut w2).await;
+    farm.from(1, WorkerToScheduler::Ready { job: run }).await;
+    let tiles = ask(&farm, &mut w1, 1, run, 64).await;
+    assert_eq!(tiles.len(), 4);
+    for t in &tiles {
+        farm.from(1, result(t, 0.25)).await;
+    }
+    assert!(matches!(
+        recv(&mut w1).await,
+        SchedulerToWorker::EndJob { job } if job == run
+    ));
+    // The status answer comes after every event sent before it.
+    assert_eq!(farm.tiles_done().await, 4);
+    match w2.try_recv() {
+        Err(mpsc::error::TryRecvError::Empty) => {}
+        other => panic!("worker 2 was sent {other:?} before it was ready"),
+    }
+    farm.from(2, WorkerToScheduler::Ready { job: run }).await;
+    assert!(matches!(
+        recv(&mut w2).await,
+        SchedulerToWorker::EndJob { job } if job == run
+    ));
+    // A second Ready is not a second EndJob.
+    farm.from(2, WorkerToScheduler::Ready { job: run }).await;
+    report(&farm, 1, run, 2).await;
+    report(&farm, 2, run, 2).await;
+    let done = image(&mut client).await;
+    assert!(done.pixels.iter().all(|p| *p == [0.25; 3]));
+    assert!(matches!(
+        w2.try_recv(),
+        Err(mpsc::error::TryRecvError::Empty)
+    ));
+    farm.shutdown.cancel();
+}

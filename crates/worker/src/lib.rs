@@ -39,7 +39,7 @@ use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
@@ -269,6 +269,9 @@ impl Session<'_> {
             SchedulerToWorker::StartJob(s) => {
                 jobs.cancel_all();
                 let job = s.job;
+                if !jobs.admits(job) {
+                    return debug!(job, "the start of a run aborted before it came; dropped");
+                }
                 match Building::new(s, self.cfg.dedicated) {
                     Ok(b) => jobs.building = Some(b),
                     Err(e) => fail(ctl_tx, job, e).await,
@@ -281,7 +284,9 @@ impl Session<'_> {
                 last,
             } => {
                 let Some(b) = jobs.building.as_mut().filter(|b| b.setup.job == job) else {
-                    warn!(job, "geometry for a job not started here; ignored");
+                    if jobs.admits(job) {
+                        warn!(job, "geometry for a job not started here; ignored");
+                    }
                     return;
                 };
                 if let Err(e) = b.add_part(leaves, chunk).await {
@@ -315,6 +320,9 @@ impl Session<'_> {
                 jobs.cancel_all();
                 let cancel = CancellationToken::new();
                 let job = s.job;
+                if !jobs.admits(job) {
+                    return debug!(job, "the start of a run aborted before it came; dropped");
+                }
                 jobs.starting = Some(Starting {
                     job,
                     cancel: cancel.clone(),
@@ -343,9 +351,8 @@ impl Session<'_> {
                 }
             }
             SchedulerToWorker::AbortJob { job, reason } => {
-                if jobs.job() == Some(job) {
+                if jobs.abort(job) {
                     warn!(job, %reason, "job aborted by the scheduler");
-                    jobs.cancel_all();
                 }
             }
         }
@@ -366,6 +373,12 @@ struct Jobs {
     building: Option<Building>,
     starting: Option<Starting>,
     current: Option<Arc<JobLink>>,
+    /// The last run the scheduler aborted before this worker had it. The
+    /// scheduler ships a run's setup and region from a task of its own, so
+    /// its `AbortJob` can overtake the `StartJob`; that start is then
+    /// dropped, not run as a job nobody waits for. Run ids are never
+    /// reused.
+    aborted_early: Option<u64>,
 }
 
 struct Starting {
@@ -386,6 +399,24 @@ impl Jobs {
         (self.building.as_ref().map(|b| b.setup.job))
             .or(self.starting.as_ref().map(|s| s.job))
             .or(self.current.as_ref().map(|c| c.job))
+    }
+
+    /// Aborts run `job`: whatever stage it is in here, or, when it is not
+    /// here yet, its start when it comes (see `aborted_early`). True when
+    /// there was something to cancel.
+    fn abort(&mut self, job: u64) -> bool {
+        if self.job() == Some(job) {
+            self.cancel_all();
+            return true;
+        }
+        self.aborted_early = Some(job);
+        false
+    }
+
+    /// Whether a start (or region) of run `job` is to be taken: not when
+    /// the run was aborted before it came.
+    fn admits(&self, job: u64) -> bool {
+        self.aborted_early != Some(job)
     }
 
     fn cancel_all(&mut self) {
@@ -564,7 +595,18 @@ async fn control_writer(
 
 #[cfg(test)]
 mod tests {
-    use super::advertised;
+    use super::{Jobs, advertised};
+
+    /// The scheduler ships a run from a task of its own, so its abort can
+    /// come first: the run's start is then refused, and only that run's.
+    #[test]
+    fn a_run_aborted_before_it_came_is_not_started() {
+        let mut jobs = Jobs::default();
+        assert!(jobs.admits(7));
+        assert!(!jobs.abort(7), "nothing here to cancel");
+        assert!(!jobs.admits(7));
+        assert!(jobs.admits(8), "the next run starts");
+    }
 
     #[test]
     fn a_wildcard_listener_advertises_its_address_toward_the_scheduler() {

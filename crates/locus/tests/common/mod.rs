@@ -23,6 +23,19 @@ pub fn small_cornell(width: u32, height: u32, seed: u64) -> Scene {
     s
 }
 
+/// Sends the farm's warnings (a worker's stall report, a scheduler's
+/// retries) to the test's captured output, so that a test that fails shows
+/// what the farm said; `RUST_LOG` widens it.
+pub fn log_to_test_output() {
+    let filter =
+        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into());
+    // A second call in the same binary finds the subscriber set.
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_test_writer()
+        .try_init();
+}
+
 /// A 2-thread runtime like the CLI's, for the farm's tasks.
 pub fn runtime() -> tokio::runtime::Runtime {
     tokio::runtime::Builder::new_multi_thread()

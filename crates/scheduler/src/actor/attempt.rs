@@ -42,6 +42,8 @@ impl Actor {
             phase: Phase::Preparing,
             reports: vec![None; n],
             told_no_more: vec![false; n],
+            ready: vec![false; n],
+            ended: vec![false; n],
             tiles_by: vec![0; n],
             ..Attempt::waiting(j.film.done())
         };
@@ -147,12 +149,17 @@ impl Actor {
         let a = &mut j.attempt;
         match msg {
             WorkerToScheduler::Ready { .. } => {
-                a.ready += 1;
-                if a.ready == a.members.len() {
+                if std::mem::replace(&mut a.ready[w], true) {
+                    return;
+                }
+                if a.ready.iter().all(|&r| r) {
                     a.t_ready = Some(Instant::now());
                     a.advance(Phase::Rendering);
                     info!(job = j.id, run = a.run, "all workers ready");
                 }
+                // The others may have rendered every tile while this one
+                // was still receiving its region.
+                self.send_ends();
             }
             WorkerToScheduler::NeedTiles { count, .. } => {
                 let tx = &self.workers[&id].tx;
@@ -167,9 +174,14 @@ impl Actor {
                         }
                         a.t_first_tile.get_or_insert_with(Instant::now);
                     } else {
-                        if !a.told_no_more[w] {
+                        // A full channel: the worker asks again when it
+                        // runs out, and is told then.
+                        if !a.told_no_more[w]
+                            && tx
+                                .try_send(SchedulerToWorker::NoMoreTiles { job: a.run })
+                                .is_ok()
+                        {
                             a.told_no_more[w] = true;
-                            let _ = tx.try_send(SchedulerToWorker::NoMoreTiles { job: a.run });
                         }
                         break;
                     }
@@ -256,8 +268,33 @@ impl Actor {
             let a = &mut j.attempt;
             a.advance(Phase::Collecting);
             a.t_rendered = Some(Instant::now());
-            for w in a.members.iter().filter_map(|m| self.workers.get(m)) {
-                let _ = w.tx.try_send(SchedulerToWorker::EndJob { job: a.run });
+            self.send_ends();
+        }
+    }
+
+    /// Once every tile is in, tells each ready member that has not been
+    /// told to end the job. A member not yet ready is told when it is:
+    /// before, its region may still be on the way, behind this message's
+    /// place in its channel, and it would drop an `EndJob` for a job it
+    /// does not have yet, then start the job and wait for the end for
+    /// ever (a tiny job rendered whole by the first worker ready hung so,
+    /// about once in a few hundred). A full channel is retried on the
+    /// next tick.
+    pub(super) fn send_ends(&mut self) {
+        let Some(j) = self.job.as_mut() else { return };
+        let a = &mut j.attempt;
+        if a.phase != Phase::Collecting {
+            return;
+        }
+        for (w, m) in a.members.iter().enumerate() {
+            if a.ready[w] && !a.ended[w] && a.reports[w].is_none() {
+                let Some(entry) = self.workers.get(m) else {
+                    continue;
+                };
+                a.ended[w] = entry
+                    .tx
+                    .try_send(SchedulerToWorker::EndJob { job: a.run })
+                    .is_ok();
             }
         }
     }

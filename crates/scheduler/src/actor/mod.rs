@@ -209,7 +209,15 @@ pub struct Attempt {
     /// The film's tile passes and pixel samples when the attempt started.
     pub(crate) before: (u64, u64),
     told_no_more: Vec<bool>,
-    ready: usize,
+    /// Members that said `Ready`: their region has arrived and their job
+    /// runs, so a message for it reaches its engine. One that is not ready
+    /// yet may still be receiving its region (shipped by a task of its
+    /// own), and would drop a message for a job it does not know.
+    ready: Vec<bool>,
+    /// Members whose `EndJob` is in their control channel. It is owed to
+    /// every ready member once the last tile is in; a full channel is
+    /// retried on the next tick.
+    ended: Vec<bool>,
     /// The overture level the members are measuring, if they are.
     round: Option<crate::overture::Round>,
     pub reports: Vec<Option<WorkerStats>>,
@@ -234,7 +242,8 @@ impl Attempt {
             tiles_by: Vec::new(),
             before,
             told_no_more: Vec::new(),
-            ready: 0,
+            ready: Vec::new(),
+            ended: Vec::new(),
             round: None,
             reports: Vec::new(),
             waiting_since: tokio::time::Instant::now(),
@@ -450,6 +459,7 @@ impl Actor {
             self.fail_radiosity("the client disconnected".into());
         }
         self.restart();
+        self.send_ends();
         let (keep, gone): (VecDeque<Queued>, VecDeque<Queued>) = std::mem::take(&mut self.queue)
             .into_iter()
             .partition(|q| !q.client.left() || q.req.options.detached);
