@@ -120,6 +120,14 @@ impl TileQueue {
         }
     }
 
+    /// Returns a unit `next_for` gave that could not be handed out (its
+    /// worker's channel was full): it goes first to whichever worker asks
+    /// next. It was of the earliest pass waiting, so the shared queue stays
+    /// in pass order.
+    pub fn put_back(&mut self, u: Unit) {
+        self.shared.push_front(u);
+    }
+
     /// Tile passes not yet handed out.
     pub fn len(&self) -> usize {
         self.own.iter().map(VecDeque::len).sum::<usize>() + self.shared.len()

@@ -38,7 +38,12 @@ fn start() -> Farm {
 
 impl Farm {
     async fn worker(&self, id: u32) -> mpsc::Receiver<SchedulerToWorker> {
-        let (tx, rx) = mpsc::channel(1024);
+        self.worker_with_room(id, 1024).await
+    }
+
+    /// A worker whose control channel holds `room` messages.
+    async fn worker_with_room(&self, id: u32, room: usize) -> mpsc::Receiver<SchedulerToWorker> {
+        let (tx, rx) = mpsc::channel(room);
         let reg = Registration {
             listen: format!("w{id}:7879"),
             cores: 1,
@@ -500,5 +505,41 @@ async fn a_member_not_yet_ready_is_told_to_end_once_it_is() {
         w2.try_recv(),
         Err(mpsc::error::TryRecvError::Empty)
     ));
+    farm.shutdown.cancel();
+}
+
+/// A worker that asks for more tiles than its control channel holds gets
+/// the rest when it asks again: a tile that found the channel full is
+/// kept for the next request, not lost (the film would never be whole,
+/// and the job never end).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tile_that_finds_the_channel_full_is_handed_out_later() {
+    let farm = start();
+    let mut w = farm.worker_with_room(1, 2).await;
+    let mut client = farm.submit(1).await;
+    accepted(&mut client).await;
+    let run = until_shipped(&mut w).await;
+    farm.from(1, WorkerToScheduler::Ready { job: run }).await;
+    let mut got = std::collections::BTreeSet::new();
+    let mut no_more = false;
+    for _ in 0..4 {
+        farm.from(1, WorkerToScheduler::NeedTiles { job: run, count: 4 })
+            .await;
+        // The status answer comes after the request was handled.
+        farm.tiles_done().await;
+        while let Ok(m) = w.try_recv() {
+            match m {
+                SchedulerToWorker::Tile(t) => assert!(got.insert(t.tile), "tile {} twice", t.tile),
+                SchedulerToWorker::NoMoreTiles { .. } => no_more = true,
+                other => panic!("unexpected {other:?}"),
+            }
+        }
+    }
+    assert_eq!(
+        got.len(),
+        4,
+        "32x32 in 16x16 tiles, each handed out once: {got:?}"
+    );
+    assert!(no_more, "told there are no more once they are all out");
     farm.shutdown.cancel();
 }

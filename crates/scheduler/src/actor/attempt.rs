@@ -167,9 +167,12 @@ impl Actor {
                     if let Some(u) = a.queue.next_for(w) {
                         let t = j.film.assignment(u, a.run);
                         if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
-                            // The worker asked for it, so its queue has
-                            // room unless it is gone, which the attempt
-                            // recovers from.
+                            // A full channel (a worker asking far ahead, or
+                            // one whose socket is slow): the tile waits for
+                            // the next request, its own or another's. Lost
+                            // here, it would never be rendered and the job
+                            // would never end.
+                            a.queue.put_back(u);
                             break;
                         }
                         a.t_first_tile.get_or_insert_with(Instant::now);
