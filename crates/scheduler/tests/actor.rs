@@ -543,3 +543,33 @@ async fn a_tile_that_finds_the_channel_full_is_handed_out_later() {
     assert!(no_more, "told there are no more once they are all out");
     farm.shutdown.cancel();
 }
+
+/// An abort that finds the worker's control channel full is sent again
+/// once there is room, not dropped: the worker would otherwise run the
+/// aborted run until its next start.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_abort_that_finds_the_channel_full_comes_later() {
+    let farm = start();
+    let mut w = farm.worker_with_room(1, 2).await;
+    let client = farm.submit(1).await;
+    let run = until_shipped(&mut w).await;
+    farm.from(1, WorkerToScheduler::Ready { job: run }).await;
+    // Two tiles fill the channel.
+    farm.from(1, WorkerToScheduler::NeedTiles { job: run, count: 2 })
+        .await;
+    farm.tiles_done().await;
+    drop(client);
+    // The client's departure is seen on the next tick.
+    tokio::time::sleep(Duration::from_millis(1200)).await;
+    for _ in 0..2 {
+        assert!(matches!(recv(&mut w).await, SchedulerToWorker::Tile(_)));
+    }
+    match recv(&mut w).await {
+        SchedulerToWorker::AbortJob { job, reason } => {
+            assert_eq!(job, run);
+            assert!(reason.contains("client"), "{reason}");
+        }
+        other => panic!("expected the abort, got {other:?}"),
+    }
+    farm.shutdown.cancel();
+}

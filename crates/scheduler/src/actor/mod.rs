@@ -100,6 +100,10 @@ pub struct WorkerEntry {
     pub addr: SocketAddr,
     pub tx: mpsc::Sender<SchedulerToWorker>,
     pub(crate) busy: bool,
+    /// An `AbortJob` that found the worker's channel full, retried on
+    /// every tick: dropped, it would leave the worker running a run
+    /// nobody waits for until its next start.
+    owed_abort: Option<SchedulerToWorker>,
 }
 
 pub(crate) struct Queued {
@@ -382,6 +386,7 @@ impl Actor {
                             addr,
                             tx,
                             busy: false,
+                            owed_abort: None,
                         },
                     );
                     self.restart();
@@ -460,6 +465,7 @@ impl Actor {
         }
         self.restart();
         self.send_ends();
+        self.retry_aborts();
         let (keep, gone): (VecDeque<Queued>, VecDeque<Queued>) = std::mem::take(&mut self.queue)
             .into_iter()
             .partition(|q| !q.client.left() || q.req.options.detached);
@@ -641,15 +647,38 @@ impl Actor {
     }
 
     /// Tells the attempt's members still registered to drop it.
-    fn abort_members(&self, reason: &str) {
+    fn abort_members(&mut self, reason: &str) {
         let Some(j) = self.job.as_ref() else { return };
         for m in &j.attempt.members {
-            if let Some(w) = self.workers.get(m) {
-                let _ = w.tx.try_send(SchedulerToWorker::AbortJob {
+            if let Some(w) = self.workers.get_mut(m) {
+                let msg = SchedulerToWorker::AbortJob {
                     job: j.attempt.run,
                     reason: reason.to_string(),
-                });
+                };
+                w.owed_abort = owed(w.tx.try_send(msg));
             }
         }
+    }
+
+    /// Sends again the aborts that found a channel full (see
+    /// `WorkerEntry::owed_abort`). One that comes after the worker's next
+    /// start names a run the worker no longer has, which it ignores.
+    fn retry_aborts(&mut self) {
+        for w in self.workers.values_mut() {
+            if let Some(msg) = w.owed_abort.take() {
+                w.owed_abort = owed(w.tx.try_send(msg));
+            }
+        }
+    }
+}
+
+/// What a send left to send again: the message, when the channel was full
+/// (a closed channel's worker is leaving the registry).
+fn owed(
+    sent: Result<(), mpsc::error::TrySendError<SchedulerToWorker>>,
+) -> Option<SchedulerToWorker> {
+    match sent {
+        Err(mpsc::error::TrySendError::Full(m)) => Some(m),
+        _ => None,
     }
 }
