@@ -500,6 +500,7 @@ impl<'a> Engine<'a> {
             pending_slots = self.slots.pending(),
             samples_open = self.slots.samples_open(),
             has_tiles = self.slots.has_tiles(),
+            no_more_tiles = self.no_more_tiles,
             work = self.work.len(),
             batches_out = out,
             ?waiting,
@@ -510,7 +511,7 @@ impl<'a> Engine<'a> {
             packets_sent = ?self.outbox.sent,
             packets_received = ?self.received,
             socket = ?self.traffic.snapshot().iter().map(|t| (t.msgs_sent, t.msgs_recv)).collect::<Vec<_>>(),
-            "no event for {} s with work pending",
+            "no event for {} s (with nothing pending and no more tiles, it waits for the job's end)",
             STALL_REPORT.as_secs()
         );
     }
