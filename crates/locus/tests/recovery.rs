@@ -7,75 +7,14 @@
 #![cfg(unix)]
 
 mod common;
+use common::daemon::{Daemon, TOKEN};
 
 use locus_core::sampler::mix64;
 use locus_protocol::submit::{JobOptions, JobResult};
-use std::io::BufRead;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, mpsc};
 use std::time::{Duration, Instant};
-
-const TOKEN: &str = "recovery-test-token";
-
-/// A daemon process, killed when dropped.
-struct Daemon(Child);
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-impl Daemon {
-    fn spawn(args: &[&str]) -> (Self, String) {
-        let mut c = Command::new(env!("CARGO_BIN_EXE_locus"))
-            .args(args)
-            .env("LOCUS_TOKEN", TOKEN)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::piped())
-            .spawn()
-            .expect("locus starts");
-        let mut line = String::new();
-        std::io::BufReader::new(c.stdout.take().expect("piped"))
-            .read_line(&mut line)
-            .expect("a daemon prints its address");
-        let addr = line.trim().rsplit(' ').next().unwrap_or("").to_string();
-        (Self(c), addr)
-    }
-
-    fn scheduler(worker_timeout_s: &str) -> (Self, String) {
-        Self::spawn(&[
-            "scheduler",
-            "--listen",
-            "127.0.0.1:0",
-            "--worker-timeout",
-            worker_timeout_s,
-        ])
-    }
-
-    fn worker(scheduler: &str) -> Self {
-        Self::spawn(&[
-            "worker",
-            "--scheduler",
-            scheduler,
-            "--listen",
-            "127.0.0.1:0",
-            "--threads",
-            "1",
-        ])
-        .0
-    }
-
-    fn signal(&self, sig: &str) {
-        let ok = Command::new("kill")
-            .args([sig, &self.0.id().to_string()])
-            .status()
-            .expect("kill runs");
-        assert!(ok.success(), "kill {sig}");
-    }
-}
 
 /// Submits `scene` for `workers` workers from a thread of its own, so that
 /// the test can act while the job runs; the result arrives on the channel.

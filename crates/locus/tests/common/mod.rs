@@ -3,6 +3,8 @@
 //! bits.
 #![allow(dead_code)]
 
+pub mod daemon;
+
 use locus_core::image_io::Image;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::scene::Scene;
