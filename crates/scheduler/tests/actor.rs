@@ -269,6 +269,26 @@ async fn next_start(w: &mut mpsc::Receiver<SchedulerToWorker>) -> (u64, usize) {
     (run, peers)
 }
 
+/// Workers 1 and 2 and a job for both, up to both having their region:
+/// the workers' and the client's channels and the run id.
+async fn shipped_pair(
+    farm: &Farm,
+) -> (
+    mpsc::Receiver<SchedulerToWorker>,
+    mpsc::Receiver<SchedulerToWorker>,
+    mpsc::Receiver<SchedulerToClient>,
+    u64,
+) {
+    let mut w1 = farm.worker(1).await;
+    let mut w2 = farm.worker(2).await;
+    let mut client = farm.submit(2).await;
+    accepted(&mut client).await;
+    let (run, n) = next_start(&mut w1).await;
+    assert_eq!(n, 2);
+    assert_eq!(next_start(&mut w2).await.0, run);
+    (w1, w2, client, run)
+}
+
 /// Asks for `count` tiles as member `id` of run `run` and returns them.
 async fn ask(
     farm: &Farm,
@@ -320,13 +340,7 @@ async fn image(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
     let farm = start();
-    let mut w1 = farm.worker(1).await;
-    let mut w2 = farm.worker(2).await;
-    let mut client = farm.submit(2).await;
-    accepted(&mut client).await;
-    let (r1, n) = next_start(&mut w1).await;
-    assert_eq!(n, 2);
-    assert_eq!(next_start(&mut w2).await.0, r1);
+    let (mut w1, mut w2, mut client, r1) = shipped_pair(&farm).await;
     farm.from(1, WorkerToScheduler::Ready { job: r1 }).await;
     farm.from(2, WorkerToScheduler::Ready { job: r1 }).await;
     let first = ask(&farm, &mut w1, 1, r1, 1).await;
@@ -431,12 +445,7 @@ async fn attempts_that_keep_failing_fail_the_job() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
     let farm = start();
-    let mut w1 = farm.worker(1).await;
-    let mut w2 = farm.worker(2).await;
-    let mut client = farm.submit(2).await;
-    accepted(&mut client).await;
-    let (run, _) = next_start(&mut w1).await;
-    next_start(&mut w2).await;
+    let (mut w1, _w2, mut client, run) = shipped_pair(&farm).await;
     for id in [1, 2] {
         farm.from(id, WorkerToScheduler::Ready { job: run }).await;
     }
@@ -468,12 +477,7 @@ async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_member_not_yet_ready_is_told_to_end_once_it_is() {
     let farm = start();
-    let mut w1 = farm.worker(1).await;
-    let mut w2 = farm.worker(2).await;
-    let mut client = farm.submit(2).await;
-    accepted(&mut client).await;
-    let (run, _) = next_start(&mut w1).await;
-    next_start(&mut w2).await;
+    let (mut w1, mut w2, mut client, run) = shipped_pair(&farm).await;
     farm.from(1, WorkerToScheduler::Ready { job: run }).await;
     let tiles = ask(&farm, &mut w1, 1, run, 64).await;
     assert_eq!(tiles.len(), 4);

@@ -318,11 +318,11 @@ impl Session<'_> {
             }
             SchedulerToWorker::StartNode(s) => {
                 jobs.cancel_all();
-                let cancel = CancellationToken::new();
                 let job = s.job;
                 if !jobs.admits(job) {
                     return debug!(job, "the start of a run aborted before it came; dropped");
                 }
+                let cancel = CancellationToken::new();
                 jobs.starting = Some(Starting {
                     job,
                     cancel: cancel.clone(),

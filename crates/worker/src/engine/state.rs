@@ -511,7 +511,7 @@ impl<'a> Engine<'a> {
             packets_sent = ?self.outbox.sent,
             packets_received = ?self.received,
             socket = ?self.traffic.snapshot().iter().map(|t| (t.msgs_sent, t.msgs_recv)).collect::<Vec<_>>(),
-            "no event for {} s (with nothing pending and no more tiles, it waits for the job's end)",
+            "no event for {} s (a stall only if something is pending or no_more_tiles is false: else this worker is done and waits for the job's end)",
             STALL_REPORT.as_secs()
         );
     }
