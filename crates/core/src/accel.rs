@@ -21,7 +21,10 @@ use std::ops::ControlFlow;
 use std::time::Duration;
 
 mod cwnode;
+mod leaf;
 mod split;
+
+use leaf::{LeafTest, Prims};
 
 use split::split_boxes;
 
@@ -324,7 +327,7 @@ impl Accel {
             // SAFETY: this processor has AVX2 (`wide_available`).
             return unsafe { self.closest_avx2(ray, t0, t1, stats) };
         }
-        self.closest_with::<cwnode::Narrow>(ray, t0, t1, stats)
+        self.closest_with::<cwnode::Narrow, leaf::Scalar>(ray, t0, t1, stats)
     }
 
     /// [`Self::closest`]'s traversal compiled for AVX2, around the
@@ -338,11 +341,11 @@ impl Accel {
         t1: f32,
         stats: &mut TraceStats,
     ) -> Option<AccelHit> {
-        self.closest_with::<cwnode::Wide>(ray, t0, t1, stats)
+        self.closest_with::<cwnode::Wide, leaf::Wide>(ray, t0, t1, stats)
     }
 
     #[inline(always)]
-    fn closest_with<N: cwnode::NodeTest>(
+    fn closest_with<N: cwnode::NodeTest, L: LeafTest>(
         &self,
         ray: &Ray,
         t0: f32,
@@ -366,23 +369,31 @@ impl Accel {
                 N::intersect(node, &r, &nr, state.oct_inv4)
             },
             {
-                let p = state.primitive_id as usize;
-                tests += 1;
-                if let Some(TriHit { t, b1, b2 }) = w.intersect(&self.verts[p], t0, t1) {
-                    let id = self.meta[p].id;
+                // The whole group at once (see `group`): the macro then
+                // finds it empty.
+                let g = group(&mut state);
+                tests += L::closest(&self.verts, &w, g, t0, t1, |p, h| {
+                    let TriHit { t, b1, b2 } = h;
+                    let id = self.meta[p as usize].id;
+                    // A split triangle's boxes are primitives of their own
+                    // with identical copies: between two of them the
+                    // smaller position wins, whatever order a group's
+                    // triangles were tested in (hits are never NaN).
                     let better = match best {
                         None => true,
-                        Some(b) => t < b.hit.t || (t == b.hit.t && id < b.hit.tri),
+                        Some(b) => (t, id, p) < (b.hit.t, b.hit.tri, b.prim),
                     };
                     if better {
                         best = Some(AccelHit {
                             hit: Hit { tri: id, t, b1, b2 },
-                            prim: p as u32,
+                            prim: p,
                         });
-                        // Equal-t primitives in other nodes are still
-                        // visited: obvhs keeps nodes with entry <= tmax.
-                        r.tmax = t + BVH_T_SHIFT;
                     }
+                });
+                // Equal-t primitives in other nodes are still visited:
+                // obvhs keeps nodes with entry <= tmax.
+                if let Some(b) = best {
+                    r.tmax = b.hit.t + BVH_T_SHIFT;
                 }
             }
         );
@@ -409,18 +420,18 @@ impl Accel {
             // SAFETY: this processor has AVX2 (`wide_available`).
             return unsafe { self.occluded_avx2(ray, t0, t1, stats) };
         }
-        self.occluded_with::<cwnode::Narrow>(ray, t0, t1, stats)
+        self.occluded_with::<cwnode::Narrow, leaf::Scalar>(ray, t0, t1, stats)
     }
 
     /// [`Self::occluded`]'s traversal compiled for AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     unsafe fn occluded_avx2(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> bool {
-        self.occluded_with::<cwnode::Wide>(ray, t0, t1, stats)
+        self.occluded_with::<cwnode::Wide, leaf::Wide>(ray, t0, t1, stats)
     }
 
     #[inline(always)]
-    fn occluded_with<N: cwnode::NodeTest>(
+    fn occluded_with<N: cwnode::NodeTest, L: LeafTest>(
         &self,
         ray: &Ray,
         t0: f32,
@@ -445,10 +456,10 @@ impl Accel {
                     N::intersect(node, &r, &nr, state.oct_inv4)
                 },
                 {
-                    tests += 1;
-                    if w.intersect(&self.verts[state.primitive_id as usize], t0, t1)
-                        .is_some()
-                    {
+                    let g = group(&mut state);
+                    let (any, n) = L::any(&self.verts, &w, g, t0, t1);
+                    tests += n;
+                    if any {
                         hit = true;
                         break 'outer;
                     }
@@ -524,6 +535,18 @@ impl Accel {
     }
 }
 
+/// The primitive group obvhs's traversal is in, whole. The macro hands
+/// the group over one primitive at a time, highest position first, and
+/// has taken that one out of the mask; this takes the rest too, so the
+/// macro finds the group empty and goes on to the next node.
+#[inline(always)]
+fn group(state: &mut obvhs::cwbvh::Traversal) -> Prims {
+    let base = state.primitive_group.x;
+    let mask = state.primitive_group.y | (1 << (state.primitive_id - base));
+    state.primitive_group.y = 0;
+    Prims { base, mask }
+}
+
 // obvhs's traverse! macro names UVec2 unqualified.
 #[allow(dead_code)]
 type _UseUVec2 = UVec2;
@@ -551,11 +574,14 @@ mod tests {
         tris
     }
 
-    /// The traversal compiled for AVX2 around the eight-wide node test
-    /// gives every query the four-wide one's answer, to the bit, visiting
-    /// the same nodes and testing the same triangles: so processors with
-    /// and without AVX2 render the same image. (The brute-force tests check
-    /// whichever of the two this processor runs.)
+    /// The traversal compiled for AVX2 around the eight-wide node test and
+    /// the eight-lane triangle test gives every query the four-wide and
+    /// scalar one's answer, to the bit, visiting the same nodes and, for
+    /// closest hits, testing the same triangles: so processors with and
+    /// without AVX2 render the same image. (An occlusion query's lanes test
+    /// a whole load of triangles before they stop, so its count differs.
+    /// The brute-force tests check whichever of the two this processor
+    /// runs.)
     #[test]
     fn both_node_tests_trace_alike() {
         #[cfg(target_arch = "x86_64")]
@@ -568,6 +594,7 @@ mod tests {
             let ids: Vec<u32> = (0..set.len() as u32).collect();
             let accel = Accel::build(&set, &ids, 20.0);
             let (mut narrow, mut wide) = (TraceStats::default(), TraceStats::default());
+            let (mut narrow_any, mut wide_any) = (TraceStats::default(), TraceStats::default());
             let mut hits = 0;
             for i in 0..4000u64 {
                 let k = SampleKey::independent(i, 3, 9);
@@ -586,7 +613,8 @@ mod tests {
                 } else {
                     (k.get1d(6) * 4.0, 4.0 + k.get1d(7) * 20.0)
                 };
-                let a = accel.closest_with::<cwnode::Narrow>(&ray, t0, t1, &mut narrow);
+                let a =
+                    accel.closest_with::<cwnode::Narrow, leaf::Scalar>(&ray, t0, t1, &mut narrow);
                 // SAFETY: AVX2 is present (checked above).
                 let b = unsafe { accel.closest_avx2(&ray, t0, t1, &mut wide) };
                 let bits = |h: Option<AccelHit>| {
@@ -603,15 +631,22 @@ mod tests {
                 };
                 assert_eq!(bits(a), bits(b), "ray {i}");
                 hits += usize::from(a.is_some());
-                let a = accel.occluded_with::<cwnode::Narrow>(&ray, t0, t1, &mut narrow);
+                let a = accel.occluded_with::<cwnode::Narrow, leaf::Scalar>(
+                    &ray,
+                    t0,
+                    t1,
+                    &mut narrow_any,
+                );
                 // SAFETY: as above.
-                let b = unsafe { accel.occluded_avx2(&ray, t0, t1, &mut wide) };
+                let b = unsafe { accel.occluded_avx2(&ray, t0, t1, &mut wide_any) };
                 assert_eq!(a, b, "ray {i}, occlusion");
             }
             assert_eq!(
                 (narrow.bvh_nodes, narrow.tri_tests),
                 (wide.bvh_nodes, wide.tri_tests)
             );
+            assert_eq!(narrow_any.bvh_nodes, wide_any.bvh_nodes);
+            assert!(wide_any.tri_tests >= narrow_any.tri_tests);
             assert!(hits > 1000 && hits < 3900, "{hits} of 4000 rays hit");
         }
     }

@@ -211,11 +211,11 @@ pub struct TriHit {
 #[derive(Clone, Copy, Debug)]
 pub struct WatertightRay {
     pub origin: Vec3,
-    kx: usize,
-    ky: usize,
-    sx: f32,
-    sy: f32,
-    sz: f32,
+    pub(crate) kx: usize,
+    pub(crate) ky: usize,
+    pub(crate) sx: f32,
+    pub(crate) sy: f32,
+    pub(crate) sz: f32,
 }
 
 impl WatertightRay {
