@@ -50,27 +50,20 @@ pub(crate) struct Prims {
 /// A way of testing a primitive group: the traversal is compiled once per
 /// way, beside its node test.
 pub(crate) trait LeafTest {
-    /// Tests the primitives of group `g` on `[t0, t1)` and calls `hit`
-    /// for each one hit, in no fixed order. Returns how many triangles
-    /// were tested.
-    fn closest(
+    /// Tests the primitives of group `g` on `[t0, t1)` and calls `found`
+    /// for each one hit, in no fixed order, until it returns false.
+    /// Returns how many triangles were tested.
+    fn each(
         tris: &[[Vec3; 3]],
         w: &WatertightRay,
         g: Prims,
         t0: f32,
         t1: f32,
-        hit: impl FnMut(u32, TriHit),
+        found: impl FnMut(u32, TriHit) -> bool,
     ) -> u64;
 
-    /// Whether any primitive of group `g` is hit on `[t0, t1)`, and how
-    /// many triangles were tested to know.
-    fn any(tris: &[[Vec3; 3]], w: &WatertightRay, g: Prims, t0: f32, t1: f32) -> (bool, u64);
-}
-
-/// One triangle at a time, highest position first (obvhs's order).
-pub(crate) struct Scalar;
-
-impl LeafTest for Scalar {
+    /// Calls `hit` for every primitive of `g` hit on `[t0, t1)`; returns
+    /// how many triangles were tested.
     #[inline(always)]
     fn closest(
         tris: &[[Vec3; 3]],
@@ -80,32 +73,52 @@ impl LeafTest for Scalar {
         t1: f32,
         mut hit: impl FnMut(u32, TriHit),
     ) -> u64 {
-        let Prims { base, mut mask } = g;
-        let tests = mask.count_ones() as u64;
-        while mask != 0 {
-            let i = 31 - mask.leading_zeros();
-            mask &= !(1 << i);
-            let p = base + i;
-            if let Some(h) = w.intersect(&tris[p as usize], t0, t1) {
-                hit(p, h);
-            }
-        }
-        tests
+        Self::each(tris, w, g, t0, t1, |p, h| {
+            hit(p, h);
+            true
+        })
     }
 
+    /// Whether any primitive of `g` is hit on `[t0, t1)`, and how many
+    /// triangles were tested to know.
     #[inline(always)]
     fn any(tris: &[[Vec3; 3]], w: &WatertightRay, g: Prims, t0: f32, t1: f32) -> (bool, u64) {
+        let mut any = false;
+        let tests = Self::each(tris, w, g, t0, t1, |_, _| {
+            any = true;
+            false
+        });
+        (any, tests)
+    }
+}
+
+/// One triangle at a time, highest position first (obvhs's order).
+pub(crate) struct Scalar;
+
+impl LeafTest for Scalar {
+    #[inline(always)]
+    fn each(
+        tris: &[[Vec3; 3]],
+        w: &WatertightRay,
+        g: Prims,
+        t0: f32,
+        t1: f32,
+        mut found: impl FnMut(u32, TriHit) -> bool,
+    ) -> u64 {
         let Prims { base, mut mask } = g;
         let mut tests = 0;
         while mask != 0 {
             let i = 31 - mask.leading_zeros();
             mask &= !(1 << i);
             tests += 1;
-            if w.intersect(&tris[(base + i) as usize], t0, t1).is_some() {
-                return (true, tests);
+            let p = base + i;
+            if let Some(h) = w.intersect(&tris[p as usize], t0, t1)
+                && !found(p, h)
+            {
+                break;
             }
         }
-        (false, tests)
+        tests
     }
 }
 
@@ -118,7 +131,8 @@ pub(crate) struct Wide;
 #[cfg(target_arch = "x86_64")]
 impl Wide {
     /// The group eight positions at a time: the test of each load, its
-    /// first primitive and its lanes.
+    /// first primitive and its lanes, until `each` returns false.
+    /// Returns how many triangles were tested.
     #[inline(always)]
     fn loads(
         tris: &[[Vec3; 3]],
@@ -127,51 +141,54 @@ impl Wide {
         t0: f32,
         t1: f32,
         mut each: impl FnMut(&Lanes, u32, u32) -> bool,
-    ) {
+    ) -> u64 {
         let mut rest = g.mask;
+        let mut tests = 0;
         while rest != 0 {
             let lo = rest.trailing_zeros();
             let lanes = (rest >> lo) & 0xff;
             rest &= !(0xff << lo);
+            tests += lanes.count_ones() as u64;
             let first = g.base + lo;
             // SAFETY: AVX2 is present (see `Wide`), and the lanes are
             // primitives of this BVH.
             let r = unsafe { test8(tris, w, first, lanes, t0, t1) };
             if !each(&r, first, lanes) {
-                return;
+                break;
             }
         }
+        tests
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 impl LeafTest for Wide {
     #[inline(always)]
-    fn closest(
+    fn each(
         tris: &[[Vec3; 3]],
         w: &WatertightRay,
         g: Prims,
         t0: f32,
         t1: f32,
-        mut hit: impl FnMut(u32, TriHit),
+        mut found: impl FnMut(u32, TriHit) -> bool,
     ) -> u64 {
         if g.mask.count_ones() <= SCALAR_UP_TO {
-            return Scalar::closest(tris, w, g, t0, t1, hit);
+            return Scalar::each(tris, w, g, t0, t1, found);
         }
         Self::loads(tris, w, g, t0, t1, |r, first, lanes| {
-            let mut found = r.hit & lanes;
-            while found != 0 {
-                let k = found.trailing_zeros();
-                found &= found - 1;
-                let k8 = k as usize;
-                hit(
-                    first + k,
-                    TriHit {
-                        t: r.t[k8],
-                        b1: r.b1[k8],
-                        b2: r.b2[k8],
-                    },
-                );
+            let mut hits = r.hit & lanes;
+            while hits != 0 {
+                let k = hits.trailing_zeros();
+                hits &= hits - 1;
+                let (k8, p) = (k as usize, first + k);
+                let h = TriHit {
+                    t: r.t[k8],
+                    b1: r.b1[k8],
+                    b2: r.b2[k8],
+                };
+                if !found(p, h) {
+                    return false;
+                }
             }
             // Lanes whose edge functions cancelled exactly: the scalar
             // test decides them in f64.
@@ -180,33 +197,14 @@ impl LeafTest for Wide {
                 let k = exact.trailing_zeros();
                 exact &= exact - 1;
                 let p = first + k;
-                if let Some(h) = w.intersect(&tris[p as usize], t0, t1) {
-                    hit(p, h);
+                if let Some(h) = w.intersect(&tris[p as usize], t0, t1)
+                    && !found(p, h)
+                {
+                    return false;
                 }
             }
             true
-        });
-        g.mask.count_ones() as u64
-    }
-
-    #[inline(always)]
-    fn any(tris: &[[Vec3; 3]], w: &WatertightRay, g: Prims, t0: f32, t1: f32) -> (bool, u64) {
-        if g.mask.count_ones() <= SCALAR_UP_TO {
-            return Scalar::any(tris, w, g, t0, t1);
-        }
-        let (mut any, mut tests) = (false, 0);
-        Self::loads(tris, w, g, t0, t1, |r, first, lanes| {
-            tests += lanes.count_ones() as u64;
-            any = r.hit & lanes != 0;
-            let mut exact = r.zero & lanes;
-            while exact != 0 && !any {
-                let k = exact.trailing_zeros();
-                exact &= exact - 1;
-                any = w.intersect(&tris[(first + k) as usize], t0, t1).is_some();
-            }
-            !any
-        });
-        (any, tests)
+        })
     }
 }
 
