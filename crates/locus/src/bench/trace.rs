@@ -10,6 +10,9 @@ use locus_core::geometry::Ray;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::stats::TraceStats;
 use serde::Serialize;
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::time::Instant;
 
 #[derive(Clone, Debug, Serialize)]
@@ -136,11 +139,43 @@ pub fn embree(
     rs: &[Ray],
     rounds: usize,
     python: &str,
-    dir: &std::path::Path,
+    dir: &Path,
 ) -> anyhow::Result<EmbreeBench> {
-    use anyhow::{Context, bail};
-    use std::io::{BufRead, BufReader, Write};
-    use std::process::{Command, Stdio};
+    use anyhow::Context;
+    let script = write_inputs(prep, rs, dir)?;
+    let mut embree = Script::start(python, &script, dir)?;
+    let build_s = embree.seconds("build")?;
+    let (mut ours, mut best, mut theirs) =
+        (Vec::with_capacity(rs.len()), f64::INFINITY, f64::INFINITY);
+    distances(prep, rs, &mut ours);
+    for _ in 0..rounds.max(1) {
+        let t = Instant::now();
+        distances(prep, rs, &mut ours);
+        best = best.min(t.elapsed().as_secs_f64());
+        theirs = theirs.min(embree.seconds("round")?);
+    }
+    embree.finish()?;
+    let hits = std::fs::read(dir.join("embree_t.f32")).context("reading embree_t.f32")?;
+    let hits_agree = hits
+        .chunks_exact(4)
+        .zip(&ours)
+        .filter(|(b, a)| agrees(**a, f32::from_le_bytes([b[0], b[1], b[2], b[3]])))
+        .count();
+    let locus = rs.len() as f64 / best / 1e6;
+    let embree = rs.len() as f64 / theirs / 1e6;
+    Ok(EmbreeBench {
+        embree_mrays_per_s: embree,
+        embree_build_s: build_s,
+        locus_mrays_per_s: locus,
+        ratio: locus / embree,
+        hits_agree,
+    })
+}
+
+/// Writes what the Embree script reads into `dir`: the triangles, the
+/// rays and the script itself, whose path it returns.
+fn write_inputs(prep: &Prepared, rs: &[Ray], dir: &Path) -> anyhow::Result<PathBuf> {
+    use anyhow::Context;
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let write = |name: &str, floats: &mut dyn Iterator<Item = f32>| {
         let bytes: Vec<u8> = floats.flat_map(f32::to_le_bytes).collect();
@@ -164,72 +199,82 @@ pub fn embree(
     let script = dir.join("embree_trace.py");
     std::fs::write(&script, include_str!("embree_trace.py"))
         .with_context(|| format!("writing {}", script.display()))?;
-    let failed = || {
+    Ok(script)
+}
+
+/// The Embree script running, asked one line at a time. It answers every
+/// line with one line and waits on nothing else, and a script that dies
+/// closes its output, so no question can hang.
+struct Script {
+    child: Child,
+    to: ChildStdin,
+    from: BufReader<ChildStdout>,
+    name: String,
+}
+
+impl Script {
+    fn start(python: &str, script: &Path, dir: &Path) -> anyhow::Result<Self> {
+        use anyhow::Context;
+        let mut child = Command::new(python)
+            .arg(script)
+            .arg(dir)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .with_context(|| format!("running {python}"))?;
+        let (Some(to), Some(from)) = (child.stdin.take(), child.stdout.take()) else {
+            anyhow::bail!("{python}: no pipes to its standard input and output");
+        };
+        Ok(Self {
+            child,
+            to,
+            from: BufReader::new(from),
+            name: script.display().to_string(),
+        })
+    }
+
+    fn failed(&self) -> String {
         format!(
             "{} failed: is embreex installed (pip install embreex)?",
-            script.display()
+            self.name
         )
-    };
-    let mut child = Command::new(python)
-        .arg(&script)
-        .arg(dir)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .spawn()
-        .with_context(|| format!("running {python}"))?;
-    let (Some(mut to), Some(from)) = (child.stdin.take(), child.stdout.take()) else {
-        bail!("{python}: no pipes to its standard input and output");
-    };
-    // The script answers every line it is sent with one line; it cannot
-    // wait on anything else, and a script that dies closes its output.
-    let mut from = BufReader::new(from);
-    let mut said = move |what: &str| -> anyhow::Result<String> {
-        writeln!(to, "{what}")
-            .and_then(|()| to.flush())
-            .with_context(failed)?;
+    }
+
+    fn ask(&mut self, what: &str) -> anyhow::Result<String> {
+        use anyhow::Context;
+        writeln!(self.to, "{what}")
+            .and_then(|()| self.to.flush())
+            .with_context(|| self.failed())?;
         let mut line = String::new();
-        if from.read_line(&mut line).with_context(failed)? == 0 {
-            bail!(failed());
+        if self
+            .from
+            .read_line(&mut line)
+            .with_context(|| self.failed())?
+            == 0
+        {
+            anyhow::bail!(self.failed());
         }
         Ok(line.trim().to_string())
-    };
-    let seconds = |reply: String| -> anyhow::Result<f64> {
-        reply
-            .parse::<f64>()
-            .with_context(|| format!("{}: expected seconds, got {reply:?}", script.display()))
-    };
-    let build_s = seconds(said("build")?)?;
-    let (mut ours, mut best, mut theirs) =
-        (Vec::with_capacity(rs.len()), f64::INFINITY, f64::INFINITY);
-    distances(prep, rs, &mut ours);
-    for _ in 0..rounds.max(1) {
-        let t = Instant::now();
-        distances(prep, rs, &mut ours);
-        best = best.min(t.elapsed().as_secs_f64());
-        theirs = theirs.min(seconds(said("round")?)?);
     }
-    said("hits")?;
-    let status = child
-        .wait()
-        .with_context(|| format!("waiting for {python}"))?;
-    if !status.success() {
-        bail!("{} ({status})", failed());
+
+    /// The seconds the script reports for `what` (a build or a round).
+    fn seconds(&mut self, what: &str) -> anyhow::Result<f64> {
+        let reply = self.ask(what)?;
+        reply.parse().map_err(|_| {
+            anyhow::anyhow!("{}: expected seconds for {what}, got {reply:?}", self.name)
+        })
     }
-    let hits = std::fs::read(dir.join("embree_t.f32")).context("reading embree_t.f32")?;
-    let hits_agree = hits
-        .chunks_exact(4)
-        .zip(&ours)
-        .filter(|(b, a)| agrees(**a, f32::from_le_bytes([b[0], b[1], b[2], b[3]])))
-        .count();
-    let locus = rs.len() as f64 / best / 1e6;
-    let embree = rs.len() as f64 / theirs / 1e6;
-    Ok(EmbreeBench {
-        embree_mrays_per_s: embree,
-        embree_build_s: build_s,
-        locus_mrays_per_s: locus,
-        ratio: locus / embree,
-        hits_agree,
-    })
+
+    /// Has the script write its hits, and waits for it to exit.
+    fn finish(mut self) -> anyhow::Result<()> {
+        use anyhow::Context;
+        self.ask("hits")?;
+        let status = self.child.wait().context("waiting for the Embree script")?;
+        if !status.success() {
+            anyhow::bail!("{} ({status})", self.failed());
+        }
+        Ok(())
+    }
 }
 
 #[cfg(all(test, unix))]
@@ -237,7 +282,6 @@ mod tests {
     use super::*;
     use locus_core::scene::Scene;
     use std::os::unix::fs::PermissionsExt;
-    use std::path::{Path, PathBuf};
 
     /// A stand-in for `python embree_trace.py DIR`: a shell script that
     /// speaks the script's line protocol with made-up timings.
@@ -296,6 +340,24 @@ mod tests {
             format!("{err:#}").contains("is embreex installed"),
             "{err:#}"
         );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A reply that is not a number of seconds is an error naming the
+    /// script and what it said.
+    #[test]
+    fn a_reply_that_is_not_seconds_is_an_error() {
+        let dir = std::env::temp_dir().join(format!("locus-embree-garbage-{}", std::process::id()));
+        let py = fake(&dir, "read -r what\necho 'no embree here'\nread -r what\n");
+        let prep = cornell();
+        let rs = rays(&prep, 50);
+        let err = embree(&prep, &rs, 2, py.to_str().unwrap(), &dir.join("run")).unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(
+            msg.contains("expected seconds for build") && msg.contains("no embree here"),
+            "{msg}"
+        );
+        assert!(msg.contains("embree_trace.py"), "{msg}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
