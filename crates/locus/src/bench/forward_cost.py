@@ -21,10 +21,11 @@ valgrind and callgrind_annotate on the PATH.
     python3 crates/locus/src/bench/forward_cost.py [--locus target/release/locus]
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
         [--fetch forward] [--workers 2] [--cost sampled|analytic]
-        [--partitioner region-growing|morton] [--out bench-out/forward-cost]
+        [--partitioner region-growing|morton] [--per-thread] [--out bench-out/forward-cost]
 """
 
 import argparse
+import glob
 import json
 import os
 import re
@@ -36,7 +37,48 @@ import time
 
 
 def inclusive(path):
-    """Inclusive instruction counts by function, and the program total."""
+    """Inclusive instruction counts by function, and the program total, of
+    callgrind's file `path`, or summed over its per-thread files `path-NN`
+    (`--per-thread`: every function here runs on one thread at a time)."""
+    parts = sorted(glob.glob(path + "-*"))
+    if parts:
+        costs, total = {}, 0
+        for part in parts:
+            c, t = inclusive_one(part)
+            total += t
+            for fn, n in c.items():
+                costs[fn] = costs.get(fn, 0) + n
+        return costs, total
+    return inclusive_one(path)
+
+
+# What a worker's engine thread spends, printed by `--per-thread`.
+ENGINE_PARTS = [
+    "locus_worker::engine::turns",
+    "locus_worker::engine::state::Engine::apply",
+    "locus_worker::engine::state::Engine::input",
+    "locus_worker::engine::state::Engine::route",
+    "locus_worker::engine::slots::Slots::answer",
+    "locus_worker::engine::slots::Slots::open_chain",
+    "locus_worker::engine::state::Engine::effects",
+    "locus_worker::engine::outbox::Outbox::push",
+    "locus_protocol::packet::Packet::push",
+]
+
+
+def engine_thread(path):
+    """The per-thread file of worker file `path` that holds its engine's
+    loop, and that thread's inclusive counts of ENGINE_PARTS."""
+    best = None
+    for part in sorted(glob.glob(path + "-*")):
+        costs, total = inclusive_one(part)
+        turns = costs.get(ENGINE_PARTS[0], 0)
+        if turns and (best is None or turns > best[1][ENGINE_PARTS[0]]):
+            best = (part, {fn: costs.get(fn, 0) for fn in ENGINE_PARTS})
+    return best
+
+
+def inclusive_one(path):
     out = subprocess.run(
         ["callgrind_annotate", "--inclusive=yes", "--threshold=100", "--auto=no", path],
         capture_output=True, text=True, check=True).stdout
@@ -92,6 +134,9 @@ def main():
                     help="the partition's cost model: `analytic` keeps the partition of a "
                          "build whose tracer counts nodes differently, for comparing two builds")
     ap.add_argument("--partitioner", default="region-growing")
+    ap.add_argument("--per-thread", action="store_true",
+                    help="one callgrind file per thread (valgrind's --separate-threads), and "
+                         "print what each worker's engine thread spends by function")
     ap.add_argument("--out", default="bench-out/forward-cost")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -99,7 +144,9 @@ def main():
     locus = os.path.abspath(a.locus)
     scene = os.path.join(out, "scene.toml")
     small_scene(a.scene, scene, a.width, a.height, a.spp)
-    cg = ["valgrind", "--tool=callgrind"]
+    cg = ["valgrind", "--tool=callgrind"] + (["--separate-threads=yes"] if a.per_thread else [])
+    for old in glob.glob(os.path.join(out, "*.cg*")):
+        os.remove(old)
 
     one_exr = os.path.join(out, "one.exr")
     subprocess.run(cg + [f"--callgrind-out-file={out}/one.cg", locus, "render", scene,
@@ -169,6 +216,16 @@ def main():
     print(f"busiest worker's render phase over the workers' mean: "
           f"{busiest * len(rows) / max(farm, 1):.3f} ({busiest / 1e6:.1f} M)")
     print(f"farm image bit-identical to one machine's: {'yes' if same else 'NO'}")
+    if a.per_thread:
+        for i in range(1, a.workers + 1):
+            found = engine_thread(f"{out}/w{i}.cg")
+            if found is None:
+                print(f"w{i}: no thread holds the engine's loop")
+                continue
+            part, parts = found
+            print(f"w{i} engine thread ({os.path.basename(part)}), inclusive:")
+            for fn in ENGINE_PARTS:
+                print(f"  {parts[fn] / 1e6:8.1f} M  {fn}")
     json.dump({"one": one, "workers": rows, "forwards": forwards, "per_forward": per,
                "busiest": busiest,
                "identical": same}, open(os.path.join(out, "forward-cost.json"), "w"), indent=1)
