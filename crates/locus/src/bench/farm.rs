@@ -27,8 +27,9 @@ use locus_core::generate::{RoomParams, write_room};
 use locus_core::image_io::Image;
 use locus_core::render::{Prepared, RenderOptions, render};
 use locus_core::scene::Scene;
-use locus_protocol::report::FarmReport;
+use locus_protocol::report::{FarmReport, WorkerStats};
 use locus_protocol::submit::{FetchPolicy, JobOptions, Partitioner};
+use locus_worker::engine::DEDICATED_ENGINE_THREADS;
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -90,8 +91,11 @@ pub struct Row {
     pub idle_share: f64,
     /// The busiest engine thread's share of its worker's render time
     /// (`WorkerStats::engine_wait_s`): near 1, the serial bookkeeping
-    /// holds the tracing pool back.
-    pub engine_busy: f64,
+    /// holds the tracing pool back. None where there is no such thread
+    /// to watch: one machine, and workers of fewer than
+    /// [`DEDICATED_ENGINE_THREADS`] threads, whose engine thread traces
+    /// too and so reads busy whatever holds it.
+    pub engine_busy: Option<f64>,
     /// Random polling: polls sent, and queries handed to pollers.
     pub polls: u64,
     pub handed: u64,
@@ -100,6 +104,19 @@ pub struct Row {
     pub peak_rss: Vec<u64>,
     pub budget: u64,
     pub identical: bool,
+}
+
+/// The busiest engine thread's share of its worker's render time, where
+/// the workers' engine threads only keep the books (see [`Row::engine_busy`]).
+fn engine_busy<'w>(
+    threads_per_worker: usize,
+    workers: impl Iterator<Item = &'w WorkerStats>,
+) -> Option<f64> {
+    (threads_per_worker >= DEDICATED_ENGINE_THREADS).then(|| {
+        workers
+            .map(|s| (s.busy_s - s.engine_wait_s) / (s.busy_s + s.idle_s).max(1e-9))
+            .fold(0.0, f64::max)
+    })
 }
 
 /// The generated four-million-triangle room, written on first use.
@@ -262,14 +279,10 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
             .then(|| (fwd + t.answers_out) as f64 / messages as f64),
         imbalance: f.load_imbalance,
         idle_share: t.idle_s / (t.busy_s + t.idle_s).max(1e-9),
-        engine_busy: f
-            .workers
-            .iter()
-            .map(|w| {
-                let s = &w.stats;
-                (s.busy_s - s.engine_wait_s) / (s.busy_s + s.idle_s).max(1e-9)
-            })
-            .fold(0.0, f64::max),
+        engine_busy: engine_busy(
+            run.spec.threads_per_worker,
+            f.workers.iter().map(|w| &w.stats),
+        ),
         polls: t.polls,
         handed: t.handed_out,
         route_nodes: f.route_leaves,
@@ -340,7 +353,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             items_per_message: None,
             imbalance: 1.0,
             idle_share: 0.0,
-            engine_busy: 0.0,
+            engine_busy: None,
             polls: 0,
             handed: 0,
             route_nodes: 0,
@@ -475,7 +488,7 @@ pub fn markdown(rows: &[Row]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {} | {:.2} | {:.0}% | {:.0}% | {} | {}{} | {} |",
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {} | {:.2} | {:.0}% | {} | {} | {}{} | {} |",
             r.scene,
             r.config,
             r.render_s,
@@ -488,7 +501,8 @@ pub fn markdown(rows: &[Row]) -> String {
             r.items_per_message.map_or("".into(), |m| format!("{m:.0}")),
             r.imbalance,
             r.idle_share * 100.0,
-            r.engine_busy * 100.0,
+            r.engine_busy
+                .map_or("".into(), |b| format!("{:.0}%", b * 100.0)),
             r.handed,
             peaks,
             budget,
@@ -530,4 +544,29 @@ pub fn check(rows: &[Row]) -> Result<()> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stats(busy_s: f64, engine_wait_s: f64, idle_s: f64) -> WorkerStats {
+        WorkerStats {
+            busy_s,
+            engine_wait_s,
+            idle_s,
+            ..WorkerStats::default()
+        }
+    }
+
+    /// A worker whose engine thread traces too has no bookkeeping share to
+    /// report; from `DEDICATED_ENGINE_THREADS` threads up it is the busiest
+    /// engine's share of its render time, waits for the pool not counted.
+    #[test]
+    fn engine_busy_only_where_the_engine_only_keeps_the_books() {
+        let w = [stats(9.0, 3.0, 1.0), stats(10.0, 1.0, 0.0)];
+        assert_eq!(engine_busy(DEDICATED_ENGINE_THREADS - 1, w.iter()), None);
+        let b = engine_busy(DEDICATED_ENGINE_THREADS, w.iter()).unwrap();
+        assert!((b - 0.9).abs() < 1e-12, "{b}");
+    }
 }
