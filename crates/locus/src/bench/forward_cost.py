@@ -25,6 +25,7 @@ valgrind and callgrind_annotate on the PATH.
 """
 
 import argparse
+import functools
 import glob
 import json
 import os
@@ -78,6 +79,9 @@ def engine_thread(path):
     return best
 
 
+# `--per-thread` reads each thread's file twice (the sums, then the engine
+# threads): callgrind_annotate runs once a file.
+@functools.lru_cache(maxsize=None)
 def inclusive_one(path):
     out = subprocess.run(
         ["callgrind_annotate", "--inclusive=yes", "--threshold=100", "--auto=no", path],

@@ -283,39 +283,47 @@ mod tests {
     use locus_core::scene::Scene;
     use std::os::unix::fs::PermissionsExt;
 
-    /// A stand-in for `python embree_trace.py DIR`: a shell script that
-    /// speaks the script's line protocol with made-up timings.
-    fn fake(dir: &Path, body: &str) -> PathBuf {
-        std::fs::create_dir_all(dir).unwrap();
-        let p = dir.join("fake-python");
-        std::fs::write(&p, format!("#!/bin/sh\ndir=\"$2\"\n{body}")).unwrap();
-        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o755)).unwrap();
-        p
-    }
-
-    fn cornell() -> Prepared {
+    /// Runs the Embree benchmark of `rays` Cornell-box rays over `rounds`
+    /// rounds against a stand-in for `python embree_trace.py DIR`: a shell
+    /// script `body` that speaks the script's line protocol with made-up
+    /// timings. Returns the result and what the stand-in left in its
+    /// directory as `rounds-seen`, if anything.
+    fn with_fake(
+        tag: &str,
+        body: &str,
+        rays_n: usize,
+        rounds: usize,
+    ) -> (anyhow::Result<EmbreeBench>, Option<String>) {
+        let dir = std::env::temp_dir().join(format!("locus-embree-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let py = dir.join("fake-python");
+        std::fs::write(&py, format!("#!/bin/sh\ndir=\"$2\"\n{body}")).unwrap();
+        std::fs::set_permissions(&py, std::fs::Permissions::from_mode(0o755)).unwrap();
         let path =
             Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/cornell-box/cornell.toml");
-        Prepared::new(Scene::load(&path).unwrap())
+        let prep = Prepared::new(Scene::load(&path).unwrap());
+        let rs = rays(&prep, rays_n);
+        let r = embree(&prep, &rs, rounds, py.to_str().unwrap(), &dir.join("run"));
+        let seen = std::fs::read_to_string(dir.join("run/rounds-seen")).ok();
+        let _ = std::fs::remove_dir_all(&dir);
+        (r, seen)
     }
 
     /// Embree's rounds are asked for one by one between locus's, and the
     /// best of each is kept: the stand-in answers 0.3, 0.2, 0.4 s.
     #[test]
     fn embree_rounds_alternate_with_locus_and_the_best_is_kept() {
-        let dir = std::env::temp_dir().join(format!("locus-embree-{}", std::process::id()));
-        let py = fake(
-            &dir,
+        let (e, seen) = with_fake(
+            "rounds",
             "n=0\nwhile read -r what; do\n  case \"$what\" in\n    build) echo 0.5 ;;\n    \
              round) n=$((n+1)); case $n in 1) echo 0.3 ;; 2) echo 0.2 ;; *) echo 0.4 ;; esac ;;\n    \
              hits) echo \"$n\" > \"$dir/rounds-seen\"; : > \"$dir/embree_t.f32\"; echo done; exit 0 ;;\n  \
              esac\ndone\nexit 1\n",
+            300,
+            3,
         );
-        let prep = cornell();
-        let rs = rays(&prep, 300);
-        let e = embree(&prep, &rs, 3, py.to_str().unwrap(), &dir.join("run")).unwrap();
-        let seen = std::fs::read_to_string(dir.join("run/rounds-seen")).unwrap();
-        assert_eq!(seen.trim(), "3");
+        let e = e.unwrap();
+        assert_eq!(seen.as_deref().map(str::trim), Some("3"));
         assert_eq!(e.embree_build_s, 0.5);
         assert!(
             (e.embree_mrays_per_s - 300.0 / 0.2 / 1e6).abs() < 1e-12,
@@ -325,39 +333,40 @@ mod tests {
         assert!(e.locus_mrays_per_s > 0.0);
         // No distances came back, so none agree.
         assert_eq!(e.hits_agree, 0);
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A script that dies mid-run is an error that says so, not a hang.
     #[test]
     fn a_script_that_dies_is_an_error() {
-        let dir = std::env::temp_dir().join(format!("locus-embree-dies-{}", std::process::id()));
-        let py = fake(&dir, "read -r what\necho 0.5\nread -r what\nexit 3\n");
-        let prep = cornell();
-        let rs = rays(&prep, 50);
-        let err = embree(&prep, &rs, 2, py.to_str().unwrap(), &dir.join("run")).unwrap_err();
+        let (r, _) = with_fake(
+            "dies",
+            "read -r what\necho 0.5\nread -r what\nexit 3\n",
+            50,
+            2,
+        );
+        let err = r.unwrap_err();
         assert!(
             format!("{err:#}").contains("is embreex installed"),
             "{err:#}"
         );
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A reply that is not a number of seconds is an error naming the
     /// script and what it said.
     #[test]
     fn a_reply_that_is_not_seconds_is_an_error() {
-        let dir = std::env::temp_dir().join(format!("locus-embree-garbage-{}", std::process::id()));
-        let py = fake(&dir, "read -r what\necho 'no embree here'\nread -r what\n");
-        let prep = cornell();
-        let rs = rays(&prep, 50);
-        let err = embree(&prep, &rs, 2, py.to_str().unwrap(), &dir.join("run")).unwrap_err();
+        let (r, _) = with_fake(
+            "garbage",
+            "read -r what\necho 'no embree here'\nread -r what\n",
+            50,
+            2,
+        );
+        let err = r.unwrap_err();
         let msg = format!("{err:#}");
         assert!(
             msg.contains("expected seconds for build") && msg.contains("no embree here"),
             "{msg}"
         );
         assert!(msg.contains("embree_trace.py"), "{msg}");
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }
