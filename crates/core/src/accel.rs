@@ -22,6 +22,7 @@ use std::time::Duration;
 
 mod cwnode;
 mod leaf;
+mod pages;
 mod split;
 
 use leaf::{LeafTest, Prims};
@@ -215,18 +216,19 @@ impl Accel {
             .map(|p| of_box[p as usize])
             .collect();
         bvh.exact_node_aabbs = None;
-        let verts = order.iter().map(|&p| set.verts[p as usize]).collect();
-        let meta: Vec<PrimMeta> = order
-            .iter()
-            .map(|&p| PrimMeta {
+        bvh.nodes = pages::copied(std::mem::take(&mut bvh.nodes));
+        let verts = pages::collect(order.len(), order.iter().map(|&p| set.verts[p as usize]));
+        let meta: Vec<PrimMeta> = pages::collect(
+            order.len(),
+            order.iter().map(|&p| PrimMeta {
                 id: set.ids[p as usize],
                 material: set.material[p as usize],
-            })
-            .collect();
+            }),
+        );
         let normals = if set.normals.is_empty() {
             Vec::new()
         } else {
-            order.iter().map(|&p| set.normals[p as usize]).collect()
+            pages::collect(order.len(), order.iter().map(|&p| set.normals[p as usize]))
         };
         drop(set);
         let mut by_id: Vec<u32> = (0..meta.len() as u32).collect();
