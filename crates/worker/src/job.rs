@@ -12,7 +12,6 @@ use locus_core::irradiance::IrradianceCache;
 use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
 use locus_protocol::handshake::Credentials;
 use locus_protocol::overture::LevelChunk;
-use locus_protocol::rays::PeerMsg;
 use locus_protocol::report::WorkerStats;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -313,7 +312,7 @@ async fn irradiance(
 /// Outgoing peer channels (none for this worker itself) and the tasks
 /// writing them.
 pub type PeerLinks = (
-    Vec<Option<flume::Sender<PeerMsg>>>,
+    Vec<Option<flume::Sender<crate::peers::Outgoing>>>,
     Vec<tokio::task::JoinHandle<()>>,
 );
 

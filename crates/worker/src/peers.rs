@@ -7,7 +7,7 @@ use crate::engine::{Event, Input, Received};
 use locus_core::sampler::Sampler;
 use locus_protocol::handshake::Credentials;
 use locus_protocol::radiosity::ToNode;
-use locus_protocol::rays::PeerMsg;
+use locus_protocol::rays::{Packet, PeerMsg, RayItem};
 use locus_protocol::report::PeerTraffic;
 use locus_protocol::{MAX_FRAME_LEN, ProtocolError, handshake};
 use std::sync::Arc;
@@ -17,6 +17,39 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
+
+/// What a link's writer task is handed: a message, or a packet of ray
+/// items of which the engine's own are still to be encoded. The writer
+/// encodes them, so that the engine's serial thread only moves them.
+pub enum Outgoing {
+    Msg(PeerMsg),
+    /// Items the pool encoded, then the engine's, as one packet.
+    Items {
+        encoded: Packet,
+        raw: Vec<RayItem>,
+    },
+}
+
+impl From<PeerMsg> for Outgoing {
+    fn from(m: PeerMsg) -> Self {
+        Outgoing::Msg(m)
+    }
+}
+
+impl Outgoing {
+    /// The message as it goes on the wire.
+    pub fn into_msg(self) -> PeerMsg {
+        match self {
+            Outgoing::Msg(m) => m,
+            Outgoing::Items { mut encoded, raw } => {
+                for item in &raw {
+                    encoded.push(item);
+                }
+                PeerMsg::Packet(encoded)
+            }
+        }
+    }
+}
 
 /// What incoming links of the running job feed.
 pub struct JobLink {
@@ -92,7 +125,7 @@ pub async fn dial(
     job: u64,
     me: u16,
     to: u16,
-    rx: flume::Receiver<PeerMsg>,
+    rx: flume::Receiver<Outgoing>,
     traffic: Arc<Traffic>,
     cancel: CancellationToken,
     on_break: OnBreak,
@@ -105,7 +138,7 @@ pub async fn dial(
         loop {
             let msg = tokio::select! {
                 _ = cancel.cancelled() => break,
-                m = rx.recv_async() => match m { Ok(m) => m, Err(_) => break },
+                m = rx.recv_async() => match m { Ok(m) => m.into_msg(), Err(_) => break },
             };
             // A peer that stopped reading (stopped, cut off) must not
             // hold this task once the job is aborted.
@@ -297,7 +330,7 @@ mod tests {
             peer.await.unwrap();
             let mut sent = 0;
             let gave_up = tokio::time::timeout(Duration::from_secs(20), async {
-                while tx.send_async(PeerMsg::Poll).await.is_ok() {
+                while tx.send_async(PeerMsg::Poll.into()).await.is_ok() {
                     sent += 1;
                     tokio::time::sleep(Duration::from_millis(5)).await;
                 }
@@ -311,7 +344,7 @@ mod tests {
                 "{on_break:?} after {sent} sends"
             );
             assert!(
-                tx.send(PeerMsg::Poll).is_err(),
+                tx.send(PeerMsg::Poll.into()).is_err(),
                 "a send after the break fails"
             );
         }

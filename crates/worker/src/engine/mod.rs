@@ -53,7 +53,7 @@ use locus_core::region::{Resume, WorkerId};
 use locus_core::sampler::Sampler;
 use locus_protocol::control::{JobSetup, TileAssignment, WorkerToScheduler};
 use locus_protocol::packet::PacketError;
-use locus_protocol::rays::{HandedSample, LeafGeometry, Packet, PeerMsg, RayItem, ReplyTo};
+use locus_protocol::rays::{HandedSample, LeafGeometry, Packet, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
 use locus_protocol::submit::FetchPolicy;
 use outbox::LinkClosed;
@@ -219,7 +219,7 @@ pub enum Event {
 /// Where the engine's output goes.
 pub struct Links {
     /// One bounded channel per peer (None for this worker itself).
-    pub peers: Vec<Option<flume::Sender<PeerMsg>>>,
+    pub peers: Vec<Option<flume::Sender<crate::peers::Outgoing>>>,
     pub control: flume::Sender<WorkerToScheduler>,
     /// What the sockets counted, for reports of a stalled job.
     pub traffic: Arc<crate::peers::Traffic>,

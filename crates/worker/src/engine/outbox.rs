@@ -6,6 +6,15 @@
 //! ([`Outbox::flush_all`]): full packets while the worker is busy (fewer
 //! frames, fewer wake-ups), no waiting when it is idle.
 //!
+//! The engine's own items (the queries of vertices it opens, the replies
+//! of vertices it completes) are handed to the link's writer task as they
+//! are, and encoded there: the engine's thread is serial, and in a worker
+//! of many tracing threads it is what `forward` waits for. Items the pool
+//! encoded join the packet as bytes, and the writer puts the engine's
+//! after them ([`Outgoing`]): the order of items within a packet means
+//! nothing (a receiver takes its queries and answers apart anyway, and
+//! every answer is a pure function of its query).
+//!
 //! Sends never block the engine: two workers blocked on sending to each
 //! other would deadlock. A message that does not fit its peer's bounded
 //! channel waits here, in order, and while any waits the engine starts no
@@ -14,6 +23,7 @@
 //! most `max_inflight` samples open, each with at most two queries per
 //! path vertex), so these queues are bounded too.
 
+use crate::peers::Outgoing;
 use locus_core::region::WorkerId;
 use locus_protocol::packet::MAX_ITEM;
 use locus_protocol::rays::{Packet, PeerMsg, RayItem};
@@ -23,17 +33,25 @@ use std::time::{Duration, Instant};
 /// Items a packet's buffer is allocated for at most (larger packets grow).
 const MAX_PACKET_ALLOC: usize = 4096;
 
+/// A packet being filled: the items the pool encoded, the engine's own
+/// (encoded by the writer), and how many in all.
+#[derive(Default)]
+struct Filling {
+    encoded: Packet,
+    raw: Vec<RayItem>,
+    n: usize,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("the link to worker {0} closed while the job was running")]
 pub struct LinkClosed(pub WorkerId);
 
 pub struct Outbox {
-    peers: Vec<Option<flume::Sender<PeerMsg>>>,
-    /// Per peer: the packet being filled (encoded as items arrive) and
-    /// its item count.
-    out: Vec<(Packet, usize)>,
+    peers: Vec<Option<flume::Sender<Outgoing>>>,
+    /// Per peer: the packet being filled.
+    out: Vec<Filling>,
     since: Vec<Option<Instant>>,
-    stalled: Vec<VecDeque<PeerMsg>>,
+    stalled: Vec<VecDeque<Outgoing>>,
     packet_items: usize,
     flush_after: Duration,
     /// Times a message found its peer's channel full.
@@ -47,14 +65,14 @@ pub struct Outbox {
 impl Outbox {
     /// `peers[w]` is the channel to worker `w` (None for this worker).
     pub fn new(
-        peers: Vec<Option<flume::Sender<PeerMsg>>>,
+        peers: Vec<Option<flume::Sender<Outgoing>>>,
         packet_items: usize,
         flush_after: Duration,
     ) -> Self {
         let n = peers.len();
         Self {
             peers,
-            out: (0..n).map(|_| (Packet::default(), 0)).collect(),
+            out: (0..n).map(|_| Filling::default()).collect(),
             since: vec![None; n],
             stalled: (0..n).map(|_| VecDeque::new()).collect(),
             packet_items: packet_items.max(1),
@@ -65,9 +83,10 @@ impl Outbox {
         }
     }
 
-    /// Adds an item to `peer`'s packet, sending it when full.
+    /// Adds an item to `peer`'s packet, sending it when full. It is
+    /// encoded by the link's writer, not here.
     pub fn push(&mut self, peer: WorkerId, item: RayItem, now: Instant) -> Result<(), LinkClosed> {
-        self.add(peer, 1, now, |p| p.push(&item))
+        self.add(peer, 1, now, |f| f.raw.push(item))
     }
 
     /// Adds `n` items encoded elsewhere (by the pool) to `peer`'s packet.
@@ -78,7 +97,7 @@ impl Outbox {
         n: usize,
         now: Instant,
     ) -> Result<(), LinkClosed> {
-        self.add(peer, n, now, |p| p.append(items))
+        self.add(peer, n, now, |f| f.encoded.append(items))
     }
 
     /// Writes `n` items into `peer`'s packet with `write`: a packet that
@@ -90,22 +109,22 @@ impl Outbox {
         peer: WorkerId,
         n: usize,
         now: Instant,
-        write: impl FnOnce(&mut Packet),
+        write: impl FnOnce(&mut Filling),
     ) -> Result<(), LinkClosed> {
         let p = peer as usize;
-        let Some(&(_, held)) = self.out.get(p) else {
+        let Some(held) = self.out.get(p).map(|f| f.n) else {
             return Err(LinkClosed(peer));
         };
         if held > 0 && held + n > self.packet_items {
             self.send_packet(p)?;
         }
-        let (packet, k) = &mut self.out[p];
-        if *k == 0 {
+        let f = &mut self.out[p];
+        if f.n == 0 {
             self.since[p] = Some(now);
         }
-        write(packet);
-        *k += n;
-        if *k >= self.packet_items {
+        write(f);
+        f.n += n;
+        if f.n >= self.packet_items {
             self.send_packet(p)?;
         }
         Ok(())
@@ -113,20 +132,28 @@ impl Outbox {
 
     fn send_packet(&mut self, p: usize) -> Result<(), LinkClosed> {
         self.since[p] = None;
-        let (packet, n) = &mut self.out[p];
-        if *n == 0 {
+        let f = &mut self.out[p];
+        if f.n == 0 {
             return Ok(());
         }
-        // Room for a full packet, so that filling it never copies it.
-        let next = Packet::with_capacity(self.packet_items.min(MAX_PACKET_ALLOC) * MAX_ITEM);
-        let items = std::mem::replace(packet, next);
-        *n = 0;
+        // Room for a full packet, so that filling it never copies it; the
+        // engine's items are sized by the last packet's (about as many
+        // come each time).
+        let bytes = self.packet_items.min(MAX_PACKET_ALLOC) * MAX_ITEM;
+        let encoded = std::mem::replace(&mut f.encoded, Packet::with_capacity(bytes));
+        let next_raw = Vec::with_capacity(f.raw.len());
+        let raw = std::mem::replace(&mut f.raw, next_raw);
+        f.n = 0;
         self.packets += 1;
-        self.send(p as WorkerId, PeerMsg::Packet(items))
+        self.send_out(p as WorkerId, Outgoing::Items { encoded, raw })
     }
 
     /// Sends `msg` behind whatever already waits for `peer`, keeping order.
     pub fn send(&mut self, peer: WorkerId, msg: PeerMsg) -> Result<(), LinkClosed> {
+        self.send_out(peer, Outgoing::Msg(msg))
+    }
+
+    fn send_out(&mut self, peer: WorkerId, msg: Outgoing) -> Result<(), LinkClosed> {
         let p = peer as usize;
         if !self.stalled[p].is_empty() {
             self.stalled[p].push_back(msg);
@@ -205,7 +232,7 @@ impl Outbox {
 
     /// Whether anything is buffered or waiting.
     pub fn is_empty(&self) -> bool {
-        self.out.iter().all(|(_, n)| *n == 0) && !self.is_stalled()
+        self.out.iter().all(|f| f.n == 0) && !self.is_stalled()
     }
 }
 
@@ -222,8 +249,8 @@ mod tests {
         }
     }
 
-    fn items(m: PeerMsg) -> Vec<u32> {
-        match m {
+    fn items(m: Outgoing) -> Vec<u32> {
+        match m.into_msg() {
             PeerMsg::Packet(v) => v
                 .items(0, locus_core::sampler::Sampler::Independent)
                 .map(|i| match i {
@@ -297,7 +324,8 @@ mod tests {
         // Two more would make 5: the packet of 3 leaves first.
         let (p, n) = encoded(3..5);
         o.push_encoded(1, &p, n, t0).unwrap();
-        assert_eq!(items(rx.try_recv().unwrap()), [0, 1, 2]);
+        // The pool's items, then the engine's (encoded by the writer).
+        assert_eq!(items(rx.try_recv().unwrap()), [1, 2, 0]);
         // A full chunk fills the packet it joins and leaves at once.
         let (p, n) = encoded(5..7);
         o.push_encoded(1, &p, n, t0 + Duration::from_millis(1))
@@ -316,5 +344,27 @@ mod tests {
         assert_eq!(o.packets, 3);
         // A peer outside the job: an error, not a panic.
         assert_eq!(o.push_encoded(2, &p, n, t0), Err(LinkClosed(2)));
+    }
+
+    /// What the engine hands over unencoded reaches the wire as the bytes
+    /// it would have encoded itself.
+    #[test]
+    fn the_writer_encodes_the_engines_items_as_the_engine_would() {
+        let (tx, rx) = flume::bounded(4);
+        let mut o = Outbox::new(vec![None, Some(tx)], 8, Duration::from_millis(5));
+        let t0 = Instant::now();
+        let (p, n) = encoded(0..2);
+        o.push_encoded(1, &p, n, t0).unwrap();
+        for k in 2..5 {
+            o.push(1, item(k), t0).unwrap();
+        }
+        o.flush_all().unwrap();
+        let Outgoing::Items { encoded, raw } = rx.try_recv().unwrap() else {
+            panic!("a packet was expected");
+        };
+        assert_eq!(raw.len(), 3, "the engine's items travel unencoded");
+        let sent = Outgoing::Items { encoded, raw }.into_msg();
+        let all: Vec<RayItem> = (0..5).map(item).collect();
+        assert_eq!(sent, PeerMsg::Packet(Packet::from_items(&all)));
     }
 }

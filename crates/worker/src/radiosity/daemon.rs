@@ -145,7 +145,7 @@ struct DaemonLinks {
     job: u64,
     me: NodeId,
     own: flume::Sender<ToNode>,
-    peers: Vec<Option<flume::Sender<PeerMsg>>>,
+    peers: Vec<Option<flume::Sender<crate::peers::Outgoing>>>,
     control: flume::Sender<WorkerToScheduler>,
     /// The job's abort (by the scheduler): nothing leaves the node after
     /// it. A broken peer link does not set it (`OnBreak::DropPeer`).
@@ -166,7 +166,7 @@ impl Outbox for DaemonLinks {
         if to == self.me {
             let _ = self.own.send(msg);
         } else if let Some(Some(tx)) = self.peers.get(to as usize)
-            && tx.send(PeerMsg::Node(Box::new(msg))).is_err()
+            && tx.send(PeerMsg::Node(Box::new(msg)).into()).is_err()
         {
             // Its writer ended on a failed write.
             self.lost[to as usize] += 1;
