@@ -3,8 +3,9 @@
 //! The BVH is built over padded triangle boxes (see [`Accel::build`]), a
 //! large triangle cut into several tighter boxes first (obvhs's spatial
 //! pre-splits, after Embree's); the triangles are stored in BVH order with
-//! their global ids and materials, once per box, and the global id stays
-//! the identity of a triangle everywhere in locus.
+//! their global ids and materials, once per box (on huge pages where the
+//! kernel gives them: `pages`), and the global id stays the identity of a
+//! triangle everywhere in locus.
 //! Closest hits at equal distance resolve to the smaller global id, so the
 //! answer does not depend on BVH layout, and therefore not on which worker
 //! traced the ray. [`crate::accel_set::AccelSet`] traces several such BVHs
