@@ -10,15 +10,18 @@
 //! predicted cost. Both keep to [`Limits`]: shares by cores, and the
 //! triangle references each worker's memory budget allows.
 //!
-//! `grow` places the seeds and grows regions from them; `refine` smooths
-//! the borders afterwards; this module builds the leaf graph, cuts leaves
-//! into units and chooses between the grown and the Morton regions.
+//! `grow` places the seeds and grows regions from them; `bisect` cuts
+//! boxes of the cost by planes, a third start; `refine` smooths the
+//! borders afterwards; this module builds the leaf graph, cuts leaves into
+//! units and chooses among the grown, the bisected and the Morton regions.
 
 use locus_core::octree::Octree;
 use std::collections::HashMap;
 
+mod bisect;
 mod grow;
 mod refine;
+use bisect::bisect;
 use grow::grow;
 pub use refine::FORWARD_COST;
 use refine::refine;
@@ -332,8 +335,8 @@ impl Units {
 }
 
 /// Region growing and smoothing over any units (their centres, border
-/// graph and cost): the better of regions grown from seeds and of Morton
-/// chunks smoothed the same way.
+/// graph and cost): the best of regions grown from seeds, of Morton chunks
+/// and of recursive bisection, each smoothed the same way.
 fn partition_units(
     centers: &[glam::Vec3],
     graph: &LeafGraph,
@@ -354,6 +357,19 @@ fn partition_units(
             }
         }
         Err(_) => grown,
+    };
+    // And from boxes cut by planes, which on some scenes and farm sizes
+    // are the shorter border.
+    let best = match bisect(centers, graph, cost, lim) {
+        Ok(mut b) => {
+            refine(graph, cost, lim, &mut b);
+            if graph.cut(&b) < graph.cut(&best) {
+                b
+            } else {
+                best
+            }
+        }
+        Err(_) => best,
     };
     Ok(best)
 }
