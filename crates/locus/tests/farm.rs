@@ -46,6 +46,48 @@ fn farm_matches_single_machine_bit_for_bit() {
     });
 }
 
+/// A camera inside the scene: every camera ray starts in the camera's
+/// leaf, which every worker holds, so tiles go to the owners of the leaves
+/// the rays enter next and several workers start samples (with the leaf
+/// owned by one worker, that one started them all); the image is one
+/// machine's.
+#[test]
+fn a_camera_inside_the_scene_lets_every_worker_start_samples() {
+    let mut scene = small_cornell();
+    // Low over the floor, looking at the back wall.
+    scene.camera.position = glam::Vec3::new(278.0, 6.0, 120.0);
+    scene.camera.look_at = glam::Vec3::new(278.0, 273.0, 559.0);
+    let reference = single_machine(&scene);
+    let rt = runtime();
+    rt.block_on(async {
+        for workers in [3usize, 4] {
+            let farm = locus::farm::LocalFarm::start(workers, 1)
+                .await
+                .expect("farm");
+            let opts = JobOptions {
+                workers: workers as u32,
+                tile_size: 8,
+                fetch: FetchPolicy::Forward,
+                ..Default::default()
+            };
+            let req = locus_scheduler::client::request(&scene, opts);
+            let r = farm.render(req, &|_, _| {}).await.expect("job");
+            assert_eq!(bits(&r), reference, "{workers} workers");
+            let starting = r
+                .report
+                .workers
+                .iter()
+                .filter(|w| w.stats.tiles > 0)
+                .count();
+            assert!(
+                starting >= 2,
+                "{workers} workers: {starting} started samples"
+            );
+            farm.stop().await.expect("clean stop");
+        }
+    });
+}
+
 /// Workers of several threads: with 2, the engine's thread traces beside a
 /// pool of one; with `DEDICATED_ENGINE_THREADS`, the pool has them all and
 /// the engine's thread only keeps the books. Both give one machine's bits,

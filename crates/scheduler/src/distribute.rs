@@ -50,7 +50,7 @@ pub fn ship(
             sampler: prep.scene.settings.sampler,
             materials: prep.scene.materials.clone(),
             lights: prep.lights.clone(),
-            map: prep.map.clone(),
+            map: prep.map_for(w as u16),
             magnitude: prep.scene.magnitude(),
             tuning: locus_protocol::control::Tuning {
                 max_inflight: prep.max_inflight[w],

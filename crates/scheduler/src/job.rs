@@ -43,6 +43,9 @@ pub struct Prepared {
     /// Per tile, the worker its camera rays meet first ([`crate::tiles`]);
     /// none when the scene is replicated.
     pub tile_affinity: Vec<Option<WorkerId>>,
+    /// The camera's leaf, which every worker holds as its own
+    /// ([`cost::camera_leaf`]; [`Self::map_for`]).
+    pub camera_leaf: Option<u32>,
     /// Per worker, the camera samples it keeps in flight.
     pub max_inflight: Vec<u32>,
     /// Triangle references per leaf.
@@ -56,6 +59,23 @@ pub struct Prepared {
     pub preview_rays: u64,
     pub leaves: u32,
     pub timings: PrepTimings,
+}
+
+impl Prepared {
+    /// Worker `w`'s processor map: the job's, with the camera's leaf its
+    /// own. Every other leaf has one owner on every map, so where any two
+    /// workers' maps are compared (a forwarded query's route node) they
+    /// agree.
+    pub fn map_for(&self, w: WorkerId) -> ProcessorMap {
+        match self.camera_leaf {
+            Some(l) => {
+                let mut owner = self.map.owner.clone();
+                owner[l as usize] = w;
+                ProcessorMap::new(&self.map.tree, owner)
+            }
+            None => self.map.clone(),
+        }
+    }
 }
 
 /// Who measures an attempt's irradiance records: its workers, where each
@@ -311,10 +331,22 @@ pub fn prepare(
         caps: &caps,
         refs: &refs,
     };
-    let chosen = match options.cost_model {
-        CostModel::Analytic => &analytic,
-        CostModel::Sampled => &sampled,
+    // The camera's leaf is every worker's (below), and so is its work:
+    // each worker shades there what its own rays bring. It weighs on no
+    // one region.
+    let shared_leaf = if workers < 2 {
+        None
+    } else {
+        cost::camera_leaf(&tree, &scene.camera)
     };
+    let mut chosen = match options.cost_model {
+        CostModel::Analytic => analytic.clone(),
+        CostModel::Sampled => sampled.clone(),
+    };
+    if let Some(l) = shared_leaf {
+        chosen[l as usize] = 0.0;
+    }
+    let chosen = &chosen;
     let owner = match options.partitioner {
         Partitioner::RegionGrowing => {
             let graph = partition::LeafGraph::new(&tree, &crossings);
@@ -346,9 +378,19 @@ pub fn prepare(
             ids
         })
         .collect();
+    // Every worker holds the camera's leaf (see `cost::camera_leaf`), as
+    // its own: each gets a processor map in which it owns that leaf, so
+    // no ray is ever forwarded into it and any worker starts samples.
+    let camera_leaf = shared_leaf.filter(|_| !replicated);
     let mut own_leaves = vec![Vec::new(); workers];
     for (i, &o) in owner.iter().enumerate() {
-        own_leaves[o as usize].push((i as u32, leaf_ids[i].clone()));
+        if Some(i as u32) == camera_leaf {
+            for own in &mut own_leaves {
+                own.push((i as u32, leaf_ids[i].clone()));
+            }
+        } else {
+            own_leaves[o as usize].push((i as u32, leaf_ids[i].clone()));
+        }
     }
     let everything: Vec<(u32, Vec<u32>)> = if replicated {
         (0..tree.leaves.len() as u32)
@@ -368,7 +410,7 @@ pub fn prepare(
         use rayon::prelude::*;
         tiles
             .par_iter()
-            .map(|t| crate::tiles::affinity(&scene.camera, &map, t))
+            .map(|t| crate::tiles::affinity(&scene.camera, &map, camera_leaf, t))
             .collect()
     };
     let mut plans = Vec::with_capacity(workers);
@@ -419,6 +461,7 @@ pub fn prepare(
         }
     });
     Ok(Prepared {
+        camera_leaf,
         irradiance,
         member_cores: members.iter().map(|m| m.cores).collect(),
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),

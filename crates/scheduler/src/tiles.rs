@@ -22,8 +22,14 @@ use std::collections::VecDeque;
 
 /// The owner of the first leaf along most of a tile's camera rays (its
 /// centre and its four corners; the centre's wins a tie), or None when
-/// most of them miss the scene.
-pub fn affinity(camera: &Camera, map: &ProcessorMap, t: &Tile) -> Option<WorkerId> {
+/// most of them miss the scene. The `shared` leaf (the camera's, which
+/// every worker holds: `cost::camera_leaf`) is passed over.
+pub fn affinity(
+    camera: &Camera,
+    map: &ProcessorMap,
+    shared: Option<u32>,
+    t: &Tile,
+) -> Option<WorkerId> {
     let (x1, y1) = (t.x1.saturating_sub(1), t.y1.saturating_sub(1));
     let points = [
         ((t.x0 + x1) / 2, (t.y0 + y1) / 2),
@@ -36,7 +42,15 @@ pub fn affinity(camera: &Camera, map: &ProcessorMap, t: &Tile) -> Option<WorkerI
         .iter()
         .map(|&(x, y)| {
             let ray = camera.ray(x, y, [0.5, 0.5]);
-            map.first_owner(&ray, f32::INFINITY).map(|(o, _)| o)
+            let mut first = None;
+            let _ = map.tree.walk(&ray, 0.0, f32::INFINITY, |leaf, _, _| {
+                if Some(leaf) == shared {
+                    return std::ops::ControlFlow::Continue(());
+                }
+                first = map.owner.get(leaf as usize).copied();
+                std::ops::ControlFlow::Break(())
+            });
+            first
         })
         .collect();
     let count = |o: Option<WorkerId>| owners.iter().filter(|&&x| x == o).count();
@@ -232,13 +246,60 @@ mod tests {
             x1: x0 + 8,
             y1: y0 + 8,
         };
-        assert_eq!(affinity(&camera, &map, &tile(0, 0)), Some(0));
-        assert_eq!(affinity(&camera, &map, &tile(24, 24)), Some(0));
+        assert_eq!(affinity(&camera, &map, None, &tile(0, 0)), Some(0));
+        assert_eq!(affinity(&camera, &map, None, &tile(24, 24)), Some(0));
         // Looking away from the scene: no affinity.
         let away = Camera {
             look_at: Vec3::new(-5.0, 40.0, 0.0),
             ..camera
         };
-        assert_eq!(affinity(&away, &map, &tile(8, 8)), None);
+        assert_eq!(affinity(&away, &map, None, &tile(8, 8)), None);
+    }
+
+    /// A camera inside the scene: its rays all start in its leaf, whose
+    /// owner would get every tile; with that leaf shared (every worker
+    /// holds it) a tile goes to the owner of the leaf its rays enter next.
+    #[test]
+    fn the_shared_camera_leaf_is_passed_over() {
+        use glam::Vec3;
+        use locus_core::octree::{Octree, OctreeParams};
+        let mut tris = Vec::new();
+        for i in 0..8 {
+            for j in 0..8 {
+                for k in 0..8 {
+                    let c = Vec3::new(i as f32, j as f32, k as f32) * 2.5 - 9.0;
+                    tris.push([c, c + Vec3::X * 0.3, c + Vec3::Y * 0.3]);
+                }
+            }
+        }
+        let tree = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 4,
+                max_depth: 6,
+            },
+        );
+        let camera = Camera {
+            position: Vec3::new(-8.5, -8.5, -8.5),
+            look_at: Vec3::splat(9.0),
+            up: Vec3::Y,
+            fov_y: 20.0,
+            width: 32,
+            height: 32,
+        };
+        let cam = tree.leaf_at(camera.position).expect("the camera is inside");
+        // The camera's leaf is worker 0's, every other worker 1's.
+        let owner: Vec<WorkerId> = (0..tree.leaves.len())
+            .map(|l| (l as u32 != cam) as WorkerId)
+            .collect();
+        let map = ProcessorMap::new(&tree, owner);
+        let tile = Tile {
+            x0: 8,
+            y0: 8,
+            x1: 24,
+            y1: 24,
+        };
+        assert_eq!(affinity(&camera, &map, None, &tile), Some(0));
+        assert_eq!(affinity(&camera, &map, Some(cam), &tile), Some(1));
     }
 }
