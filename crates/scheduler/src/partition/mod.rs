@@ -343,34 +343,18 @@ fn partition_units(
     cost: &[f64],
     lim: &Limits,
 ) -> Result<Vec<u16>, String> {
-    let grown = grow(centers, graph, cost, lim)?;
-    // The same balancing and smoothing from Morton's chunks as seed
-    // regions: on some scenes an octree cut is the shorter border to
-    // start from.
-    let best = match morton(cost, lim) {
-        Ok(mut m) => {
-            refine(graph, cost, lim, &mut m);
-            if graph.cut(&m) < graph.cut(&grown) {
-                m
-            } else {
-                grown
-            }
+    let mut best = grow(centers, graph, cost, lim)?;
+    // The same balancing and smoothing from Morton's chunks, and from
+    // boxes cut by planes: on some scenes and farm sizes an octree cut or
+    // a plane is the shorter border to start from. A start that cannot
+    // keep the memory budgets is passed over.
+    let starts = [morton(cost, lim), bisect(centers, graph, cost, lim)];
+    for mut o in starts.into_iter().flatten() {
+        refine(graph, cost, lim, &mut o);
+        if graph.cut(&o) < graph.cut(&best) {
+            best = o;
         }
-        Err(_) => grown,
-    };
-    // And from boxes cut by planes, which on some scenes and farm sizes
-    // are the shorter border.
-    let best = match bisect(centers, graph, cost, lim) {
-        Ok(mut b) => {
-            refine(graph, cost, lim, &mut b);
-            if graph.cut(&b) < graph.cut(&best) {
-                b
-            } else {
-                best
-            }
-        }
-        Err(_) => best,
-    };
+    }
     Ok(best)
 }
 
