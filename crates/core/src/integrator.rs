@@ -272,6 +272,7 @@ pub fn shade(
     }
     let vertex = q.depth + 1;
     let key = q.key;
+    let draws = key.draws();
     let Frame {
         p,
         ng: _,
@@ -306,8 +307,8 @@ pub fn shade(
         });
 
     // Next-event estimation.
-    if let Some(ls) = lights.sample(key.get2d_bits(base)) {
-        let target = ls.point + ls.normal * spawn_offset(&ls.verts);
+    if let Some(ls) = lights.sample(draws.get2d_bits(base)) {
+        let target = ls.point + ls.normal * ls.offset;
         let to = ls.point - p;
         let dist2 = to.length_squared();
         let wi = to / dist2.sqrt();
@@ -336,7 +337,7 @@ pub fn shade(
         return out;
     }
     // Continue by cosine sampling: f cos / pdf = albedo.
-    let wi = cosine_hemisphere(ns, key.get2d(base + 2));
+    let wi = cosine_hemisphere(ns, draws.get2d(base + 2));
     let pdf_b = ns.dot(wi) / PI;
     if pdf_b.is_nan() || pdf_b <= 0.0 || (shaded && n.dot(wi) <= 0.0) {
         return out;
@@ -345,7 +346,7 @@ pub fn shade(
     let mut beta = q.beta * mat.albedo;
     if vertex >= RR_START_VERTEX {
         let p = beta.max_element().min(RR_MAX_CONTINUE);
-        if key.get1d(base + 4) >= p {
+        if draws.get1d(base + 4) >= p {
             return out;
         }
         scale /= p;

@@ -13,22 +13,72 @@
 //! worker can sample every light of the scene (next-event estimation needs
 //! them all) while holding only its region's geometry.
 
-use crate::geometry::{tri_area_f64, tri_cross, uniform_triangle};
+use crate::geometry::{spawn_offset, tri_area_f64, tri_cross, uniform_triangle};
 use crate::scene::Scene;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+/// The emitters as they travel: what each is. The rest of a [`LightSet`]
+/// (selection, pdfs, normals, offsets) is derived from them on arrival by
+/// the same code as where it was built, so it is the same to the bit and a
+/// peer cannot send a set whose parts disagree.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(from = "Emitters", into = "Emitters")]
 pub struct LightSet {
     /// Global triangle ids of the emitters, ascending.
     pub tris: Vec<u32>,
-    verts: Vec<[Vec3; 3]>,
-    emission: Vec<Vec3>,
     /// Cumulative selection probability, ending at exactly 1.
     cdf: Vec<f64>,
+    /// What a sample reads of the emitter it chose, in one place.
+    emitters: Vec<Emitter>,
+}
+
+/// One emitter as sampling reads it: its parts that do not depend on the
+/// sample are computed once, here, rather than for every sample.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Emitter {
+    verts: [Vec3; 3],
+    emission: Vec3,
+    /// Unit geometric normal (the emitting side).
+    normal: Vec3,
     /// Selection probability divided by area: the area-measure pdf of
-    /// sampling a point on that emitter.
-    pdf_area: Vec<f32>,
+    /// sampling a point on this emitter.
+    pdf_area: f32,
+    /// The spawn offset of a shadow ray's end on it.
+    offset: f32,
+    /// Its share `[lo, hi)` of the unit interval: the cdf before it and
+    /// at it.
+    lo: f64,
+    hi: f64,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+struct Emitters {
+    tris: Vec<u32>,
+    verts: Vec<[Vec3; 3]>,
+    emission: Vec<Vec3>,
+}
+
+impl From<Emitters> for LightSet {
+    fn from(e: Emitters) -> Self {
+        Self::from_emitters(
+            e.tris
+                .into_iter()
+                .zip(e.verts)
+                .zip(e.emission)
+                .map(|((id, v), e)| (id, v, e)),
+        )
+    }
+}
+
+impl From<LightSet> for Emitters {
+    fn from(s: LightSet) -> Self {
+        Self {
+            tris: s.tris,
+            verts: s.emitters.iter().map(|e| e.verts).collect(),
+            emission: s.emitters.iter().map(|e| e.emission).collect(),
+        }
+    }
 }
 
 pub struct LightSample {
@@ -38,8 +88,9 @@ pub struct LightSample {
     pub normal: Vec3,
     pub emission: Vec3,
     pub pdf_area: f32,
-    /// The emitter's vertices, for the spawn offset of the shadow ray's end.
-    pub verts: [Vec3; 3],
+    /// The emitter's spawn offset ([`spawn_offset`] of its vertices), for
+    /// the shadow ray's end.
+    pub offset: f32,
 }
 
 /// The largest f32 below 1.
@@ -62,23 +113,34 @@ impl LightSet {
     pub fn from_emitters(emitters: impl IntoIterator<Item = (u32, [Vec3; 3], Vec3)>) -> Self {
         let mut s = Self::default();
         let mut power = Vec::new();
-        for (id, v, e) in emitters {
-            let l = luminance(e).max(e.max_element() * 1e-3);
+        for (id, verts, emission) in emitters {
+            let l = luminance(emission).max(emission.max_element() * 1e-3);
             s.tris.push(id);
-            s.verts.push(v);
-            s.emission.push(e);
-            power.push(tri_area_f64(&v) * l as f64);
+            s.emitters.push(Emitter {
+                verts,
+                emission,
+                normal: tri_cross(&verts).normalize(),
+                pdf_area: 0.0,
+                offset: spawn_offset(&verts),
+                lo: 0.0,
+                hi: 0.0,
+            });
+            power.push(tri_area_f64(&verts) * l as f64);
         }
         let total: f64 = power.iter().sum();
         let mut acc = 0.0;
         for (k, &p) in power.iter().enumerate() {
             acc += p / total;
             s.cdf.push(acc);
-            s.pdf_area
-                .push(((p / total) / tri_area_f64(&s.verts[k])) as f32);
+            let e = &mut s.emitters[k];
+            e.pdf_area = ((p / total) / tri_area_f64(&e.verts)) as f32;
         }
         if let Some(last) = s.cdf.last_mut() {
             *last = 1.0;
+        }
+        for (k, e) in s.emitters.iter_mut().enumerate() {
+            e.lo = if k == 0 { 0.0 } else { s.cdf[k - 1] };
+            e.hi = s.cdf[k];
         }
         s
     }
@@ -92,7 +154,7 @@ impl LightSet {
     #[inline]
     pub fn pdf_area(&self, tri: u32) -> f32 {
         match self.tris.binary_search(&tri) {
-            Ok(k) => self.pdf_area[k],
+            Ok(k) => self.emitters[k].pdf_area,
             Err(_) => 0.0,
         }
     }
@@ -100,32 +162,25 @@ impl LightSet {
     /// A point on an emitter from the 2D sample `u` (32-bit fractions, as
     /// [`crate::sampler::SampleKey::get2d_bits`] gives them).
     pub fn sample(&self, u: [u32; 2]) -> Option<LightSample> {
-        if self.tris.is_empty() {
-            return None;
-        }
+        let last = self.emitters.len().checked_sub(1)?;
         let x = u[0] as f64 * (1.0 / 4_294_967_296.0);
-        let k = self
-            .cdf
-            .partition_point(|&c| c <= x)
-            .min(self.tris.len() - 1);
-        let lo = if k == 0 { 0.0 } else { self.cdf[k - 1] };
-        let hi = self.cdf[k];
+        let k = self.cdf.partition_point(|&c| c <= x).min(last);
+        let e = &self.emitters[k];
         // Where `x` lies within the emitter's share, as a fresh uniform
         // value (32 bits of `x` keep at least 24 for a share above 2^-8).
-        let rescaled = if hi > lo {
-            (((x - lo) / (hi - lo)) as f32).clamp(0.0, ONE_BELOW)
+        let rescaled = if e.hi > e.lo {
+            (((x - e.lo) / (e.hi - e.lo)) as f32).clamp(0.0, ONE_BELOW)
         } else {
             0.5
         };
-        let v = self.verts[k];
         let (b1, b2) = uniform_triangle([rescaled, (u[1] >> 8) as f32 * (1.0 / 16_777_216.0)]);
         Some(LightSample {
             tri: self.tris[k],
-            point: crate::geometry::hit_point(&v, b1, b2),
-            normal: tri_cross(&v).normalize(),
-            emission: self.emission[k],
-            pdf_area: self.pdf_area[k],
-            verts: v,
+            point: crate::geometry::hit_point(&e.verts, b1, b2),
+            normal: e.normal,
+            emission: e.emission,
+            pdf_area: e.pdf_area,
+            offset: e.offset,
         })
     }
 }
@@ -230,7 +285,7 @@ mod tests {
                 let u = key.get1d(6) as f64;
                 let k = set.cdf.partition_point(|&c| c <= u);
                 let (b1, b2) = uniform_triangle(key.get2d(7));
-                sum += crate::geometry::hit_point(&set.verts[k], b1, b2).x as f64;
+                sum += crate::geometry::hit_point(&set.emitters[k].verts, b1, b2).x as f64;
             }
             se_apart += (sum / n as f64 - exact_mean_x()).powi(2);
         }
@@ -239,5 +294,30 @@ mod tests {
             rms_apart > 0.1 * sigma,
             "a separate choice: rms {rms_apart}, standard error {sigma}"
         );
+    }
+
+    /// A set travels as its emitters alone and is rebuilt on arrival: the
+    /// same set to the bit, pdfs, normals and offsets included.
+    #[test]
+    fn the_wire_carries_the_emitters_and_the_rest_is_rebuilt() {
+        let set = lights();
+        let bytes = postcard::to_allocvec(&set).unwrap();
+        let back: LightSet = postcard::from_bytes(&bytes).unwrap();
+        assert_eq!(back, set);
+        for tri in [0, 1, 7, 3] {
+            assert_eq!(back.pdf_area(tri).to_bits(), set.pdf_area(tri).to_bits());
+        }
+        // Parts of unequal length from a peer give a set of the emitters
+        // they agree on, not one that indexes past its arrays.
+        let ragged = Emitters {
+            tris: vec![0, 1, 7],
+            verts: set.emitters.iter().map(|e| e.verts).take(2).collect(),
+            emission: vec![Vec3::ONE; 3],
+        };
+        let back: LightSet =
+            postcard::from_bytes(&postcard::to_allocvec(&ragged).unwrap()).unwrap();
+        assert_eq!(back.tris, [0, 1]);
+        assert!(back.sample([u32::MAX, u32::MAX]).is_some());
+        assert_eq!(back.pdf_area(7), 0.0);
     }
 }

@@ -34,7 +34,7 @@ use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::region::{Resume, WorkerId};
 use crate::sampler::{SampleKey, Sampler};
-use crate::scene::{Camera, Material};
+use crate::scene::{Camera, CameraView, Material};
 use crate::stats::TraceStats;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -234,6 +234,8 @@ pub struct Kernel<'a> {
     pub materials: &'a [Material],
     pub lights: &'a LightSet,
     pub camera: &'a Camera,
+    /// The camera's frame, computed once (see [`Camera::view`]).
+    pub view: CameraView,
     pub seed: u64,
     pub sampler: Sampler,
     pub max_depth: u32,
@@ -258,6 +260,7 @@ impl<'a> Kernel<'a> {
             materials,
             lights,
             camera,
+            view: camera.view(),
             seed,
             sampler,
             max_depth,
@@ -304,7 +307,7 @@ impl Kernel<'_> {
             Task::Camera { x, y, sample } => {
                 let key = self.sample_key(x, y, sample);
                 st.camera_rays += 1;
-                let ray = self.camera.ray(x, y, key.get2d(DIM_PIXEL));
+                let ray = self.view.ray(x, y, key.get2d(DIM_PIXEL));
                 Query::Path(PathRay::camera(ray, key))
             }
         };

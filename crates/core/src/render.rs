@@ -14,7 +14,7 @@ use crate::irradiance::overture::{self, OvertureStats};
 use crate::light::LightSet;
 use crate::octree::Octree;
 use crate::passes::pixel_mean;
-use crate::path::{CacheUse, Kernel, WholeScene};
+use crate::path::{CacheUse, ChainVertex, Kernel, WholeScene};
 use crate::sampler::{Sampler, mix64};
 use crate::scene::Scene;
 use crate::stats::TraceStats;
@@ -185,18 +185,18 @@ pub fn tiles(width: u32, height: u32, size: u32, order: TileOrder) -> Vec<Tile> 
 }
 
 /// The value of one pixel: its samples in passes, averaged
-/// ([`crate::passes`]).
+/// ([`crate::passes`]). `chain` is scratch the caller keeps from pixel to
+/// pixel, so a path's vertices are not allocated again for every pixel.
 pub fn render_pixel(
     kernel: &Kernel,
     tracer: &WholeScene,
-    x: u32,
-    y: u32,
+    (x, y): (u32, u32),
     spp: u32,
+    chain: &mut Vec<ChainVertex>,
     stats: &mut TraceStats,
 ) -> [f32; 3] {
-    let mut chain = Vec::new();
     pixel_mean(spp, stats, |s, st| {
-        kernel.sample(tracer, x, y, s, &mut chain, st)
+        kernel.sample(tracer, x, y, s, chain, st)
     })
 }
 
@@ -253,9 +253,12 @@ pub fn render(
             .map(|t| {
                 let mut st = TraceStats::default();
                 let mut px = Vec::with_capacity(((t.x1 - t.x0) * (t.y1 - t.y0)) as usize);
+                let mut chain = Vec::with_capacity(kernel.max_depth as usize + 1);
                 for y in t.y0..t.y1 {
                     for x in t.x0..t.x1 {
-                        px.push(render_pixel(&kernel, &tracer, x, y, opts.spp, &mut st));
+                        let p =
+                            render_pixel(&kernel, &tracer, (x, y), opts.spp, &mut chain, &mut st);
+                        px.push(p);
                     }
                 }
                 progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);

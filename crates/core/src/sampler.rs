@@ -99,17 +99,56 @@ impl SampleKey {
         Self::new(pixel, sample, seed, Sampler::Independent)
     }
 
-    /// A hash of (seed, pixel): the part every dimension shares. One
-    /// mixing round: the seed and pixel are each spread by an odd
-    /// multiplier (a bijection) before they meet.
+    /// The parts of this key that every dimension shares, computed once:
+    /// a path vertex draws several dimensions from one.
     #[inline(always)]
-    fn pixel_hash(&self) -> u64 {
-        mix64(self.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ self.pixel)
+    pub fn draws(&self) -> Draws {
+        Draws {
+            sampler: self.sampler,
+            // A hash of (seed, pixel). One mixing round: the seed and pixel
+            // are each spread by an odd multiplier (a bijection) before
+            // they meet.
+            pixel_hash: mix64(self.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ self.pixel),
+            sample: self.sample,
+            sample_reversed: self.sample.reverse_bits(),
+        }
     }
 
+    /// A uniform value in [0, 1) for dimension `dim`.
+    #[inline(always)]
+    pub fn get1d(&self, dim: u32) -> f32 {
+        self.draws().get1d(dim)
+    }
+
+    /// Two values from dimensions `dim` and `dim + 1`, one 2D pattern.
+    #[inline(always)]
+    pub fn get2d(&self, dim: u32) -> [f32; 2] {
+        self.draws().get2d(dim)
+    }
+
+    /// The 2D pattern of [`Self::get2d`] as 32-bit fractions (value times
+    /// 2^32), for a caller that spends part of a coordinate on a discrete
+    /// choice and keeps the rest (see [`crate::light::LightSet::sample`]).
+    #[inline(always)]
+    pub fn get2d_bits(&self, dim: u32) -> [u32; 2] {
+        self.draws().get2d_bits(dim)
+    }
+}
+
+/// What [`SampleKey::draws`] computes once: its values are the key's, to
+/// the bit, for every dimension.
+#[derive(Clone, Copy, Debug)]
+pub struct Draws {
+    sampler: Sampler,
+    pixel_hash: u64,
+    sample: u32,
+    sample_reversed: u32,
+}
+
+impl Draws {
     #[inline(always)]
     fn bits(&self, dim: u32) -> u64 {
-        mix64(self.pixel_hash() ^ (((self.sample as u64) << 32) | dim as u64))
+        mix64(self.pixel_hash ^ (((self.sample as u64) << 32) | dim as u64))
     }
 
     /// The pattern at `dim`: its hash, and the sample's shuffled Sobol index
@@ -118,8 +157,8 @@ impl SampleKey {
     /// reversed, so aligned runs of indices map to aligned runs.
     #[inline(always)]
     fn sobol_pattern(&self, dim: u32) -> (u32, u64) {
-        let h = mix64(self.pixel_hash() ^ (dim as u64) ^ 0x50b0_1000_0000_0000);
-        (laine_karras(self.sample.reverse_bits(), h as u32), h)
+        let h = mix64(self.pixel_hash ^ (dim as u64) ^ 0x50b0_1000_0000_0000);
+        (laine_karras(self.sample_reversed, h as u32), h)
     }
 
     /// A uniform value in [0, 1) for dimension `dim`.
@@ -142,9 +181,7 @@ impl SampleKey {
         [(x >> 8) as f32 * UNIT, (y >> 8) as f32 * UNIT]
     }
 
-    /// The 2D pattern of [`Self::get2d`] as 32-bit fractions (value times
-    /// 2^32), for a caller that spends part of a coordinate on a discrete
-    /// choice and keeps the rest (see [`crate::light::LightSet::sample`]).
+    /// The 2D pattern of [`Self::get2d`] as 32-bit fractions.
     #[inline(always)]
     pub fn get2d_bits(&self, dim: u32) -> [u32; 2] {
         match self.sampler {
@@ -157,10 +194,14 @@ impl SampleKey {
                 let i = r.reverse_bits();
                 // Owen scrambles of the two dimensions' values, each done
                 // on the value's bits reversed: the first dimension's value
-                // reversed is the index itself.
-                let x = laine_karras(i, (h >> 32) as u32).reverse_bits();
-                let y = laine_karras(sobol_dim1_reversed(i), mix64(h) as u32).reverse_bits();
-                [x, y]
+                // reversed is the index itself. The two are reversed back
+                // together, as one 64-bit word (x's bits land in the high
+                // half): one reversal where two stood, on processors with
+                // no instruction for it.
+                let x = laine_karras(i, (h >> 32) as u32);
+                let y = laine_karras(sobol_dim1_reversed(i), mix64(h) as u32);
+                let both = (x as u64 | (y as u64) << 32).reverse_bits();
+                [(both >> 32) as u32, both as u32]
             }
         }
     }
@@ -304,6 +345,31 @@ mod tests {
     /// The tabled second dimension is the Sobol sequence's: its first
     /// values in index order (not Gray-code order): 0, 1/2, 3/4, 1/4, 5/8,
     /// 1/8, 3/8, 7/8, from the direction numbers 1/2, 3/4, 5/8.
+    /// A 2D pattern's two values are reversed back as one 64-bit word:
+    /// the same bits as reversing each on its own, and as drawing each
+    /// dimension through a key afresh (what every caller but the shading
+    /// of a vertex does).
+    #[test]
+    fn the_paired_reversal_is_two_reversals() {
+        for pixel in 0..64u64 {
+            for sample in [0u32, 1, 2, 3, 7, 255, 1 << 20, u32::MAX] {
+                let key = SampleKey::new(pixel, sample, 11, Sampler::Sobol);
+                let d = key.draws();
+                for dim in 0..12 {
+                    let (r, h) = d.sobol_pattern(dim);
+                    let i = r.reverse_bits();
+                    let want = [
+                        laine_karras(i, (h >> 32) as u32).reverse_bits(),
+                        laine_karras(sobol_dim1_reversed(i), mix64(h) as u32).reverse_bits(),
+                    ];
+                    assert_eq!(d.get2d_bits(dim), want);
+                    assert_eq!(key.get2d_bits(dim), want);
+                    assert_eq!(key.get1d(dim).to_bits(), d.get1d(dim).to_bits());
+                }
+            }
+        }
+    }
+
     #[test]
     fn sobol_second_dimension() {
         let first: Vec<f64> = (0..8u32)

@@ -48,14 +48,51 @@ impl Camera {
     /// The ray through film position (x + u, y + v), with y down the image.
     #[inline]
     pub fn ray(&self, x: u32, y: u32, u: [f32; 2]) -> Ray {
+        self.view().ray(x, y, u)
+    }
+
+    /// What every camera ray shares, computed once: the path kernel holds
+    /// it, so a camera ray costs no normalisations or tangent of its own.
+    pub fn view(&self) -> CameraView {
         let fwd = (self.look_at - self.position).normalize();
         let right = fwd.cross(self.up).normalize();
-        let up = right.cross(fwd);
-        let tan = (self.fov_y.to_radians() * 0.5).tan();
-        let aspect = self.width as f32 / self.height as f32;
-        let sx = ((x as f32 + u[0]) / self.width as f32 * 2.0 - 1.0) * tan * aspect;
-        let sy = (1.0 - (y as f32 + u[1]) / self.height as f32 * 2.0) * tan;
-        Ray::new(self.position, (fwd + right * sx + up * sy).normalize())
+        CameraView {
+            position: self.position,
+            fwd,
+            right,
+            up: right.cross(fwd),
+            tan: (self.fov_y.to_radians() * 0.5).tan(),
+            aspect: self.width as f32 / self.height as f32,
+            width: self.width as f32,
+            height: self.height as f32,
+        }
+    }
+}
+
+/// A camera's frame and film, precomputed by [`Camera::view`]. Its rays are
+/// [`Camera::ray`]'s to the bit: the same operations in the same order.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraView {
+    position: Vec3,
+    fwd: Vec3,
+    right: Vec3,
+    up: Vec3,
+    tan: f32,
+    aspect: f32,
+    width: f32,
+    height: f32,
+}
+
+impl CameraView {
+    /// The ray through film position (x + u, y + v), with y down the image.
+    #[inline]
+    pub fn ray(&self, x: u32, y: u32, u: [f32; 2]) -> Ray {
+        let sx = ((x as f32 + u[0]) / self.width * 2.0 - 1.0) * self.tan * self.aspect;
+        let sy = (1.0 - (y as f32 + u[1]) / self.height * 2.0) * self.tan;
+        Ray::new(
+            self.position,
+            (self.fwd + self.right * sx + self.up * sy).normalize(),
+        )
     }
 }
 
