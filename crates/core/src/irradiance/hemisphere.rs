@@ -8,7 +8,7 @@
 //! Illumination with Irradiance Caching", 2009, eq. 2.x) with the
 //! `cos theta` factor of the corrected `v`-term.
 
-use crate::geometry::basis;
+use crate::geometry::{basis, sin_cos_turns};
 use glam::Vec3;
 use std::f32::consts::PI;
 
@@ -80,8 +80,11 @@ impl Hemisphere {
         Self { strata, t, b, ns }
     }
 
-    fn planar(&self, phi: f32) -> Vec3 {
-        let (s, c) = phi.sin_cos();
+    /// The unit direction in the tangent plane at azimuth `turns` (of a
+    /// full turn): records are the same bits on every processor (see
+    /// [`crate::geometry::sin_cos_turns`]).
+    fn planar(&self, turns: f32) -> Vec3 {
+        let (s, c) = sin_cos_turns(turns);
         self.t * c + self.b * s
     }
 
@@ -90,8 +93,8 @@ impl Hemisphere {
         let Strata { m, n } = self.strata;
         let s2 = ((j as f32 + u[0]) / m as f32).min(1.0);
         let (sin, cos) = (s2.sqrt(), (1.0 - s2).max(0.0).sqrt());
-        let phi = 2.0 * PI * (k as f32 + u[1]) / n as f32;
-        (self.planar(phi) * sin + self.ns * cos).normalize()
+        let turns = (k as f32 + u[1]) / n as f32;
+        (self.planar(turns) * sin + self.ns * cos).normalize()
     }
 
     /// The estimate from `samples[j * n + k]`.
@@ -110,12 +113,11 @@ impl Hemisphere {
             }
         };
         for k in 0..n {
-            let phi_c = 2.0 * PI * (k as f32 + 0.5) / nf;
-            let u_k = self.planar(phi_c);
+            let u_k = self.planar((k as f32 + 0.5) / nf);
             // A quarter turn on from `u_k` about the normal, whichever
             // handedness `basis` gives the tangent frame.
             let v_k = self.ns.cross(u_k);
-            let v_minus = self.ns.cross(self.planar(2.0 * PI * k as f32 / nf));
+            let v_minus = self.ns.cross(self.planar(k as f32 / nf));
             let kp = (k + n - 1) % n;
             for j in 0..m {
                 let s = at(j, k);
