@@ -54,6 +54,8 @@ pub struct Prepared {
     pub irradiance: Option<PreparedOverture>,
     /// Each worker's threads.
     pub member_cores: Vec<u32>,
+    /// Each worker's share of the predicted cost, as the partition
+    /// balanced it: the camera's shared leaf counts for no one.
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
     pub preview_rays: u64,
@@ -339,14 +341,19 @@ pub fn prepare(
     } else {
         cost::camera_leaf(&tree, &scene.camera)
     };
-    let mut chosen = match options.cost_model {
-        CostModel::Analytic => analytic.clone(),
-        CostModel::Sampled => sampled.clone(),
+    // The costs the partition balances (and the report's predicted shares
+    // are of): the shared leaf's left out.
+    let unshared = |c: &[f64]| {
+        let mut c = c.to_vec();
+        if let Some(l) = shared_leaf {
+            c[l as usize] = 0.0;
+        }
+        c
     };
-    if let Some(l) = shared_leaf {
-        chosen[l as usize] = 0.0;
-    }
-    let chosen = &chosen;
+    let chosen = &unshared(match options.cost_model {
+        CostModel::Analytic => &analytic,
+        CostModel::Sampled => &sampled,
+    });
     let owner = match options.partitioner {
         Partitioner::RegionGrowing => {
             let graph = partition::LeafGraph::new(&tree, &crossings);
@@ -465,8 +472,8 @@ pub fn prepare(
         irradiance,
         member_cores: members.iter().map(|m| m.cores).collect(),
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
-        analytic_share: cost::shares(&analytic, &map.owner, workers),
-        sampled_share: cost::shares(&sampled, &map.owner, workers),
+        analytic_share: cost::shares(&unshared(&analytic), &map.owner, workers),
+        sampled_share: cost::shares(&unshared(&sampled), &map.owner, workers),
         preview_rays,
         leaves: tree.leaves.len() as u32,
         max_inflight: crate::tiles::inflight(&tile_affinity, workers, options.tuning.max_inflight)
@@ -631,5 +638,44 @@ mod tests {
         // Crossings inside one worker's region cost nothing.
         let inside: HashMap<(u32, u32), u32> = [((0, 1), 1_000_000)].into();
         assert!(!buying_pays(&inside, &owner, 2, refs, samples_even, 100));
+    }
+
+    /// The predicted shares a report gives are those the partition
+    /// balanced: the camera's leaf is every worker's, so its cost counts
+    /// for none of them (counted for its nominal owner, it made a report
+    /// predict a quarter of an 8-worker job for a worker that did a
+    /// tenth).
+    #[test]
+    fn predicted_shares_leave_the_shared_camera_leaf_out() {
+        let mut scene = crate::cornell_box();
+        // Inside the box, low over the floor: the camera's leaf holds
+        // triangles, so it has a cost to leave out.
+        scene.camera.position = glam::Vec3::new(278.0, 30.0, 250.0);
+        scene.camera.look_at = glam::Vec3::new(278.0, 0.0, 262.0);
+        let scene = Arc::new(scene);
+        let c = &scene.camera;
+        let tiles = locus_core::render::tiles(
+            c.width,
+            c.height,
+            16,
+            locus_core::render::TileOrder::Scanline,
+        );
+        let member = Member {
+            cores: 1,
+            budget: 0,
+            resident: 0,
+        };
+        let options = JobOptions {
+            fetch: FetchPolicy::Forward,
+            ..JobOptions::default()
+        };
+        let p = prepare(scene.clone(), &options, &[member; 4], &tiles, &[]).expect("prepared");
+        let leaf = p.camera_leaf.expect("the camera is inside the scene") as usize;
+        let mut cost = cost::analytic(&octree_for(&scene, 4));
+        assert!(cost[leaf] > 0.0);
+        cost[leaf] = 0.0;
+        assert_eq!(p.analytic_share, cost::shares(&cost, &p.map.owner, 4));
+        let sum: f64 = p.sampled_share.iter().sum();
+        assert!((sum - 1.0).abs() < 1e-9, "{:?}", p.sampled_share);
     }
 }

@@ -192,6 +192,15 @@ pub(super) fn refine(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &mut 
     }
 }
 
+/// The most loaded region's load (its leaves' cost and its part of its
+/// borders' forwards, see [`Loads`]) over its share of the cores.
+pub(super) fn busiest(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &[u16]) -> f64 {
+    let loads = Loads::new(graph, cost, lim, owner);
+    (0..loads.load.len())
+        .map(|w| loads.load[w] / lim.targets[w])
+        .fold(0.0, f64::max)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
