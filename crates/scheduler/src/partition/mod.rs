@@ -535,6 +535,45 @@ mod tests {
         assert!(d - graph.cut(&dealt) > h - graph.cut(&half), "route steps");
     }
 
+    /// The busiest worker's predicted load: all of the cost on one worker
+    /// of an even pair is twice the job at that worker's pace; halves
+    /// load the busier one with at least its half and its borders'
+    /// forwards, and a region dealt leaf by leaf pays far more border.
+    #[test]
+    fn busiest_load_counts_cost_borders_and_shares() {
+        let t = tree();
+        let graph = LeafGraph::new(&t, &HashMap::new());
+        let cost = crate::cost::analytic(&t);
+        let total: f64 = cost.iter().sum();
+        let n = t.leaves.len();
+        let refs = vec![1u64; n];
+        let (targets, caps) = even(2);
+        let lim = Limits {
+            targets: &targets,
+            caps: &caps,
+            refs: &refs,
+        };
+        let one = busiest_load(&t, &graph, &cost, &lim, &vec![0; n]);
+        assert!(
+            (one - 2.0 * total).abs() <= 1e-9 * total,
+            "{one} vs {total}"
+        );
+        let half: Vec<u16> = t
+            .leaves
+            .iter()
+            .map(|l| (l.bounds.center().x >= t.bounds.center().x) as u16)
+            .collect();
+        let h = busiest_load(&t, &graph, &cost, &lim, &half);
+        let shares = crate::cost::shares(&cost, &half, 2);
+        let larger = shares[0].max(shares[1]) * total / 0.5;
+        assert!(
+            h > larger && h < one,
+            "{h}: cost alone {larger}, one worker {one}"
+        );
+        let dealt: Vec<u16> = (0..n).map(|l| (l % 2) as u16).collect();
+        assert!(busiest_load(&t, &graph, &cost, &lim, &dealt) > h);
+    }
+
     /// Shares follow the cores, and no region passes its memory cap; a cap
     /// the scene cannot fit under is an error that says why.
     #[test]
