@@ -27,9 +27,8 @@ use serde::{Deserialize, Serialize};
 pub struct LightSet {
     /// Global triangle ids of the emitters, ascending.
     pub tris: Vec<u32>,
-    /// Cumulative selection probability, ending at exactly 1.
-    cdf: Vec<f64>,
-    /// What a sample reads of the emitter it chose, in one place.
+    /// What a sample reads of the emitter it chose, in one place, in the
+    /// order of `tris`.
     emitters: Vec<Emitter>,
 }
 
@@ -46,9 +45,9 @@ struct Emitter {
     pdf_area: f32,
     /// The spawn offset of a shadow ray's end on it.
     offset: f32,
-    /// Its share `[lo, hi)` of the unit interval: the cdf before it and
-    /// at it.
-    lo: f64,
+    /// The cumulative selection probability up to and with it (ending at
+    /// exactly 1): its share of the unit interval ends here and starts at
+    /// the emitter before's.
     hi: f64,
 }
 
@@ -122,25 +121,19 @@ impl LightSet {
                 normal: tri_cross(&verts).normalize(),
                 pdf_area: 0.0,
                 offset: spawn_offset(&verts),
-                lo: 0.0,
                 hi: 0.0,
             });
             power.push(tri_area_f64(&verts) * l as f64);
         }
         let total: f64 = power.iter().sum();
         let mut acc = 0.0;
-        for (k, &p) in power.iter().enumerate() {
+        for (e, &p) in s.emitters.iter_mut().zip(&power) {
             acc += p / total;
-            s.cdf.push(acc);
-            let e = &mut s.emitters[k];
+            e.hi = acc;
             e.pdf_area = ((p / total) / tri_area_f64(&e.verts)) as f32;
         }
-        if let Some(last) = s.cdf.last_mut() {
-            *last = 1.0;
-        }
-        for (k, e) in s.emitters.iter_mut().enumerate() {
-            e.lo = if k == 0 { 0.0 } else { s.cdf[k - 1] };
-            e.hi = s.cdf[k];
+        if let Some(last) = s.emitters.last_mut() {
+            last.hi = 1.0;
         }
         s
     }
@@ -164,12 +157,13 @@ impl LightSet {
     pub fn sample(&self, u: [u32; 2]) -> Option<LightSample> {
         let last = self.emitters.len().checked_sub(1)?;
         let x = u[0] as f64 * (1.0 / 4_294_967_296.0);
-        let k = self.cdf.partition_point(|&c| c <= x).min(last);
+        let k = self.emitters.partition_point(|e| e.hi <= x).min(last);
         let e = &self.emitters[k];
+        let lo = if k == 0 { 0.0 } else { self.emitters[k - 1].hi };
         // Where `x` lies within the emitter's share, as a fresh uniform
         // value (32 bits of `x` keep at least 24 for a share above 2^-8).
-        let rescaled = if e.hi > e.lo {
-            (((x - e.lo) / (e.hi - e.lo)) as f32).clamp(0.0, ONE_BELOW)
+        let rescaled = if e.hi > lo {
+            (((x - lo) / (e.hi - lo)) as f32).clamp(0.0, ONE_BELOW)
         } else {
             0.5
         };
@@ -283,7 +277,7 @@ mod tests {
             for i in 0..n {
                 let key = SampleKey::new(pixel, i, 5, Sampler::Sobol);
                 let u = key.get1d(6) as f64;
-                let k = set.cdf.partition_point(|&c| c <= u);
+                let k = set.emitters.partition_point(|e| e.hi <= u);
                 let (b1, b2) = uniform_triangle(key.get2d(7));
                 sum += crate::geometry::hit_point(&set.emitters[k].verts, b1, b2).x as f64;
             }

@@ -342,9 +342,6 @@ mod tests {
         }
     }
 
-    /// The tabled second dimension is the Sobol sequence's: its first
-    /// values in index order (not Gray-code order): 0, 1/2, 3/4, 1/4, 5/8,
-    /// 1/8, 3/8, 7/8, from the direction numbers 1/2, 3/4, 5/8.
     /// A 2D pattern's two values are reversed back as one 64-bit word:
     /// the same bits as reversing each on its own, and as drawing each
     /// dimension through a key afresh (what every caller but the shading
@@ -370,6 +367,9 @@ mod tests {
         }
     }
 
+    /// The tabled second dimension is the Sobol sequence's: its first
+    /// values in index order (not Gray-code order): 0, 1/2, 3/4, 1/4, 5/8,
+    /// 1/8, 3/8, 7/8, from the direction numbers 1/2, 3/4, 5/8.
     #[test]
     fn sobol_second_dimension() {
         let first: Vec<f64> = (0..8u32)

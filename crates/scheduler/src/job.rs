@@ -570,30 +570,37 @@ mod tests {
     use super::*;
     use locus_core::geometry::TRIANGLE_BYTES;
 
+    /// A worker of one core and no memory budget.
+    const MEMBER: Member = Member {
+        cores: 1,
+        budget: 0,
+        resident: 0,
+    };
+
+    /// The scene's image in 16-pixel tiles, scanline order.
+    fn tiles_of(scene: &Scene) -> Vec<locus_core::render::Tile> {
+        let c = &scene.camera;
+        locus_core::render::tiles(
+            c.width,
+            c.height,
+            16,
+            locus_core::render::TileOrder::Scanline,
+        )
+    }
+
     /// The preview runs only where a partition or a rent-or-buy decision
     /// needs it: a lone worker holds every leaf, and `fetch` ships the
     /// whole scene to every worker that can hold it.
     #[test]
     fn the_preview_runs_only_where_its_prediction_is_used() {
         let scene = Arc::new(crate::cornell_box());
-        let c = &scene.camera;
-        let tiles = locus_core::render::tiles(
-            c.width,
-            c.height,
-            16,
-            locus_core::render::TileOrder::Scanline,
-        );
-        let member = Member {
-            cores: 1,
-            budget: 0,
-            resident: 0,
-        };
+        let tiles = tiles_of(&scene);
         let rays = |workers: usize, fetch: FetchPolicy| {
             let options = JobOptions {
                 fetch,
                 ..JobOptions::default()
             };
-            let members = vec![member; workers];
+            let members = vec![MEMBER; workers];
             let p = prepare(scene.clone(), &options, &members, &tiles, &[]).expect("prepared");
             assert_eq!(p.map.owner.len(), p.leaf_tris.len());
             p.preview_rays
@@ -653,23 +660,12 @@ mod tests {
         scene.camera.position = glam::Vec3::new(278.0, 30.0, 250.0);
         scene.camera.look_at = glam::Vec3::new(278.0, 0.0, 262.0);
         let scene = Arc::new(scene);
-        let c = &scene.camera;
-        let tiles = locus_core::render::tiles(
-            c.width,
-            c.height,
-            16,
-            locus_core::render::TileOrder::Scanline,
-        );
-        let member = Member {
-            cores: 1,
-            budget: 0,
-            resident: 0,
-        };
+        let tiles = tiles_of(&scene);
         let options = JobOptions {
             fetch: FetchPolicy::Forward,
             ..JobOptions::default()
         };
-        let p = prepare(scene.clone(), &options, &[member; 4], &tiles, &[]).expect("prepared");
+        let p = prepare(scene.clone(), &options, &[MEMBER; 4], &tiles, &[]).expect("prepared");
         let leaf = p.camera_leaf.expect("the camera is inside the scene") as usize;
         let mut cost = cost::analytic(&octree_for(&scene, 4));
         assert!(cost[leaf] > 0.0);
