@@ -440,3 +440,71 @@ pub fn trace_local<L: Copy + PartialEq>(
     });
     end
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::octree::OctreeParams;
+    use crate::octree::tests::grid_tris;
+    use crate::sampler::SampleKey;
+    use glam::Vec3;
+
+    /// Whenever [`covered`] says a piece lies in boxes of local leaves, the
+    /// walk finds only local leaves along it; and it says so for many
+    /// pieces that cross several route nodes, which is what spares walks.
+    #[test]
+    fn covered_pieces_cross_local_leaves_only() {
+        let tris = grid_tris(24);
+        let tree = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 6,
+                max_depth: 6,
+            },
+        );
+        let n = tree.leaves.len();
+        let (lo, hi) = (tree.bounds.min, tree.bounds.max);
+        let (mut said, mut multi) = (0, 0);
+        for scattered in [false, true] {
+            // Scattered owners leave foreign holes inside local space.
+            let owner: Vec<u16> = (0..n)
+                .map(|l| match scattered {
+                    true => (SampleKey::independent(l as u64, 0, 5).get1d(0) < 0.2) as u16,
+                    false => (tree.leaves[l].bounds.center().x > 0.6 * hi.x) as u16,
+                })
+                .collect();
+            let mut route = Route::new(&tree, &owner);
+            route.grow_local_boxes(|o| o == 0);
+            let local = |o: u16| o == 0;
+            for i in 0..20_000u64 {
+                let k = SampleKey::independent(i, 3, 9);
+                let u = |d: u32| k.get1d(d);
+                let p = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
+                let q = lo + (hi - lo) * Vec3::new(u(3), u(4), u(5));
+                let Some(dir) = (q - p).try_normalize() else {
+                    continue;
+                };
+                let ray = Ray::new(p, dir);
+                let te = (q - p).length();
+                if !covered(&route, &local, &ray, 0.0, te) {
+                    continue;
+                }
+                said += 1;
+                let mut labels = Vec::new();
+                let _ = route.walk(&ray, 0.0, te, f32::NEG_INFINITY, |l, _, _| {
+                    labels.push(l);
+                    ControlFlow::Continue(())
+                });
+                assert!(
+                    labels.iter().all(|&l| local(l)),
+                    "scattered {scattered}: piece {i} of {ray:?} to {te} crosses {labels:?}"
+                );
+                multi += (labels.len() > 1) as usize;
+            }
+        }
+        assert!(
+            said > 2000 && multi > 500,
+            "covered {said}, {multi} across nodes"
+        );
+    }
+}

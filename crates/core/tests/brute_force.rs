@@ -280,8 +280,11 @@ fn corner_and_face_rays(oct: &Octree, n: u64) -> Vec<Ray> {
 /// Workers chained along the processor vector, each tracing what it holds
 /// with [`trace_local`] (its BVH first, the route only as far as needed),
 /// give exactly the closest hit and the occlusion of one BVH over the
-/// scene: for contiguous and scattered owners, and for regions built as one
-/// BVH or as many small parts.
+/// scene: for contiguous and scattered owners, for regions built as one
+/// BVH or as many small parts, and for routes with and without the boxes
+/// workers grow around their leaves. Every forward starts and ends where
+/// the full walk of the ray puts a leaf's ends, or starts where the ray
+/// resumed.
 #[test]
 fn processor_vector_chains_match_one_bvh() {
     use locus_core::accel_set::{AccelSet, build_parts};
@@ -310,6 +313,15 @@ fn processor_vector_chains_match_one_bvh() {
                 })
                 .collect();
             let map = ProcessorMap::new(&oct, owner.clone());
+            // Each worker's route with the boxes its own leaves cover, as
+            // workers grow them: pieces inside them skip the walk.
+            let routes: Vec<_> = (0..workers)
+                .map(|w| {
+                    let mut route = map.route.clone();
+                    route.grow_local_boxes(|o| o == w);
+                    route
+                })
+                .collect();
             // Odd workers hold their region as parts of at most 60 triangles.
             let accels: Vec<AccelSet> = (0..workers)
                 .map(|w| {
@@ -340,8 +352,15 @@ fn processor_vector_chains_match_one_bvh() {
                             let mut known = Known::Unknown;
                             let a = &accels[w as usize];
                             let me = w;
+                            // Half the rays walk the bare route, half the
+                            // grown one.
+                            let route = if i % 4 < 2 {
+                                &routes[w as usize]
+                            } else {
+                                &map.route
+                            };
                             match trace_local(
-                                &map.route,
+                                route,
                                 |o| o == me,
                                 a,
                                 r,
@@ -363,6 +382,14 @@ fn processor_vector_chains_match_one_bvh() {
                                     assert!(
                                         label != w && ta >= t.at && tb > ta,
                                         "forward goes on along the ray"
+                                    );
+                                    // Its ends are the full walk's, where
+                                    // every worker finds them.
+                                    let full = oct.leaves_along(r, 0.0, t_max);
+                                    assert!(
+                                        (ta == t.at || full.iter().any(|s| s.1 == ta))
+                                            && full.iter().any(|s| s.2 == tb),
+                                        "ray {i}: forward on [{ta}, {tb}) is not the walk's"
                                     );
                                     forwards += 1;
                                     w = label;
