@@ -242,8 +242,10 @@ pub fn region_growing(
             }
         };
         let owner: Vec<u16> = units.group.iter().map(|&g| owner[g as usize]).collect();
-        let walk = walk_cost(tree, graph, &owner);
-        let busiest = busiest_load(tree, graph, cost, lim, &owner);
+        // The route is collapsed once for both scores.
+        let steps = route_steps(tree, graph, &owner);
+        let walk = walk_cost_with(graph, &owner, steps);
+        let busiest = busiest_load_with(graph, cost, lim, &owner, steps);
         if soonest.as_ref().is_none_or(|(b, _)| busiest < *b) {
             soonest = Some((busiest, owner.clone()));
         }
@@ -278,7 +280,12 @@ const BALANCE_GAIN: f64 = 0.03;
 /// two route nodes a step of the walk ([`ROUTE_STEP_WEIGHT`]), where the
 /// route is the octree collapsed by owner.
 pub fn walk_cost(tree: &Octree, graph: &LeafGraph, owner: &[u16]) -> f64 {
-    graph.cut(owner) + ROUTE_STEP_WEIGHT * route_steps(tree, graph, owner)
+    walk_cost_with(graph, owner, route_steps(tree, graph, owner))
+}
+
+/// [`walk_cost`] with the route's steps counted already.
+fn walk_cost_with(graph: &LeafGraph, owner: &[u16], steps: f64) -> f64 {
+    graph.cut(owner) + ROUTE_STEP_WEIGHT * steps
 }
 
 /// The predicted load of a partition's busiest worker against its share
@@ -294,8 +301,18 @@ pub fn busiest_load(
     lim: &Limits,
     owner: &[u16],
 ) -> f64 {
-    refine::busiest(graph, cost, lim, owner)
-        + ROUTE_STEP_WEIGHT * FORWARD_COST * route_steps(tree, graph, owner)
+    busiest_load_with(graph, cost, lim, owner, route_steps(tree, graph, owner))
+}
+
+/// [`busiest_load`] with the route's steps counted already.
+fn busiest_load_with(
+    graph: &LeafGraph,
+    cost: &[f64],
+    lim: &Limits,
+    owner: &[u16],
+    steps: f64,
+) -> f64 {
+    refine::busiest(graph, cost, lim, owner) + ROUTE_STEP_WEIGHT * FORWARD_COST * steps
 }
 
 /// Preview crossings between leaves in different nodes of the route (the
