@@ -444,8 +444,7 @@ pub fn trace_local<L: Copy + PartialEq>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::octree::OctreeParams;
-    use crate::octree::tests::grid_tris;
+    use crate::octree::tests::grid_octree;
     use crate::sampler::SampleKey;
     use glam::Vec3;
 
@@ -454,14 +453,7 @@ mod tests {
     /// pieces that cross several route nodes, which is what spares walks.
     #[test]
     fn covered_pieces_cross_local_leaves_only() {
-        let tris = grid_tris(24);
-        let tree = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 6,
-                max_depth: 6,
-            },
-        );
+        let tree = grid_octree(24, 6, 6);
         let n = tree.leaves.len();
         let (lo, hi) = (tree.bounds.min, tree.bounds.max);
         let (mut said, mut multi) = (0, 0);

@@ -341,6 +341,8 @@ fn processor_vector_chains_match_one_bvh() {
             let mut forwards = 0u64;
             for (i, r) in test_rays.iter().enumerate() {
                 let t_max = if i % 3 == 0 { 15.0 } else { f32::INFINITY };
+                // The leaves along the ray, once for all its forwards.
+                let full = oct.leaves_along(r, 0.0, t_max);
                 for any in [false, true] {
                     let mut got = None;
                     let mut occluded = false;
@@ -385,7 +387,6 @@ fn processor_vector_chains_match_one_bvh() {
                                     );
                                     // Its ends are the full walk's, where
                                     // every worker finds them.
-                                    let full = oct.leaves_along(r, 0.0, t_max);
                                     assert!(
                                         (ta == t.at || full.iter().any(|s| s.1 == ta))
                                             && full.iter().any(|s| s.2 == tb),

@@ -156,7 +156,7 @@ impl Octree {
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::grid_tris;
+    use super::super::tests::grid_octree;
     use super::super::*;
     use crate::geometry::Ray;
     use glam::Vec3;
@@ -166,13 +166,7 @@ mod tests {
     /// unless a single leaf, and numbered in leaf (Morton) order.
     #[test]
     fn subtree_groups_are_whole_subtrees_within_their_bound() {
-        let tree = Octree::build(
-            &grid_tris(40),
-            OctreeParams {
-                max_leaf_tris: 8,
-                max_depth: 7,
-            },
-        );
+        let tree = grid_octree(40, 8, 7);
         let n = tree.leaves.len();
         let weight: Vec<f64> = (0..n).map(|l| 1.0 + (l % 7) as f64).collect();
         let total: f64 = weight.iter().sum();
@@ -236,14 +230,7 @@ mod tests {
 
     #[test]
     fn collapse_keeps_every_label_boundary_bit_for_bit() {
-        let tris = grid_tris(30);
-        let o = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 4,
-                max_depth: 7,
-            },
-        );
+        let o = grid_octree(30, 4, 7);
         // Labels by octant of the leaf centre, plus a scattered minority, so
         // both large uniform subtrees and ragged borders occur.
         let c = o.bounds.center();
@@ -300,13 +287,7 @@ mod tests {
     /// a route node, and free space apart from any other label is `fill`.
     #[test]
     fn free_leaves_join_their_neighbours() {
-        let o = Octree::build(
-            &grid_tris(30),
-            OctreeParams {
-                max_leaf_tris: 4,
-                max_depth: 7,
-            },
-        );
+        let o = grid_octree(30, 4, 7);
         let c = o.bounds.center();
         // Halves by x, with a scattered minority that ragged borders (and
         // free leaves that are not really free) would keep apart.

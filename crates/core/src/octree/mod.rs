@@ -367,6 +367,17 @@ fn child_bounds(b: &Bounds, i: usize) -> Bounds {
 pub(crate) mod tests {
     use super::*;
 
+    /// The octree of `grid_tris(n)` with these limits.
+    pub(crate) fn grid_octree(n: usize, max_leaf_tris: usize, max_depth: u32) -> Octree {
+        Octree::build(
+            &grid_tris(n),
+            OctreeParams {
+                max_leaf_tris,
+                max_depth,
+            },
+        )
+    }
+
     pub(crate) fn grid_tris(n: usize) -> Vec<[Vec3; 3]> {
         let mut v = Vec::new();
         for i in 0..n {
@@ -431,13 +442,7 @@ pub(crate) mod tests {
 
     #[test]
     fn check_structure_refuses_broken_links() {
-        let o = Octree::build(
-            &grid_tris(10),
-            OctreeParams {
-                max_leaf_tris: 4,
-                max_depth: 4,
-            },
-        );
+        let o = grid_octree(10, 4, 4);
         o.check_structure().unwrap();
         let mut cyc = o.clone();
         cyc.nodes[0] = Node::Interior { first_child: 0 };

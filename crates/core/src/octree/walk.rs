@@ -180,21 +180,13 @@ impl WalkRay {
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::grid_tris;
-    use super::super::*;
+    use super::super::tests::grid_octree;
     use crate::geometry::Ray;
     use glam::Vec3;
 
     #[test]
     fn walk_partitions_the_ray() {
-        let tris = grid_tris(30);
-        let o = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 8,
-                max_depth: 5,
-            },
-        );
+        let o = grid_octree(30, 8, 5);
         let c = o.bounds.center();
         // Rays along the root's splitting planes and through node corners.
         let rays = [

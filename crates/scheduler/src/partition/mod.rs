@@ -244,8 +244,8 @@ pub fn region_growing(
         let owner: Vec<u16> = units.group.iter().map(|&g| owner[g as usize]).collect();
         // The route is collapsed once for both scores.
         let steps = route_steps(tree, graph, &owner);
-        let walk = walk_cost_with(graph, &owner, steps);
-        let busiest = busiest_load_with(graph, cost, lim, &owner, steps);
+        let walk = walk_cost(graph, &owner, steps);
+        let busiest = busiest_load(graph, cost, lim, &owner, steps);
         if soonest.as_ref().is_none_or(|(b, _)| busiest < *b) {
             soonest = Some((busiest, owner.clone()));
         }
@@ -278,13 +278,8 @@ const BALANCE_GAIN: f64 = 0.03;
 /// the graph's border weights (preview crossings): each crossing between
 /// two workers' leaves is a forwarded query, and each crossing between
 /// two route nodes a step of the walk ([`ROUTE_STEP_WEIGHT`]), where the
-/// route is the octree collapsed by owner.
-pub fn walk_cost(tree: &Octree, graph: &LeafGraph, owner: &[u16]) -> f64 {
-    walk_cost_with(graph, owner, route_steps(tree, graph, owner))
-}
-
-/// [`walk_cost`] with the route's steps counted already.
-fn walk_cost_with(graph: &LeafGraph, owner: &[u16], steps: f64) -> f64 {
+/// route is the octree collapsed by owner (`steps`: [`route_steps`]).
+pub fn walk_cost(graph: &LeafGraph, owner: &[u16], steps: f64) -> f64 {
     graph.cut(owner) + ROUTE_STEP_WEIGHT * steps
 }
 
@@ -293,19 +288,8 @@ fn walk_cost_with(graph: &LeafGraph, owner: &[u16], steps: f64) -> f64 {
 /// worker that one's pace): its leaves' cost and its part of the
 /// forwards across its borders ([`refine::FORWARD_COST`]), and every
 /// worker's walks of its route spread by share ([`ROUTE_STEP_WEIGHT`] of
-/// a forward a step).
+/// a forward a step; `steps`: [`route_steps`]).
 pub fn busiest_load(
-    tree: &Octree,
-    graph: &LeafGraph,
-    cost: &[f64],
-    lim: &Limits,
-    owner: &[u16],
-) -> f64 {
-    busiest_load_with(graph, cost, lim, owner, route_steps(tree, graph, owner))
-}
-
-/// [`busiest_load`] with the route's steps counted already.
-fn busiest_load_with(
     graph: &LeafGraph,
     cost: &[f64],
     lim: &Limits,
@@ -317,7 +301,7 @@ fn busiest_load_with(
 
 /// Preview crossings between leaves in different nodes of the route (the
 /// octree collapsed by owner): the steps of the workers' walks.
-fn route_steps(tree: &Octree, graph: &LeafGraph, owner: &[u16]) -> f64 {
+pub fn route_steps(tree: &Octree, graph: &LeafGraph, owner: &[u16]) -> f64 {
     let (route, _) = tree.collapse(owner);
     // A leaf's centre lies inside it, so it finds the route node that
     // holds the leaf.
@@ -539,14 +523,15 @@ mod tests {
         let t = tree();
         let graph = LeafGraph::new(&t, &HashMap::new());
         let n = t.leaves.len();
-        assert_eq!(walk_cost(&t, &graph, &vec![0; n]), 0.0);
+        let walk = |o: &[u16]| walk_cost(&graph, o, route_steps(&t, &graph, o));
+        assert_eq!(walk(&vec![0; n]), 0.0);
         let half: Vec<u16> = t
             .leaves
             .iter()
             .map(|l| (l.bounds.center().x >= t.bounds.center().x) as u16)
             .collect();
         let dealt: Vec<u16> = (0..n).map(|l| (l % 2) as u16).collect();
-        let (h, d) = (walk_cost(&t, &graph, &half), walk_cost(&t, &graph, &dealt));
+        let (h, d) = (walk(&half), walk(&dealt));
         assert!(h > 0.0 && h >= graph.cut(&half));
         assert!(d > 2.0 * h, "{d} vs {h}");
         assert!(d - graph.cut(&dealt) > h - graph.cut(&half), "route steps");
@@ -570,7 +555,8 @@ mod tests {
             caps: &caps,
             refs: &refs,
         };
-        let one = busiest_load(&t, &graph, &cost, &lim, &vec![0; n]);
+        let load = |o: &[u16]| busiest_load(&graph, &cost, &lim, o, route_steps(&t, &graph, o));
+        let one = load(&vec![0; n]);
         assert!(
             (one - 2.0 * total).abs() <= 1e-9 * total,
             "{one} vs {total}"
@@ -580,7 +566,7 @@ mod tests {
             .iter()
             .map(|l| (l.bounds.center().x >= t.bounds.center().x) as u16)
             .collect();
-        let h = busiest_load(&t, &graph, &cost, &lim, &half);
+        let h = load(&half);
         let shares = crate::cost::shares(&cost, &half, 2);
         let larger = shares[0].max(shares[1]) * total / 0.5;
         assert!(
@@ -588,7 +574,7 @@ mod tests {
             "{h}: cost alone {larger}, one worker {one}"
         );
         let dealt: Vec<u16> = (0..n).map(|l| (l % 2) as u16).collect();
-        assert!(busiest_load(&t, &graph, &cost, &lim, &dealt) > h);
+        assert!(load(&dealt) > h);
     }
 
     /// Shares follow the cores, and no region passes its memory cap; a cap
