@@ -18,6 +18,12 @@
 //! equal-distance hits resolve by global triangle id, chaining workers this
 //! way gives exactly the closest hit (and the occlusion answer) of one BVH
 //! over the whole scene.
+//!
+//! Most of what a worker traces never leaves its region, so [`trace_local`]
+//! first tries to show that the piece of a ray it needs crosses local
+//! leaves only without walking: the sender's span ([`Resume`]), the boxes
+//! grown around local nodes, and the foreign hull ([`Hull`]), a few boxes
+//! holding every node the worker cannot trace.
 
 use crate::accel_set::{AccelSet, SetHit};
 use crate::geometry::{Bounds, Ray};
@@ -25,6 +31,9 @@ use crate::octree::Octree;
 use crate::stats::TraceStats;
 use serde::{Deserialize, Serialize};
 use std::ops::ControlFlow;
+
+mod hull;
+pub use hull::Hull;
 
 /// Index of a worker in a job (its place in the job's worker list).
 pub type WorkerId = u16;
@@ -41,6 +50,8 @@ pub struct Route<L> {
     /// The largest grown box, tried before any other: most pieces a
     /// worker traces lie in it, and it needs no descent of the tree.
     largest: Option<Bounds>,
+    /// Boxes holding every node that the grown boxes' `local` rejects.
+    hull: Option<Hull>,
 }
 
 impl<L: Copy + PartialEq> Route<L> {
@@ -63,6 +74,7 @@ impl<L: Copy + PartialEq> Route<L> {
             labels,
             boxes,
             largest: None,
+            hull: None,
         }
     }
 
@@ -127,6 +139,11 @@ impl<L: Copy + PartialEq> Route<L> {
             .map(|i| boxes[i])
             .max_by(|a, b| volume(a).total_cmp(&volume(b)));
         self.boxes = boxes;
+        let foreign = (0..self.labels.len())
+            .filter(|&i| !local(self.labels[i]))
+            .map(|i| self.tree.leaves[i].bounds)
+            .collect();
+        self.hull = Hull::new(foreign, &root);
     }
 
     /// Nodes rays walk (for reports: how much the merge saved).
@@ -293,8 +310,11 @@ pub enum RunEnd<L> {
     Foreign { label: L, ta: f32, tb: f32 },
 }
 
-/// Whether the piece `[ts, te]` of `ray` lies in one box that local leaves
-/// cover (a local node, grown), or in two that both hold its middle. A box
+/// Whether the piece `[ts, te]` of `ray` lies in the largest grown box,
+/// misses the foreign hull, or lies in one box that local leaves cover (a
+/// local node, grown) or two that both hold its middle; the last is not
+/// tried when the hull is exact (a piece it does not clear crosses a
+/// foreign node). A box
 /// is convex, so points decide: the piece's ends and its middle. Boxes are
 /// found from points a little inside the piece: its start may lie on a
 /// face (a forwarded ray resumes on its region's border).
@@ -316,6 +336,14 @@ fn covered<L: Copy + PartialEq>(
         && b.contains(end)
     {
         return true;
+    }
+    if let Some(h) = &route.hull {
+        if h.clear(ray, ts, te) {
+            return true;
+        }
+        if h.exact() {
+            return false;
+        }
     }
     let tm = 0.5 * (ts + te);
     let Some(mid) = local_box(tm) else {
@@ -415,12 +443,20 @@ pub fn trace_local<L: Copy + PartialEq>(
                 None => RunEnd::Miss,
             };
         }
-        if covered(route, &local, ray, t0.max(resume.local_until), te) {
+        let ts = t0.max(resume.local_until);
+        if covered(route, &local, ray, ts, te) {
             return match hit {
                 Some(h) => RunEnd::Hit(h),
                 None => RunEnd::Miss,
             };
         }
+    } else if route
+        .hull
+        .as_ref()
+        .is_some_and(|h| h.clear(ray, t0.max(resume.local_until), t_max))
+    {
+        // Nothing local on the rest of the ray, and nothing foreign.
+        return RunEnd::Miss;
     }
     let mut end = RunEnd::Miss;
     // Nothing local is hit on `[at, local_until)`: the walk starts beyond.

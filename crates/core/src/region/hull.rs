@@ -1,0 +1,290 @@
+//! The foreign hull: a few boxes whose union holds every route node that
+//! a worker cannot trace, so that one test of a ray piece against all of
+//! them, four lanes at a time, says that the piece crosses local leaves
+//! only, where the route's walk would descend the octree node by node.
+//!
+//! The test may say "not clear" for a piece that is clear (the boxes are
+//! merged, and swallow some local space): the caller then walks, which is
+//! exact. It never says "clear" for a piece that crosses a foreign leaf:
+//! the boxes are inflated by far more than the test's rounding can move
+//! a face (see [`Hull::new`]), so the answer is the walk's whatever the
+//! precision, and images stay the same to the bit.
+
+use crate::geometry::{Bounds, Ray};
+use glam::{Vec3, Vec4};
+
+/// Boxes in a hull at most: four groups of four lanes.
+pub const HULL_BOXES: usize = 16;
+
+/// The largest share of the local space a hull may swallow.
+const MAX_SWALLOWED: f64 = 0.25;
+
+/// At most [`HULL_BOXES`] inflated boxes covering the foreign route nodes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Hull {
+    /// Per group of four boxes, per axis, the lower and upper faces (the
+    /// last group's unused lanes repeat its first box, which changes no
+    /// answer).
+    lo: Vec<[Vec4; 3]>,
+    hi: Vec<[Vec4; 3]>,
+    /// Rays starting in here are near enough to the boxes for the margin
+    /// to cover the test's rounding.
+    near: Bounds,
+    /// Whether no box swallowed local space in merging: then a piece that
+    /// is not clear crosses a foreign node (up to the margin).
+    exact: bool,
+}
+
+fn volume(b: &Bounds) -> f64 {
+    b.extent()
+        .as_dvec3()
+        .max(glam::DVec3::ZERO)
+        .element_product()
+}
+
+fn union(a: &Bounds, b: &Bounds) -> Bounds {
+    Bounds::new(a.min.min(b.min), a.max.max(b.max))
+}
+
+/// Merges `boxes` down to at most `k`, each step the pair whose union adds
+/// the least volume beyond theirs (local space the hull then swallows).
+/// Long lists are first halved along a Morton order of their centres, so
+/// the greedy steps see at most 128.
+fn merge(mut boxes: Vec<Bounds>, root: &Bounds, k: usize) -> (Vec<Bounds>, bool) {
+    if boxes.len() > 128 {
+        let code = |b: &Bounds| {
+            let c = ((b.center() - root.min) / root.extent().max(Vec3::splat(f32::MIN_POSITIVE)))
+                .clamp(Vec3::ZERO, Vec3::ONE)
+                * 1023.0;
+            let spread = |x: u32| {
+                let mut v = x as u64 & 0x3ff;
+                v = (v | v << 16) & 0x0300_00ff;
+                v = (v | v << 8) & 0x0300_f00f;
+                v = (v | v << 4) & 0x030c_30c3;
+                (v | v << 2) & 0x0924_9249
+            };
+            spread(c.x as u32) | spread(c.y as u32) << 1 | spread(c.z as u32) << 2
+        };
+        boxes.sort_by_key(code);
+        while boxes.len() > 128 {
+            boxes = boxes
+                .chunks(2)
+                .map(|c| c.iter().skip(1).fold(c[0], |u, b| union(&u, b)))
+                .collect();
+        }
+    }
+    let mut exact = true;
+    while boxes.len() > 1 {
+        let mut best = (f64::INFINITY, 0, 1);
+        for i in 0..boxes.len() {
+            for j in i + 1..boxes.len() {
+                let added =
+                    volume(&union(&boxes[i], &boxes[j])) - volume(&boxes[i]) - volume(&boxes[j]);
+                if added < best.0 {
+                    best = (added, i, j);
+                }
+            }
+        }
+        let (added, i, j) = best;
+        // Boxes that share a face merge at no cost (their union is
+        // theirs), however few there are; others only down to `k`.
+        let free = added <= 1e-6 * volume(&union(&boxes[i], &boxes[j]));
+        if !free && boxes.len() <= k {
+            break;
+        }
+        exact &= free;
+        boxes[i] = union(&boxes[i], &boxes[j]);
+        boxes.swap_remove(j);
+    }
+    (boxes, exact)
+}
+
+impl Hull {
+    /// The hull of `foreign` (route nodes a worker cannot trace) inside
+    /// the octree's `root`; None when there are none, or when the boxes
+    /// it merges them into swallow more than [`MAX_SWALLOWED`] of the
+    /// local space.
+    pub fn new(foreign: Vec<Bounds>, root: &Bounds) -> Option<Self> {
+        let halved = foreign.len() > 128;
+        let foreign_volume: f64 = foreign.iter().map(volume).sum();
+        let ext = root.extent().max_element();
+        // The test's faces move by at most 3 ulps of a face's distance to
+        // the origin (one subtraction, one product, the reciprocal), below
+        // 6 * 2^-24 * 3 `ext` for origins in `near`; a stored leaf face
+        // may lie an ulp or two of the coordinates' magnitude from the
+        // plane the walk computes. The margin is several times both.
+        let margin = 1e-5 * ext + 1e-6 * root.max_abs();
+        let (boxes, exact) = merge(foreign, root, HULL_BOXES);
+        // A hull that swallows much of the local space says "not clear"
+        // to most pieces, and costs every one of them its test: none is
+        // kept then. (Merged boxes may overlap, which only overstates what
+        // they swallow.)
+        let swallowed = boxes.iter().map(volume).sum::<f64>() - foreign_volume;
+        if swallowed > MAX_SWALLOWED * (volume(root) - foreign_volume) {
+            return None;
+        }
+        let (mut lo, mut hi) = (Vec::new(), Vec::new());
+        for group in boxes.chunks(4) {
+            let lane = |i: usize| group.get(i).unwrap_or(&group[0]);
+            let face = |f: fn(&Bounds) -> Vec3, d: f32| -> [Vec4; 3] {
+                std::array::from_fn(|a| {
+                    Vec4::from_array(std::array::from_fn(|i| f(lane(i))[a] + d))
+                })
+            };
+            lo.push(face(|b| b.min, -margin));
+            hi.push(face(|b| b.max, margin));
+        }
+        if lo.is_empty() {
+            return None;
+        }
+        let near = Bounds::new(root.min - root.extent(), root.max + root.extent());
+        Some(Self {
+            lo,
+            hi,
+            near,
+            exact: exact && !halved,
+        })
+    }
+
+    /// Whether every box is one foreign node's (inflated), none merged.
+    pub fn exact(&self) -> bool {
+        self.exact
+    }
+
+    /// Whether the piece `[ts, te]` of `ray` misses every box: then it
+    /// crosses local route nodes only. False whenever the test cannot
+    /// vouch for its rounding (an origin far outside the octree, a
+    /// direction with a zero component).
+    #[inline]
+    pub fn clear(&self, ray: &Ray, ts: f32, te: f32) -> bool {
+        if !self.near.contains(ray.origin) || ray.dir.cmpeq(Vec3::ZERO).any() {
+            return false;
+        }
+        let o = ray.origin.to_array().map(Vec4::splat);
+        let inv = ray.dir.recip().to_array().map(Vec4::splat);
+        let (ts, te) = (Vec4::splat(ts), Vec4::splat(te));
+        let mut hit = false;
+        for (lo, hi) in self.lo.iter().zip(&self.hi) {
+            let (mut near, mut far) = (ts, te);
+            for a in 0..3 {
+                let t1 = (lo[a] - o[a]) * inv[a];
+                let t2 = (hi[a] - o[a]) * inv[a];
+                near = near.max(t1.min(t2));
+                far = far.min(t1.max(t2));
+            }
+            hit |= near.cmple(far).any();
+        }
+        !hit
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::Route;
+    use crate::geometry::Ray;
+    use crate::octree::tests::grid_octree;
+    use crate::sampler::SampleKey;
+    use glam::Vec3;
+    use std::ops::ControlFlow;
+
+    /// Whenever the hull says a piece is clear, the route's walk finds
+    /// only local nodes on it, up to and with the node holding its end
+    /// (where a hit would lie), over owners that need no merging, owners
+    /// whose hull swallows local space, and pieces that end exactly where
+    /// a foreign node starts or start where a forwarded ray resumes; and
+    /// it says so for most pieces that are clear.
+    #[test]
+    fn clear_pieces_cross_local_leaves_only() {
+        let tree = grid_octree(24, 6, 6);
+        let n = tree.leaves.len();
+        let (lo, hi) = (tree.bounds.min, tree.bounds.max);
+        // Owners: one slab foreign (an exact hull); two slabs and a few
+        // scattered leaves (merged with some local space); a fifth of the
+        // leaves scattered (a hull swallowing nearly all, not kept).
+        for case in 0..3 {
+            let owner: Vec<u16> = (0..n)
+                .map(|l| {
+                    let c = (tree.leaves[l].bounds.center() - lo) / (hi - lo);
+                    let r = SampleKey::independent(l as u64, 0, 5).get1d(0);
+                    let foreign = match case {
+                        0 => c.x > 0.6,
+                        1 => c.x > 0.6 || c.y < 0.2 || r < 0.01,
+                        _ => r < 0.2,
+                    };
+                    foreign as u16
+                })
+                .collect();
+            let mut route = Route::new(&tree, &owner);
+            route.grow_local_boxes(|o| o == 0);
+            let Some(hull) = route.hull.clone() else {
+                assert_eq!(case, 2, "case {case}: no hull");
+                continue;
+            };
+            assert!(case < 2, "a hull of scattered leaves was kept");
+            assert_eq!(hull.exact(), case == 0, "case {case}");
+            let (mut clear_said, mut clear_true, mut ends_on_border) = (0, 0, 0);
+            for i in 0..20_000u64 {
+                let k = SampleKey::independent(i, 3, 9);
+                let u = |d: u32| k.get1d(d);
+                let p = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
+                let q = lo + (hi - lo) * Vec3::new(u(3), u(4), u(5));
+                let Some(dir) = (q - p).try_normalize() else {
+                    continue;
+                };
+                let ray = Ray::new(p, dir);
+                let along = route.tree.leaves_along(&ray, 0.0, f32::INFINITY);
+                let (mut ts, mut te) = (0.0, (q - p).length());
+                // A forwarded ray resumes where a foreign node ends; a
+                // piece may end where one starts.
+                let borders: Vec<(u16, f32, f32)> = along
+                    .iter()
+                    .map(|&(l, a, b)| (route.labels[l as usize], a, b))
+                    .collect();
+                if i % 4 == 1
+                    && let Some(&(_, _, b)) = borders.iter().find(|x| x.0 != 0)
+                {
+                    ts = b;
+                    te = te.max(b + 0.5);
+                }
+                if i % 4 == 2
+                    && let Some(&(_, a, _)) = borders.iter().find(|x| x.0 != 0 && x.1 > 0.0)
+                {
+                    te = a;
+                    ends_on_border += 1;
+                }
+                let mut labels = Vec::new();
+                let _ = route.walk(&ray, 0.0, f32::INFINITY, ts, |l, a, _| {
+                    if a > te {
+                        return ControlFlow::Break(());
+                    }
+                    labels.push(l);
+                    ControlFlow::Continue(())
+                });
+                let truly = labels.iter().all(|&l| l == 0);
+                // A piece starting on a foreign node's face is inside its
+                // margin: measured apart.
+                let inner = i % 4 != 1;
+                clear_true += (truly && inner) as usize;
+                if hull.clear(&ray, ts, te) {
+                    clear_said += inner as usize;
+                    assert!(
+                        truly,
+                        "case {case}: piece {i} of {ray:?} on [{ts}, {te}] crosses {labels:?}"
+                    );
+                }
+            }
+            assert!(
+                ends_on_border > 1000,
+                "case {case}: {ends_on_border} pieces ending on a border"
+            );
+            // Exact hulls miss clear pieces only within their margin (the
+            // pieces that end or start on a border are not counted).
+            let share = clear_said as f64 / clear_true as f64;
+            let want = if case == 0 { 0.95 } else { 0.2 };
+            assert!(
+                clear_true > 1000 && share > want,
+                "case {case}: clear {clear_said} of {clear_true}"
+            );
+        }
+    }
+}
