@@ -153,15 +153,17 @@ impl Hull {
 
     /// Whether the piece `[ts, te]` of `ray` misses every box: then it
     /// crosses local route nodes only. False whenever the test cannot
-    /// vouch for its rounding (an origin far outside the octree, a
-    /// direction with a zero component).
+    /// vouch for its rounding: an origin far outside the octree, or a
+    /// direction component whose reciprocal is infinite (zero or
+    /// subnormal), where a face through the origin would make a NaN.
     #[inline]
     pub fn clear(&self, ray: &Ray, ts: f32, te: f32) -> bool {
-        if !self.near.contains(ray.origin) || ray.dir.cmpeq(Vec3::ZERO).any() {
+        let inv = ray.dir.recip();
+        if !self.near.contains(ray.origin) || !inv.is_finite() {
             return false;
         }
         let o = ray.origin.to_array().map(Vec4::splat);
-        let inv = ray.dir.recip().to_array().map(Vec4::splat);
+        let inv = inv.to_array().map(Vec4::splat);
         let (ts, te) = (Vec4::splat(ts), Vec4::splat(te));
         let mut hit = false;
         for (lo, hi) in self.lo.iter().zip(&self.hi) {
