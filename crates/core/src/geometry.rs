@@ -68,6 +68,13 @@ impl Bounds {
     pub fn extent(&self) -> Vec3 {
         self.max - self.min
     }
+    /// Volume in f64 (zero for an empty or flat box).
+    pub fn volume(&self) -> f64 {
+        self.extent()
+            .as_dvec3()
+            .max(glam::DVec3::ZERO)
+            .element_product()
+    }
     pub fn center(&self) -> Vec3 {
         (self.min + self.max) * 0.5
     }

@@ -133,11 +133,10 @@ impl<L: Copy + PartialEq> Route<L> {
             }
             *out = b;
         }
-        let volume = |b: &Bounds| b.extent().as_dvec3().element_product();
         self.largest = (0..boxes.len())
             .filter(|&i| local(self.labels[i]))
             .map(|i| boxes[i])
-            .max_by(|a, b| volume(a).total_cmp(&volume(b)));
+            .max_by(|a, b| a.volume().total_cmp(&b.volume()));
         self.boxes = boxes;
         let foreign = (0..self.labels.len())
             .filter(|&i| !local(self.labels[i]))
@@ -484,6 +483,18 @@ mod tests {
     use crate::sampler::SampleKey;
     use glam::Vec3;
 
+    /// Piece `i` of the region tests: a ray between two points drawn in
+    /// `tree`'s root, and the distance between them (None when they meet).
+    pub(crate) fn random_piece(tree: &Octree, i: u64) -> Option<(Ray, f32)> {
+        let (lo, hi) = (tree.bounds.min, tree.bounds.max);
+        let k = SampleKey::independent(i, 3, 9);
+        let u = |d: u32| k.get1d(d);
+        let p = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
+        let q = lo + (hi - lo) * Vec3::new(u(3), u(4), u(5));
+        let dir = (q - p).try_normalize()?;
+        Some((Ray::new(p, dir), (q - p).length()))
+    }
+
     /// Whenever [`covered`] says a piece lies in boxes of local leaves, the
     /// walk finds only local leaves along it; and it says so for many
     /// pieces that cross several route nodes, which is what spares walks.
@@ -491,7 +502,7 @@ mod tests {
     fn covered_pieces_cross_local_leaves_only() {
         let tree = grid_octree(24, 6, 6);
         let n = tree.leaves.len();
-        let (lo, hi) = (tree.bounds.min, tree.bounds.max);
+        let hi = tree.bounds.max;
         let (mut said, mut multi) = (0, 0);
         for scattered in [false, true] {
             // Scattered owners leave foreign holes inside local space.
@@ -505,15 +516,9 @@ mod tests {
             route.grow_local_boxes(|o| o == 0);
             let local = |o: u16| o == 0;
             for i in 0..20_000u64 {
-                let k = SampleKey::independent(i, 3, 9);
-                let u = |d: u32| k.get1d(d);
-                let p = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
-                let q = lo + (hi - lo) * Vec3::new(u(3), u(4), u(5));
-                let Some(dir) = (q - p).try_normalize() else {
+                let Some((ray, te)) = random_piece(&tree, i) else {
                     continue;
                 };
-                let ray = Ray::new(p, dir);
-                let te = (q - p).length();
                 if !covered(&route, &local, &ray, 0.0, te) {
                     continue;
                 }

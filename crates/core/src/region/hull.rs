@@ -14,7 +14,7 @@ use crate::geometry::{Bounds, Ray};
 use glam::{Vec3, Vec4};
 
 /// Boxes in a hull at most: four groups of four lanes.
-pub const HULL_BOXES: usize = 16;
+const HULL_BOXES: usize = 16;
 
 /// The largest share of the local space a hull may swallow.
 const MAX_SWALLOWED: f64 = 0.25;
@@ -35,78 +35,61 @@ pub struct Hull {
     exact: bool,
 }
 
-fn volume(b: &Bounds) -> f64 {
-    b.extent()
-        .as_dvec3()
-        .max(glam::DVec3::ZERO)
-        .element_product()
-}
-
 fn union(a: &Bounds, b: &Bounds) -> Bounds {
     Bounds::new(a.min.min(b.min), a.max.max(b.max))
 }
 
 /// Merges `boxes` down to at most `k`, each step the pair whose union adds
 /// the least volume beyond theirs (local space the hull then swallows).
-/// Long lists are first halved along a Morton order of their centres, so
-/// the greedy steps see at most 128.
-fn merge(mut boxes: Vec<Bounds>, root: &Bounds, k: usize) -> (Vec<Bounds>, bool) {
-    if boxes.len() > 128 {
-        let code = |b: &Bounds| {
-            let c = ((b.center() - root.min) / root.extent().max(Vec3::splat(f32::MIN_POSITIVE)))
-                .clamp(Vec3::ZERO, Vec3::ONE)
-                * 1023.0;
-            let spread = |x: u32| {
-                let mut v = x as u64 & 0x3ff;
-                v = (v | v << 16) & 0x0300_00ff;
-                v = (v | v << 8) & 0x0300_f00f;
-                v = (v | v << 4) & 0x030c_30c3;
-                (v | v << 2) & 0x0924_9249
-            };
-            spread(c.x as u32) | spread(c.y as u32) << 1 | spread(c.z as u32) << 2
-        };
-        boxes.sort_by_key(code);
-        while boxes.len() > 128 {
-            boxes = boxes
-                .chunks(2)
-                .map(|c| c.iter().skip(1).fold(c[0], |u, b| union(&u, b)))
-                .collect();
-        }
+/// The boxes come in the route's leaf order, depth first, which is a
+/// Morton order: long lists are first halved by merging neighbours in it,
+/// so the greedy steps see at most 128.
+fn merge(mut boxes: Vec<Bounds>, k: usize) -> (Vec<Bounds>, bool) {
+    while boxes.len() > 128 {
+        boxes = boxes
+            .chunks(2)
+            .map(|c| c.iter().skip(1).fold(c[0], |u, b| union(&u, b)))
+            .collect();
     }
     let mut exact = true;
     while boxes.len() > 1 {
         let mut best = (f64::INFINITY, 0, 1);
         for i in 0..boxes.len() {
             for j in i + 1..boxes.len() {
-                let added =
-                    volume(&union(&boxes[i], &boxes[j])) - volume(&boxes[i]) - volume(&boxes[j]);
+                let u = union(&boxes[i], &boxes[j]);
+                let added = u.volume() - boxes[i].volume() - boxes[j].volume();
                 if added < best.0 {
                     best = (added, i, j);
                 }
             }
         }
         let (added, i, j) = best;
+        let u = union(&boxes[i], &boxes[j]);
         // Boxes that share a face merge at no cost (their union is
         // theirs), however few there are; others only down to `k`.
-        let free = added <= 1e-6 * volume(&union(&boxes[i], &boxes[j]));
+        let free = added <= 1e-6 * u.volume();
         if !free && boxes.len() <= k {
             break;
         }
         exact &= free;
-        boxes[i] = union(&boxes[i], &boxes[j]);
+        boxes[i] = u;
         boxes.swap_remove(j);
     }
     (boxes, exact)
 }
 
 impl Hull {
-    /// The hull of `foreign` (route nodes a worker cannot trace) inside
-    /// the octree's `root`; None when there are none, or when the boxes
+    /// The hull of `foreign` (route nodes a worker cannot trace, in the
+    /// route's leaf order) inside the octree's `root`; None when there are
+    /// none, or when the boxes
     /// it merges them into swallow more than [`MAX_SWALLOWED`] of the
     /// local space.
     pub fn new(foreign: Vec<Bounds>, root: &Bounds) -> Option<Self> {
+        if foreign.is_empty() {
+            return None;
+        }
         let halved = foreign.len() > 128;
-        let foreign_volume: f64 = foreign.iter().map(volume).sum();
+        let foreign_volume: f64 = foreign.iter().map(Bounds::volume).sum();
         let ext = root.extent().max_element();
         // The test's faces move by at most 3 ulps of a face's distance to
         // the origin (one subtraction, one product, the reciprocal), below
@@ -114,13 +97,13 @@ impl Hull {
         // may lie an ulp or two of the coordinates' magnitude from the
         // plane the walk computes. The margin is several times both.
         let margin = 1e-5 * ext + 1e-6 * root.max_abs();
-        let (boxes, exact) = merge(foreign, root, HULL_BOXES);
+        let (boxes, exact) = merge(foreign, HULL_BOXES);
         // A hull that swallows much of the local space says "not clear"
         // to most pieces, and costs every one of them its test: none is
         // kept then. (Merged boxes may overlap, which only overstates what
         // they swallow.)
-        let swallowed = boxes.iter().map(volume).sum::<f64>() - foreign_volume;
-        if swallowed > MAX_SWALLOWED * (volume(root) - foreign_volume) {
+        let swallowed = boxes.iter().map(Bounds::volume).sum::<f64>() - foreign_volume;
+        if swallowed > MAX_SWALLOWED * (root.volume() - foreign_volume) {
             return None;
         }
         let (mut lo, mut hi) = (Vec::new(), Vec::new());
@@ -133,9 +116,6 @@ impl Hull {
             };
             lo.push(face(|b| b.min, -margin));
             hi.push(face(|b| b.max, margin));
-        }
-        if lo.is_empty() {
-            return None;
         }
         let near = Bounds::new(root.min - root.extent(), root.max + root.extent());
         Some(Self {
@@ -183,10 +163,9 @@ impl Hull {
 #[cfg(test)]
 mod tests {
     use super::super::Route;
-    use crate::geometry::Ray;
+    use super::super::tests::random_piece;
     use crate::octree::tests::grid_octree;
     use crate::sampler::SampleKey;
-    use glam::Vec3;
     use std::ops::ControlFlow;
 
     /// Whenever the hull says a piece is clear, the route's walk finds
@@ -226,16 +205,11 @@ mod tests {
             assert_eq!(hull.exact(), case == 0, "case {case}");
             let (mut clear_said, mut clear_true, mut ends_on_border) = (0, 0, 0);
             for i in 0..20_000u64 {
-                let k = SampleKey::independent(i, 3, 9);
-                let u = |d: u32| k.get1d(d);
-                let p = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
-                let q = lo + (hi - lo) * Vec3::new(u(3), u(4), u(5));
-                let Some(dir) = (q - p).try_normalize() else {
+                let Some((ray, length)) = random_piece(&tree, i) else {
                     continue;
                 };
-                let ray = Ray::new(p, dir);
                 let along = route.tree.leaves_along(&ray, 0.0, f32::INFINITY);
-                let (mut ts, mut te) = (0.0, (q - p).length());
+                let (mut ts, mut te) = (0.0, length);
                 // A forwarded ray resumes where a foreign node ends; a
                 // piece may end where one starts.
                 let borders: Vec<(u16, f32, f32)> = along
