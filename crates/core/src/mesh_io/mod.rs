@@ -1,4 +1,5 @@
-//! Mesh file loaders: OBJ/MTL (tobj), PLY (ply-rs-bw) and glTF 2.0 (gltf).
+//! Mesh file loaders: OBJ/MTL ([`obj`], our own one-pass reader), PLY
+//! (ply-rs-bw) and glTF 2.0 (gltf).
 //!
 //! Each returns a [`MeshData`]: shared vertex positions, triangles as
 //! vertex indices, per-triangle file material, and the file's vertex
@@ -11,10 +12,11 @@
 
 mod gltf_check;
 mod gltf_mesh;
+mod obj;
 
 use crate::error::{Location, SceneError};
 use glam::Vec3;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// The one rule for a material's colours, wherever they are written (scene
 /// file, MTL, glTF): albedo in [0, 1], emission finite and >= 0. None when
@@ -76,7 +78,7 @@ pub fn load(path: &Path) -> Result<MeshData, SceneError> {
         .map(|e| e.to_ascii_lowercase())
         .unwrap_or_default();
     match ext.as_str() {
-        "obj" => load_obj(path),
+        "obj" => obj::load_obj(path),
         "ply" => load_ply(path),
         "gltf" | "glb" => gltf_mesh::load(path),
         _ => Err(SceneError::Invalid {
@@ -100,217 +102,6 @@ fn read_text(path: &Path) -> Result<String, SceneError> {
             message: "file is not valid UTF-8 text".into(),
         }
     })
-}
-
-/// One vertex of a face, line or point statement (`v`, `v/vt`, `v//vn`,
-/// `v/vt/vn`): each index given must name an element defined before it
-/// (1-based, or negative from the last). Err((Some(index), count)) for one
-/// out of range, Err((None, 0)) for one that is not a number.
-fn check_refs(v: &str, counts: [i64; 3]) -> Result<(), (Option<i64>, usize)> {
-    let parts: Vec<&str> = v.split('/').collect();
-    if parts.len() > 3 || parts[0].is_empty() {
-        return Err((None, 0));
-    }
-    for (k, idx) in parts.iter().enumerate() {
-        if idx.is_empty() {
-            continue;
-        }
-        let n = counts[k];
-        let i: i64 = idx.parse().map_err(|_| (None, 0))?;
-        let resolved = if i < 0 { n.saturating_add(i) } else { i - 1 };
-        if i == 0 || resolved < 0 || resolved >= n {
-            return Err((Some(i), n as usize));
-        }
-    }
-    Ok(())
-}
-
-/// tobj reports what went wrong but not where, and panics or overflows on
-/// some indices, so the text is first checked line by line for the errors
-/// a user can make: unparsable or non-finite positions, face (line, point)
-/// indices of positions, texture coordinates or normals that are malformed
-/// or out of range, and missing material libraries.
-/// Returns whether every face gives a normal at every vertex: only then
-/// are the file's normals used (tobj makes up the missing ones).
-fn validate_obj(path: &Path, text: &str) -> Result<bool, SceneError> {
-    let file = || path.to_path_buf();
-    // Positions, texture coordinates and normals so far: what a face may
-    // refer to.
-    let mut counts = [0i64; 3];
-    let mut every_face_has_normals = true;
-    for (i, raw) in text.lines().enumerate() {
-        let loc = || Location::line(i + 1);
-        let line = raw.split('#').next().unwrap_or("").trim();
-        let mut it = line.split_whitespace();
-        match it.next() {
-            Some("v") => {
-                let comps: Vec<&str> = it.collect();
-                if comps.len() < 3 {
-                    return Err(SceneError::Syntax {
-                        file: file(),
-                        location: loc(),
-                        message: format!("vertex needs 3 coordinates, found {}", comps.len()),
-                    });
-                }
-                for c in &comps[..3] {
-                    let x: f32 = c.parse().map_err(|_| SceneError::Syntax {
-                        file: file(),
-                        location: loc(),
-                        message: format!("'{c}' is not a number"),
-                    })?;
-                    if !x.is_finite() {
-                        return Err(SceneError::NonFinite {
-                            file: file(),
-                            location: loc(),
-                            what: format!("vertex coordinate {c}"),
-                        });
-                    }
-                }
-                counts[0] += 1;
-            }
-            Some(kind @ ("f" | "l" | "p")) => {
-                let mut count = 0;
-                for v in it {
-                    if kind == "f" && v.split('/').nth(2).is_none_or(str::is_empty) {
-                        every_face_has_normals = false;
-                    }
-                    check_refs(v, counts).map_err(|(index, count)| match index {
-                        Some(index) => SceneError::IndexOutOfRange {
-                            file: file(),
-                            location: loc(),
-                            index,
-                            count,
-                        },
-                        None => SceneError::Syntax {
-                            file: file(),
-                            location: loc(),
-                            message: format!("{kind} vertex '{v}' is not an index"),
-                        },
-                    })?;
-                    count += 1;
-                }
-                // Points and lines are skipped, but tobj reads them.
-                let least = match kind {
-                    "f" => 3,
-                    "l" => 2,
-                    _ => 1,
-                };
-                if count < least {
-                    return Err(SceneError::Syntax {
-                        file: file(),
-                        location: loc(),
-                        message: format!("'{kind}' needs at least {least} vertices, found {count}"),
-                    });
-                }
-            }
-            Some("vt") => counts[1] += 1,
-            Some("vn") => {
-                let comps: Vec<&str> = it.collect();
-                finite3(&comps).map_err(|message| SceneError::Syntax {
-                    file: file(),
-                    location: loc(),
-                    message: format!("normal {message}"),
-                })?;
-                counts[2] += 1;
-            }
-            Some("mtllib") => {
-                let name = line["mtllib".len()..].trim();
-                let p = path.parent().unwrap_or(Path::new(".")).join(name);
-                if !p.is_file() {
-                    return Err(SceneError::MissingFile {
-                        file: file(),
-                        location: loc(),
-                        missing: p,
-                    });
-                }
-            }
-            _ => {}
-        }
-    }
-    Ok(every_face_has_normals && counts[2] > 0)
-}
-
-fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
-    let text = read_text(path)?;
-    let normals = validate_obj(path, &text)?;
-    if !normals && text.lines().any(|l| l.trim_start().starts_with("vn")) {
-        tracing::info!(file = %path.display(), "some faces give no normals: the file is shaded flat");
-    }
-    let opts = tobj::LoadOptions {
-        triangulate: true,
-        single_index: false,
-        ignore_points: true,
-        ignore_lines: true,
-    };
-    let libs = obj_materials(path, &text)?;
-    let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    // tobj is only asked for geometry and the material *names* (so it can
-    // number `usemtl` groups), taken from the libraries parsed above: its
-    // own MTL parser panics on a colour with fewer than three components.
-    let names_only = |p: &Path| -> tobj::MTLLoadResult {
-        let full = dir.join(p);
-        let (_, mats) = libs
-            .iter()
-            .find(|(lp, _)| *lp == full)
-            .ok_or(tobj::LoadError::OpenFileFailed)?;
-        let names: String = mats
-            .iter()
-            .map(|m| format!("newmtl {}\n", m.name))
-            .collect();
-        tobj::load_mtl_buf(&mut names.as_bytes())
-    };
-    // A panic inside the parser must not take the process down with it.
-    let parsed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        tobj::load_obj_buf(&mut text.as_bytes(), &opts, names_only)
-    }))
-    .map_err(|_| SceneError::Syntax {
-        file: path.to_path_buf(),
-        location: Location::Element("file".into()),
-        message: "the OBJ parser (tobj) crashed on this file; check it for malformed statements \
-                  or convert it to PLY or glTF"
-            .into(),
-    })?;
-    let (models, _) = parsed.map_err(|e| SceneError::Syntax {
-        file: path.to_path_buf(),
-        location: Location::Element("file".into()),
-        message: e.to_string(),
-    })?;
-    let mut out = MeshData {
-        materials: libs.into_iter().flat_map(|(_, m)| m).collect(),
-        ..Default::default()
-    };
-    // tobj splits models per object/material; positions are per model.
-    for m in models {
-        let base = out.positions.len() as u32;
-        for p in m.mesh.positions.chunks_exact(3) {
-            out.positions.push(Vec3::new(p[0], p[1], p[2]));
-        }
-        let mat = m
-            .mesh
-            .material_id
-            .map(|i| i as u32)
-            .filter(|&i| (i as usize) < out.materials.len());
-        let nbase = out.normals.len() as u32;
-        let with_normals = normals && m.mesh.normal_indices.len() == m.mesh.indices.len();
-        if with_normals {
-            for n in m.mesh.normals.chunks_exact(3) {
-                out.normals.push(Vec3::new(n[0], n[1], n[2]));
-            }
-        }
-        for (k, t) in m.mesh.indices.chunks_exact(3).enumerate() {
-            out.triangles.push([base + t[0], base + t[1], base + t[2]]);
-            out.tri_material.push(mat);
-            if normals {
-                out.tri_normals.push(if with_normals {
-                    let n = &m.mesh.normal_indices[3 * k..3 * k + 3];
-                    [nbase + n[0], nbase + n[1], nbase + n[2]]
-                } else {
-                    NO_NORMAL
-                });
-            }
-        }
-    }
-    Ok(out)
 }
 
 /// Kd and Ke of every material of one MTL file, in file order, checked
@@ -376,26 +167,6 @@ fn parse_mtl(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
         }
     }
     Ok(out)
-}
-
-/// Every material library the OBJ names, read once, in the order tobj
-/// numbers materials (libraries in file order, materials in library order).
-fn obj_materials(path: &Path, text: &str) -> Result<Vec<(PathBuf, Vec<FileMaterial>)>, SceneError> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let mut libs = Vec::new();
-    for raw in text.lines() {
-        let line = raw.split('#').next().unwrap_or("").trim();
-        if let Some(name) = line.strip_prefix("mtllib") {
-            let p = dir.join(name.trim());
-            let t = std::fs::read_to_string(&p).map_err(|source| SceneError::Io {
-                file: p.clone(),
-                source,
-            })?;
-            let mats = parse_mtl(&p, &t)?;
-            libs.push((p, mats));
-        }
-    }
-    Ok(libs)
 }
 
 /// Refuses a PLY header whose element counts the file cannot hold (every

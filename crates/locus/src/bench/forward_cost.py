@@ -159,7 +159,7 @@ def main():
     locus = os.path.abspath(a.locus)
     scene = os.path.join(out, "scene.toml")
     small_scene(a.scene, scene, a.width, a.height, a.spp)
-    cg = ["valgrind", "--tool=callgrind"] + (["--separate-threads=yes"] if a.per_thread else [])
+    cg = ["valgrind", "--tool=callgrind"] + (["--separate-threads=yes"] if a.per_thread else []) + os.environ.get("LOCUS_CALLGRIND_ARGS", "").split()
     for old in glob.glob(os.path.join(out, "*.cg*")):
         os.remove(old)
 
