@@ -22,6 +22,9 @@ valgrind and callgrind_annotate on the PATH.
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
         [--fetch forward] [--workers 2] [--cost sampled|analytic]
         [--partitioner region-growing|morton] [--per-thread] [--out bench-out/forward-cost]
+
+LOCUS_CALLGRIND_ARGS adds options to every valgrind call (for instance
+`--dump-instr=yes`, to see a function's cost instruction by instruction).
 """
 
 import argparse
