@@ -2,16 +2,18 @@
 //! it stands (the error names its line) and builds the mesh as it goes.
 //!
 //! It reads what tobj read for us before, with the same results on every
-//! file tobj accepted (a test compares the two): positions (`v x y z`,
-//! with an optional `w` that divides them or an ignored `r g b`), normals
-//! (`vn`), faces fanned into triangles from their first vertex, `usemtl`
-//! naming a material of the libraries (`mtllib`) named before it, the
-//! later of two equal names winning. Points, lines, texture coordinates,
-//! groups and smoothing statements are checked or counted and otherwise
-//! skipped. Checking and building in one pass is what makes it fast: the
-//! check alone used to cost as much as tobj's parse, and the two together
-//! about 230 instructions a byte (the room's 11 MB file took 2.6 G
-//! instructions to load, more than its BVH).
+//! file tobj accepted (a test compares the two) but one with a comment
+//! after a statement, which is cut off here (tobj refused it after a
+//! position or a face, and took it for part of a `usemtl` name):
+//! positions (`v x y z`, with an optional `w` that divides them or an
+//! ignored `r g b`), normals (`vn`), faces fanned into triangles from
+//! their first vertex, `usemtl` naming a material of the libraries
+//! (`mtllib`) named before it, the later of two equal names winning.
+//! Points, lines, texture coordinates, groups and smoothing statements are
+//! checked or counted and otherwise skipped. Checking and building in one
+//! pass is what makes it fast: the check alone used to cost as much as
+//! tobj's parse, and the two together about 230 instructions a byte (the
+//! room's 11 MB file took 2.6 G instructions to load, more than its BVH).
 
 use super::{FileMaterial, MeshData, NO_NORMAL, parse_mtl};
 use crate::error::{Location, SceneError};
