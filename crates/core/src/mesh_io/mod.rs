@@ -1,5 +1,5 @@
 //! Mesh file loaders: OBJ/MTL ([`obj`], our own one-pass reader), PLY
-//! (ply-rs-bw) and glTF 2.0 (gltf).
+//! ([`ply`], ply-rs-bw into typed elements) and glTF 2.0 (gltf).
 //!
 //! Each returns a [`MeshData`]: shared vertex positions, triangles as
 //! vertex indices, per-triangle file material, and the file's vertex
@@ -13,6 +13,7 @@
 mod gltf_check;
 mod gltf_mesh;
 mod obj;
+mod ply;
 
 use crate::error::{Location, SceneError};
 use glam::Vec3;
@@ -79,7 +80,7 @@ pub fn load(path: &Path) -> Result<MeshData, SceneError> {
         .unwrap_or_default();
     match ext.as_str() {
         "obj" => obj::load_obj(path),
-        "ply" => load_ply(path),
+        "ply" => ply::load_ply(path),
         "gltf" | "glb" => gltf_mesh::load(path),
         _ => Err(SceneError::Invalid {
             file: path.to_path_buf(),
@@ -164,181 +165,6 @@ fn parse_mtl(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
                 }
             }
             _ => {}
-        }
-    }
-    Ok(out)
-}
-
-/// Refuses a PLY header whose element counts the file cannot hold (every
-/// element takes at least a byte, and in a binary file at least its
-/// scalars and list lengths): the parser would otherwise make elements
-/// for as long as the count says, which a header of a few bytes can set
-/// to trillions.
-fn check_ply_counts(
-    path: &Path,
-    header: &ply_rs_bw::ply::Header,
-    len: u64,
-) -> Result<(), SceneError> {
-    use ply_rs_bw::ply::{Encoding, PropertyType, ScalarType};
-    let size = |t: &ScalarType| -> u64 {
-        match t {
-            ScalarType::Char | ScalarType::UChar => 1,
-            ScalarType::Short | ScalarType::UShort => 2,
-            ScalarType::Int | ScalarType::UInt | ScalarType::Float => 4,
-            ScalarType::Double => 8,
-        }
-    };
-    let mut need = 0u64;
-    for (name, e) in header.elements.iter() {
-        let each = match header.encoding {
-            // A value and its separator.
-            Encoding::Ascii => 2 * e.properties.len() as u64,
-            _ => e
-                .properties
-                .values()
-                .map(|p| match &p.data_type {
-                    PropertyType::Scalar(t) => size(t),
-                    PropertyType::List(n, _) => size(n),
-                })
-                .sum(),
-        };
-        need = need.saturating_add((e.count as u64).saturating_mul(each.max(1)));
-        if need > len {
-            return Err(SceneError::Invalid {
-                file: path.to_path_buf(),
-                location: Location::Element(format!("element {name}")),
-                message: format!(
-                    "the header declares {} '{name}' elements, more than the file's {len} bytes can hold",
-                    e.count
-                ),
-            });
-        }
-    }
-    Ok(())
-}
-
-fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
-    use ply_rs_bw::parser::Parser;
-    use ply_rs_bw::ply::{DefaultElement, Property};
-    let file = || path.to_path_buf();
-    let f = std::fs::File::open(path).map_err(|source| SceneError::Io {
-        file: file(),
-        source,
-    })?;
-    let len = f.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
-    let parser = Parser::<DefaultElement>::new();
-    let mut r = ply_rs_bw::parser::Reader::new(std::io::BufReader::new(f));
-    let ply_error = |e: ply_rs_bw::parser::ParseError| {
-        let msg = e.to_string();
-        // ply-rs-bw prefixes ASCII errors with "Line N: ".
-        let (location, message) = match msg.strip_prefix("Line ").and_then(|s| s.split_once(": ")) {
-            Some((n, rest)) if n.parse::<usize>().is_ok() => {
-                (Location::line(n.parse().unwrap_or(0)), rest.to_string())
-            }
-            _ => (Location::Element("file".into()), msg),
-        };
-        SceneError::Syntax {
-            file: file(),
-            location,
-            message,
-        }
-    };
-    let header = parser.read_header(&mut r).map_err(ply_error)?;
-    check_ply_counts(path, &header, len)?;
-    let payload = parser.read_payload(&mut r, &header).map_err(ply_error)?;
-    let ply = ply_rs_bw::ply::Ply::<DefaultElement> { header, payload };
-    let empty = Vec::new();
-    let verts = ply.payload.get("vertex").unwrap_or(&empty);
-    let faces = ply.payload.get("face").unwrap_or(&empty);
-    let mut out = MeshData::default();
-    for (i, v) in verts.iter().enumerate() {
-        let mut c = [0f32; 3];
-        for (k, name) in ["x", "y", "z"].iter().enumerate() {
-            let x = v
-                .get(*name)
-                .and_then(Property::to_f32_lossy)
-                .ok_or_else(|| SceneError::Invalid {
-                    file: file(),
-                    location: Location::Element(format!("vertex {i}")),
-                    message: format!("missing scalar property '{name}'"),
-                })?;
-            if !x.is_finite() {
-                return Err(SceneError::NonFinite {
-                    file: file(),
-                    location: Location::Element(format!("vertex {i}")),
-                    what: format!("{name} = {x}"),
-                });
-            }
-            c[k] = x;
-        }
-        out.positions.push(Vec3::from(c));
-        // Normals are used when the vertices carry all three components.
-        let comps: Vec<Option<f32>> = ["nx", "ny", "nz"]
-            .iter()
-            .map(|name| v.get(*name).and_then(Property::to_f32_lossy))
-            .collect();
-        if let [Some(x), Some(y), Some(z)] = comps[..] {
-            let nv = Vec3::new(x, y, z);
-            if !nv.is_finite() {
-                return Err(SceneError::NonFinite {
-                    file: file(),
-                    location: Location::Element(format!("vertex {i}")),
-                    what: format!("normal {nv}"),
-                });
-            }
-            if out.normals.len() == i {
-                out.normals.push(nv);
-            }
-        }
-    }
-    // All or nothing: a file whose vertices do not all carry normals is
-    // shaded flat.
-    if out.normals.len() != out.positions.len() {
-        out.normals.clear();
-    }
-    let n = out.positions.len();
-    for (i, f) in faces.iter().enumerate() {
-        let idx = f
-            .get("vertex_indices")
-            .or_else(|| f.get("vertex_index"))
-            .and_then(|p| match p {
-                Property::ListInt(v) => Some(v.iter().map(|&x| x as i64).collect::<Vec<_>>()),
-                Property::ListUInt(v) => Some(v.iter().map(|&x| x as i64).collect()),
-                Property::ListShort(v) => Some(v.iter().map(|&x| x as i64).collect()),
-                Property::ListUShort(v) => Some(v.iter().map(|&x| x as i64).collect()),
-                Property::ListChar(v) => Some(v.iter().map(|&x| x as i64).collect()),
-                Property::ListUChar(v) => Some(v.iter().map(|&x| x as i64).collect()),
-                _ => None,
-            })
-            .ok_or_else(|| SceneError::Invalid {
-                file: file(),
-                location: Location::Element(format!("face {i}")),
-                message: "missing integer list 'vertex_indices'".into(),
-            })?;
-        if idx.len() < 3 {
-            return Err(SceneError::Invalid {
-                file: file(),
-                location: Location::Element(format!("face {i}")),
-                message: format!("face has {} vertices", idx.len()),
-            });
-        }
-        for &k in &idx {
-            if k < 0 || k as usize >= n {
-                return Err(SceneError::IndexOutOfRange {
-                    file: file(),
-                    location: Location::Element(format!("face {i}")),
-                    index: k,
-                    count: n,
-                });
-            }
-        }
-        for j in 1..idx.len() - 1 {
-            let t = [idx[0] as u32, idx[j] as u32, idx[j + 1] as u32];
-            out.triangles.push(t);
-            out.tri_material.push(None);
-            if !out.normals.is_empty() {
-                out.tri_normals.push(t);
-            }
         }
     }
     Ok(out)
