@@ -98,7 +98,7 @@ pub(super) fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
 impl Reader {
     fn statement(&mut self, path: &Path, raw: &str) -> Result<(), Fault> {
         let line = raw.split('#').next().unwrap_or("").trim();
-        let mut it = line.split_ascii_whitespace();
+        let mut it = line.split_whitespace();
         match it.next() {
             Some("v") => self.position(it),
             Some("vn") => {
@@ -398,6 +398,13 @@ mod tests {
             "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvn 0 0 1\nvn 0 0.6 0.8\n\
              f 1//1 2//1 3//2\nf 1//2 3//1 4//2\n",
         );
+        // Separators beyond ASCII (an ideographic space, a no-break space)
+        // separate tokens, as in tobj.
+        let spaces = write(
+            &dir,
+            "spaces.obj",
+            "v\u{3000}0 0 0\nv 1\u{a0}0 0\nv 1 1 0\nv 0 1 0\nf\u{3000}1 2 3\nf 1 3\u{2003}4\n",
+        );
         let colours = write(
             &dir,
             "colours.obj",
@@ -419,6 +426,7 @@ mod tests {
             (&mixed, false),
             (&normals, true),
             (&colours, false),
+            (&spaces, false),
             (&room, false),
             (&cornell, false),
         ] {
