@@ -39,7 +39,8 @@ struct Reader {
     texcoords: i64,
     /// Per triangle, its normals' indices (or [`NO_NORMAL`]).
     tri_normals: Vec<[u32; 3]>,
-    every_face_has_normals: bool,
+    /// Some face lacks a normal at some vertex: the file is shaded flat.
+    face_without_normals: bool,
     /// Material names of the libraries read so far, to their index.
     names: HashMap<String, u32>,
     material: Option<u32>,
@@ -49,10 +50,7 @@ struct Reader {
 
 pub(super) fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
     let text = super::read_text(path)?;
-    let mut r = Reader {
-        every_face_has_normals: true,
-        ..Reader::default()
-    };
+    let mut r = Reader::default();
     for (i, raw) in text.split('\n').enumerate() {
         r.statement(path, raw).map_err(|f| {
             let (file, location) = (path.to_path_buf(), Location::line(i + 1));
@@ -84,7 +82,7 @@ pub(super) fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
         })?;
     }
     let mut out = r.out;
-    if r.every_face_has_normals && !out.normals.is_empty() {
+    if !r.face_without_normals && !out.normals.is_empty() {
         out.tri_normals = r.tri_normals;
     } else {
         if !out.normals.is_empty() {
@@ -217,7 +215,7 @@ impl Reader {
             face.push(self.vertex("f", v)?);
         }
         enough("f", face.len(), 3)?;
-        self.every_face_has_normals &= face.iter().all(|v| v.1.is_some());
+        self.face_without_normals |= face.iter().any(|v| v.1.is_none());
         for k in 2..face.len() {
             let (a, b, c) = (face[0], face[k - 1], face[k]);
             self.out.triangles.push([a.0, b.0, c.0]);
@@ -235,10 +233,10 @@ impl Reader {
     /// before it, and its names shadow theirs.
     fn library(&mut self, path: &Path, name: &str) -> Result<(), Fault> {
         let p = path.parent().unwrap_or(Path::new(".")).join(name);
-        if !p.is_file() {
-            return Err(Fault::Missing(p));
-        }
-        let text = std::fs::read_to_string(&p).map_err(|e| Fault::Io(p.clone(), e))?;
+        let text = std::fs::read_to_string(&p).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => Fault::Missing(p.clone()),
+            _ => Fault::Io(p.clone(), e),
+        })?;
         let mats: Vec<FileMaterial> = parse_mtl(&p, &text).map_err(Fault::Mtl)?;
         for m in mats {
             let index = self.out.materials.len() as u32;
