@@ -90,7 +90,12 @@ fn read(path: &Path, doc: &gltf::Gltf, buffers: &[&[u8]]) -> Result<MeshData, Sc
         let pbr = m.pbr_metallic_roughness();
         let c = pbr.base_color_factor();
         let albedo = [c[0], c[1], c[2]];
-        let emission = m.emissive_factor();
+        // KHR_materials_emissive_strength scales the factor, which the
+        // core specification caps at 1: Blender writes an emission
+        // strength above 1 this way, so a lamp without it is that much
+        // too dim.
+        let strength = m.emissive_strength().unwrap_or(1.0);
+        let emission = m.emissive_factor().map(|e| e * strength);
         let element = format!("materials[{}]", m.index().unwrap_or(0));
         if let Some(why) = colour_problem(albedo, emission) {
             return Err(invalid(element, why));
@@ -318,4 +323,54 @@ fn check_accessor(
         ));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A triangle whose one material emits `factor` scaled by
+    /// `strength` through KHR_materials_emissive_strength, the extension
+    /// used and, if `required`, required.
+    fn emissive(factor: [f32; 3], strength: f32, required: bool) -> String {
+        let mut g = serde_json::json!({
+            "asset": {"version": "2.0"},
+            "scene": 0,
+            "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0}]}],
+            "materials": [{
+                "emissiveFactor": factor,
+                "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": strength}}
+            }],
+            "buffers": [{"byteLength": 36, "uri": "data:application/octet-stream;base64,AAAAAAAAAAAAAAAAAACAPwAAAAAAAAAAAAAAAAAAgD8AAAAA"}],
+            "bufferViews": [{"buffer": 0, "byteLength": 36}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                           "min": [0, 0, 0], "max": [1, 1, 0]}],
+            "extensionsUsed": ["KHR_materials_emissive_strength"]
+        });
+        if required {
+            g["extensionsRequired"] = serde_json::json!(["KHR_materials_emissive_strength"]);
+        }
+        g.to_string()
+    }
+
+    #[test]
+    fn emissive_strength_scales_the_emission() {
+        let dir = std::env::temp_dir().join(format!("locus-gltf-strength-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("lamp.gltf");
+        for required in [false, true] {
+            std::fs::write(&p, emissive([1.0, 0.5, 0.25], 8.0, required)).unwrap();
+            let m = load(&p).unwrap_or_else(|e| panic!("required {required}: {e}"));
+            assert_eq!(m.materials[0].emission, Vec3::new(8.0, 4.0, 2.0));
+        }
+        // The product keeps the rule of every emission: finite, >= 0.
+        for strength in [-1.0, 1e30] {
+            std::fs::write(&p, emissive([1e10, 0.0, 0.0], strength, false)).unwrap();
+            let e = load(&p).expect_err("refused").to_string();
+            assert!(e.contains("materials[0]") && e.contains("emission"), "{e}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -106,10 +106,14 @@ fn read_text(path: &Path) -> Result<String, SceneError> {
 }
 
 /// Kd and Ke of every material of one MTL file, in file order, checked
-/// with line numbers as they are read.
+/// with line numbers as they are read. A colour is `r g b`, or one value
+/// for all three (the MTL specification: "g and b are optional"); its
+/// `spectral` and `xyz` forms are refused by name. Texture maps are not
+/// rendered: a material that has one keeps its constant colour, and the
+/// file is named in a warning.
 fn parse_mtl(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
-    let file = || path.to_path_buf();
     let mut out: Vec<FileMaterial> = Vec::new();
+    let mut maps: Vec<String> = Vec::new();
     for (i, raw) in text.lines().enumerate() {
         let line = raw.split('#').next().unwrap_or("").trim();
         let mut it = line.split_whitespace();
@@ -120,41 +124,26 @@ fn parse_mtl(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
                 emission: Vec3::ZERO,
             }),
             Some(k @ ("Kd" | "Ke")) => {
-                let comps: Vec<&str> = it.collect();
-                if comps.len() != 3 {
-                    return Err(SceneError::Syntax {
-                        file: file(),
-                        location: Location::line(i + 1),
-                        message: format!("{k} needs 3 components, found {}", comps.len()),
-                    });
-                }
-                let mut rgb = [0f32; 3];
-                for (c, v) in comps.iter().zip(&mut rgb) {
-                    *v = c.parse().map_err(|_| SceneError::Syntax {
-                        file: file(),
-                        location: Location::line(i + 1),
-                        message: format!("'{c}' is not a number"),
-                    })?;
-                    if !v.is_finite() {
-                        return Err(SceneError::NonFinite {
-                            file: file(),
-                            location: Location::line(i + 1),
-                            what: format!("{k} {c}"),
-                        });
+                let rgb = mtl_colour(k, it).map_err(|(kind, message)| {
+                    let (file, location) = (path.to_path_buf(), Location::line(i + 1));
+                    match kind {
+                        ColourFault::Syntax => SceneError::Syntax {
+                            file,
+                            location,
+                            message,
+                        },
+                        ColourFault::NonFinite => SceneError::NonFinite {
+                            file,
+                            location,
+                            what: message,
+                        },
+                        ColourFault::Invalid => SceneError::Invalid {
+                            file,
+                            location,
+                            message,
+                        },
                     }
-                }
-                let problem = if k == "Kd" {
-                    colour_problem(rgb, [0.0; 3])
-                } else {
-                    colour_problem([0.0; 3], rgb)
-                };
-                if let Some(why) = problem {
-                    return Err(SceneError::Invalid {
-                        file: file(),
-                        location: Location::line(i + 1),
-                        message: format!("{k}: {why}"),
-                    });
-                }
+                })?;
                 // A colour before any newmtl belongs to no material.
                 if let Some(m) = out.last_mut() {
                     if k == "Kd" {
@@ -164,8 +153,73 @@ fn parse_mtl(path: &Path, text: &str) -> Result<Vec<FileMaterial>, SceneError> {
                     }
                 }
             }
+            Some(k) if k.starts_with("map_") => {
+                if let Some(m) = out.last()
+                    && maps.last() != Some(&m.name)
+                {
+                    maps.push(m.name.clone());
+                }
+            }
             _ => {}
         }
     }
+    if !maps.is_empty() {
+        tracing::warn!(
+            file = %path.display(),
+            materials = %maps.join(", "),
+            "texture maps are not rendered: these materials keep their constant Kd and Ke"
+        );
+    }
     Ok(out)
+}
+
+/// What is wrong with an MTL colour statement.
+enum ColourFault {
+    Syntax,
+    NonFinite,
+    Invalid,
+}
+
+/// The colour of a `Kd` or `Ke` statement (`k`) from its values.
+fn mtl_colour<'a>(
+    k: &str,
+    it: impl Iterator<Item = &'a str>,
+) -> Result<[f32; 3], (ColourFault, String)> {
+    let comps: Vec<&str> = it.collect();
+    if let Some(&form @ ("spectral" | "xyz")) = comps.first() {
+        return Err((
+            ColourFault::Syntax,
+            format!("{k} {form} is not supported: give the colour as r g b"),
+        ));
+    }
+    if comps.len() != 1 && comps.len() != 3 {
+        return Err((
+            ColourFault::Syntax,
+            format!(
+                "{k} needs 3 components (or 1 for grey), found {}",
+                comps.len()
+            ),
+        ));
+    }
+    let mut rgb = [0f32; 3];
+    for (c, v) in comps.iter().zip(&mut rgb) {
+        *v = c
+            .parse()
+            .map_err(|_| (ColourFault::Syntax, format!("'{c}' is not a number")))?;
+        if !v.is_finite() {
+            return Err((ColourFault::NonFinite, format!("{k} {c}")));
+        }
+    }
+    if comps.len() == 1 {
+        rgb = [rgb[0]; 3];
+    }
+    let problem = if k == "Kd" {
+        colour_problem(rgb, [0.0; 3])
+    } else {
+        colour_problem([0.0; 3], rgb)
+    };
+    match problem {
+        Some(why) => Err((ColourFault::Invalid, format!("{k}: {why}"))),
+        None => Ok(rgb),
+    }
 }

@@ -8,7 +8,8 @@
 //! positions (`v x y z`, with an optional `w` that divides them or an
 //! ignored `r g b`), normals (`vn`), faces fanned into triangles from
 //! their first vertex, `usemtl` naming a material of the libraries
-//! (`mtllib`) named before it, the later of two equal names winning.
+//! (`mtllib`, one or several) named before it, the later of two equal
+//! names winning.
 //! Points, lines, texture coordinates, groups and smoothing statements are
 //! checked or counted and otherwise skipped. Checking and building in one
 //! pass is what makes it fast: the check alone used to cost as much as
@@ -128,7 +129,7 @@ impl Reader {
                 self.material = self.names.get(name).copied();
                 Ok(())
             }
-            Some("mtllib") => self.library(path, line["mtllib".len()..].trim()),
+            Some("mtllib") => self.libraries(path, line["mtllib".len()..].trim()),
             _ => Ok(()),
         }
     }
@@ -227,6 +228,20 @@ impl Reader {
         }
         self.face = face;
         Ok(())
+    }
+
+    /// The libraries of an `mtllib` statement: the OBJ specification
+    /// lets it name several, separated by spaces, and exporters write one
+    /// name that may hold spaces (tobj read only that). The whole rest of
+    /// the line is one library when such a file exists; otherwise each
+    /// word is one, read in order.
+    fn libraries(&mut self, path: &Path, rest: &str) -> Result<(), Fault> {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let mut names = rest.split_whitespace();
+        if names.clone().nth(1).is_none() || dir.join(rest).is_file() {
+            return self.library(path, rest);
+        }
+        names.try_for_each(|name| self.library(path, name))
     }
 
     /// Reads a material library: its materials are numbered after those
@@ -473,6 +488,87 @@ mod tests {
             let e = load_obj(&p).expect_err(text).to_string();
             assert!(
                 e.contains(&format!("line {line}")) && e.contains(what),
+                "{text:?}: {e}"
+            );
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// `mtllib` naming several libraries, or one whose name holds a space;
+    /// MTL colours given as one grey value; texture maps skipped; and the
+    /// faults of each named at their line.
+    #[test]
+    fn libraries_and_colours_as_the_specifications_write_them() {
+        let dir = std::env::temp_dir().join(format!("locus-obj-mtl-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        write(&dir, "a.mtl", "newmtl red\nKd 0.8 0.1 0.1\n");
+        write(
+            &dir,
+            "b.mtl",
+            "newmtl grey\nKd 0.5\nmap_Kd grey.png\nnewmtl lamp\nKd 0\nKe 4\n",
+        );
+        write(&dir, "my lib.mtl", "newmtl spaced\nKd 0.2 0.3 0.4\n");
+        let tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+        let p = write(
+            &dir,
+            "several.obj",
+            &format!(
+                "mtllib a.mtl b.mtl\n{tri}usemtl lamp\nf 1 2 3\nusemtl grey\nf 1 2 3\nusemtl red\nf 1 2 3\n"
+            ),
+        );
+        let m = load_obj(&p).unwrap();
+        let used: Vec<(Vec3, Vec3)> = m
+            .tri_material
+            .iter()
+            .map(|t| {
+                let f = &m.materials[t.expect("every face has a material") as usize];
+                (f.albedo, f.emission)
+            })
+            .collect();
+        assert_eq!(
+            used,
+            [
+                (Vec3::ZERO, Vec3::splat(4.0)),
+                (Vec3::splat(0.5), Vec3::ZERO),
+                (Vec3::new(0.8, 0.1, 0.1), Vec3::ZERO),
+            ]
+        );
+        let p = write(
+            &dir,
+            "spaced.obj",
+            &format!("mtllib my lib.mtl\n{tri}usemtl spaced\nf 1 2 3\n"),
+        );
+        let m = load_obj(&p).unwrap();
+        let f = &m.materials[m.tri_material[0].unwrap() as usize];
+        assert_eq!(f.albedo, Vec3::new(0.2, 0.3, 0.4));
+        // A missing library among several is named, at the statement.
+        let p = write(
+            &dir,
+            "gone.obj",
+            &format!("{tri}mtllib a.mtl nowhere.mtl\n"),
+        );
+        let e = load_obj(&p).unwrap_err().to_string();
+        assert!(e.contains("nowhere.mtl") && e.contains("line 4"), "{e}");
+        for (text, line, what) in [
+            (
+                "newmtl x\nKd 0.5 0.5\n",
+                2,
+                "3 components (or 1 for grey), found 2",
+            ),
+            (
+                "newmtl x\n\nKe spectral x.rfl 1\n",
+                3,
+                "Ke spectral is not supported",
+            ),
+            ("newmtl x\nKd xyz 0.5 0.5 0.5\n", 2, "Kd xyz"),
+            ("newmtl x\nKd 2\n", 2, "albedo"),
+            ("newmtl x\nKe -1\n", 2, "Ke"),
+        ] {
+            write(&dir, "bad.mtl", text);
+            let p = write(&dir, "bad.obj", &format!("mtllib bad.mtl\n{tri}"));
+            let e = load_obj(&p).unwrap_err().to_string();
+            assert!(
+                e.contains("bad.mtl") && e.contains(&format!("line {line}")) && e.contains(what),
                 "{text:?}: {e}"
             );
         }
