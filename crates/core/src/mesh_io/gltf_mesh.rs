@@ -106,6 +106,7 @@ fn read(path: &Path, doc: &gltf::Gltf, buffers: &[&[u8]]) -> Result<MeshData, Sc
             emission: Vec3::from(emission),
         });
     }
+    warn_unmodelled(path, doc);
     // Meshes are placed by the node hierarchy of the default scene (or of
     // every root node when there is no scene), with each node's world
     // matrix; each node is placed once.
@@ -145,6 +146,38 @@ fn read(path: &Path, doc: &gltf::Gltf, buffers: &[&[u8]]) -> Result<MeshData, Sc
         }
     }
     Ok(out)
+}
+
+/// Says what of the file is not rendered, rather than rendering it
+/// differently without a word: texture maps (their materials keep the
+/// constant factors) and punctual lights (only surfaces emit here).
+fn warn_unmodelled(path: &Path, doc: &gltf::Gltf) {
+    let textured: Vec<String> = doc
+        .materials()
+        .filter(|m| {
+            m.pbr_metallic_roughness().base_color_texture().is_some()
+                || m.emissive_texture().is_some()
+        })
+        .map(|m| {
+            m.name().map_or_else(
+                || format!("materials[{}]", m.index().unwrap_or(0)),
+                str::to_string,
+            )
+        })
+        .collect();
+    if !textured.is_empty() {
+        tracing::warn!(
+            file = %path.display(),
+            materials = %textured.join(", "),
+            "texture maps are not rendered: these materials keep their constant base colour and emissive factors"
+        );
+    }
+    if doc.extensions_used().any(|e| e == "KHR_lights_punctual") {
+        tracing::warn!(
+            file = %path.display(),
+            "punctual lights (KHR_lights_punctual) are not modelled: only emissive surfaces and the scene file's area lights emit"
+        );
+    }
 }
 
 fn add_primitive(
