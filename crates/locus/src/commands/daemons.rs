@@ -82,6 +82,7 @@ pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
     if wc.memory_budget > 0 {
         locus_worker::sys::tune_allocator();
     }
+    super::limit_threads(wc.threads);
     runtime()?.block_on(async {
         let worker = Worker::bind(wc).await?;
         serve("worker", worker.local_addr()?, |t| worker.run(t)).await

@@ -74,6 +74,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if a.workers > 0 {
         return cmd_render_farm(a);
     }
+    super::limit_threads(a.threads);
     let t = Instant::now();
     let scene = Scene::load(&a.scene)?;
     let load_s = t.elapsed().as_secs_f64();

@@ -57,6 +57,16 @@ impl Builder {
         let spawned = std::thread::Builder::new()
             .name("locus-build".into())
             .spawn(move || {
+                // Merges build on this thread alone: BVH builds run in
+                // parallel where a rayon pool has threads (obvhs's
+                // `parallel` feature), but here the tracing threads are
+                // busy, the merge's memory plan is for one build, and
+                // its CPU seconds are this thread's. A pool of this one
+                // thread keeps the build here.
+                let Ok(_alone) = this_thread_alone() else {
+                    tracing::error!("cannot start the fetched-leaf builder's pool");
+                    return;
+                };
                 while let Ok(r) = rx.recv() {
                     let t = Instant::now();
                     let cpu0 = sys::thread_cpu_s();
@@ -94,6 +104,15 @@ impl Builder {
             busy: false,
         }
     }
+}
+
+/// A rayon pool whose one thread is the calling thread, so that parallel
+/// work started on it (a BVH build's) runs here, not on other cores.
+fn this_thread_alone() -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .use_current_thread()
+        .build()
 }
 
 /// Rebuilds every part into parts of at most `max_part` triangles.
@@ -395,5 +414,46 @@ impl<'a> Engine<'a> {
             self.job.per_leaf(),
         ));
         self.reach_dirty = false;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rayon::prelude::*;
+
+    /// The distinct threads that ran a parallel loop, and whether the
+    /// calling thread was one of them.
+    fn threads_of_a_loop() -> (usize, bool) {
+        let ids: std::collections::HashSet<std::thread::ThreadId> = (0..10_000u32)
+            .into_par_iter()
+            .map(|i| {
+                // Enough work per item for idle threads to steal some.
+                std::hint::black_box((0..2_000u32).fold(i, |a, b| a ^ b.wrapping_mul(a)));
+                std::thread::current().id()
+            })
+            .collect();
+        (ids.len(), ids.contains(&std::thread::current().id()))
+    }
+
+    /// Parallel work started on a thread that made `this_thread_alone`
+    /// runs on that thread only: what keeps a merge's build, and its CPU
+    /// seconds, on the builder thread. In a pool of three, the same loop
+    /// spreads.
+    #[test]
+    fn work_stays_on_the_thread_alone() {
+        let alone = std::thread::spawn(|| {
+            let _pool = this_thread_alone().expect("pool");
+            threads_of_a_loop()
+        })
+        .join()
+        .expect("thread");
+        assert_eq!(alone, (1, true));
+        let three = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .expect("pool");
+        let (spread, _) = three.install(threads_of_a_loop);
+        assert!(spread > 1, "a pool of three ran it on {spread} thread(s)");
     }
 }
