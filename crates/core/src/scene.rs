@@ -520,6 +520,16 @@ impl Scene {
                 .iter()
                 .map(|&n| (nxf * n).normalize_or_zero())
                 .collect();
+            // A mirroring transform (negative determinant) turns each
+            // triangle's winding over, and with it the side its
+            // counter-clockwise normal, and so its emission, faces: two
+            // corners swap back, so a mirrored lamp still lights what it
+            // faced (as glTF specifies for its nodes and pbrt does).
+            let corners: [usize; 3] = if xf.determinant() < 0.0 {
+                [0, 2, 1]
+            } else {
+                [0, 1, 2]
+            };
             for (k, (t, fm)) in data.triangles.iter().zip(&data.tri_material).enumerate() {
                 let mat = override_mat
                     .or(fm.map(|k| file_mats[k as usize]))
@@ -535,9 +545,9 @@ impl Scene {
                     })
                     .unwrap_or(FLAT);
                 b.add_tri(
-                    [pos[t[0] as usize], pos[t[1] as usize], pos[t[2] as usize]],
+                    corners.map(|c| pos[t[c] as usize]),
                     mat,
-                    shading,
+                    corners.map(|c| shading[c]),
                 );
             }
             b.stats.meshes += 1;

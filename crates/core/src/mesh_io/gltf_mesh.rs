@@ -12,6 +12,7 @@ use super::{FileMaterial, MeshData, colour_problem, gltf_check};
 use crate::error::{Location, SceneError};
 use glam::Vec3;
 use gltf::accessor::{DataType, Dimensions};
+use gltf::mesh::Mode;
 use std::path::{Path, PathBuf};
 
 pub(super) fn load(path: &Path) -> Result<MeshData, SceneError> {
@@ -195,8 +196,12 @@ fn add_primitive(
         location: Location::Element(element),
         message,
     };
-    if prim.mode() != gltf::mesh::Mode::Triangles {
-        tracing::warn!(file = %path.display(), element = elem(), "skipping non-triangle primitive");
+    let mode = prim.mode();
+    if !matches!(
+        mode,
+        Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+    ) {
+        tracing::warn!(file = %path.display(), element = elem(), ?mode, "skipping a primitive of points or lines");
         return Ok(());
     }
     let positions = prim
@@ -266,18 +271,25 @@ fn add_primitive(
         out.tri_normals
             .resize(out.triangles.len(), super::NO_NORMAL);
     }
-    for (k, t) in idx.chunks_exact(3).enumerate() {
-        for &i in t {
-            if i as usize >= pos.len() {
-                return Err(SceneError::IndexOutOfRange {
-                    file: file(),
-                    location: Location::Element(format!("{} indices[{}]", elem(), 3 * k)),
-                    index: i as i64,
-                    count: pos.len(),
-                });
-            }
-        }
-        out.triangles.push([base + t[0], base + t[1], base + t[2]]);
+    if let Some((k, &i)) = idx
+        .iter()
+        .enumerate()
+        .find(|(_, i)| **i as usize >= pos.len())
+    {
+        return Err(SceneError::IndexOutOfRange {
+            file: file(),
+            location: Location::Element(format!("{} indices[{k}]", elem())),
+            index: i as i64,
+            count: pos.len(),
+        });
+    }
+    // A node whose world matrix mirrors (negative determinant) winds its
+    // triangles clockwise (glTF 2.0, 3.7.2.1): two corners swap back, so
+    // the counter-clockwise normal, and the emitting side, face as meant.
+    let mirrored = world.determinant() < 0.0;
+    for t in triangles(mode, &idx) {
+        let t = if mirrored { [t[0], t[2], t[1]] } else { t };
+        out.triangles.push(t.map(|i| base + i));
         out.tri_material
             .push(prim.material().index().map(|i| i as u32));
         if normals.is_some() {
@@ -290,6 +302,34 @@ fn add_primitive(
     out.positions.extend(pos);
     out.normals.extend(normals.unwrap_or_default());
     Ok(())
+}
+
+/// The triangles of a primitive's vertex list `v` in `mode`, each
+/// counter-clockwise as glTF 2.0 (3.7.2.1) orders them: a list in threes;
+/// a strip's triangle i as (v_i, v_{i+1}, v_{i+2}) when i is even and
+/// (v_i, v_{i+2}, v_{i+1}) when it is odd; a fan's as (v_{i+1}, v_{i+2},
+/// v_0).
+fn triangles(mode: Mode, v: &[u32]) -> Vec<[u32; 3]> {
+    match mode {
+        Mode::TriangleStrip => v
+            .windows(3)
+            .enumerate()
+            .map(|(i, w)| {
+                if i % 2 == 0 {
+                    [w[0], w[1], w[2]]
+                } else {
+                    [w[0], w[2], w[1]]
+                }
+            })
+            .collect(),
+        Mode::TriangleFan => v
+            .get(1..)
+            .unwrap_or_default()
+            .windows(2)
+            .map(|w| [w[0], w[1], v[0]])
+            .collect(),
+        _ => v.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+    }
 }
 
 /// Checks that `a` holds elements of one of `types` shaped `dims`, read
@@ -403,6 +443,72 @@ mod tests {
             std::fs::write(&p, emissive([1e10, 0.0, 0.0], strength, false)).unwrap();
             let e = load(&p).expect_err("refused").to_string();
             assert!(e.contains("materials[0]") && e.contains("emission"), "{e}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A quad of four vertices in the plane z = 0, counter-clockwise seen
+    /// from +z, as one primitive of `mode` (4 TRIANGLES, 5 STRIP, 6 FAN)
+    /// with `indices`, under a node of `scale`; its buffer beside it.
+    fn quad(dir: &Path, name: &str, mode: u32, indices: &[u16], scale: [f32; 3]) -> PathBuf {
+        let pos: [[f32; 3]; 4] = [[0., 0., 0.], [1., 0., 0.], [1., 1., 0.], [0., 1., 0.]];
+        let mut bytes: Vec<u8> = pos.iter().flatten().flat_map(|f| f.to_le_bytes()).collect();
+        bytes.extend(indices.iter().flat_map(|i| i.to_le_bytes()));
+        std::fs::write(dir.join(format!("{name}.bin")), &bytes).unwrap();
+        let g = serde_json::json!({
+            "asset": {"version": "2.0"},
+            "scene": 0,
+            "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0, "scale": scale}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": mode}]}],
+            "buffers": [{"byteLength": bytes.len(), "uri": format!("{name}.bin")}],
+            "bufferViews": [
+                {"buffer": 0, "byteLength": 48},
+                {"buffer": 0, "byteOffset": 48, "byteLength": 2 * indices.len()}
+            ],
+            "accessors": [
+                {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+                 "min": [0, 0, 0], "max": [1, 1, 0]},
+                {"bufferView": 1, "componentType": 5123, "count": indices.len(), "type": "SCALAR"}
+            ]
+        });
+        let p = dir.join(format!("{name}.gltf"));
+        std::fs::write(&p, g.to_string()).unwrap();
+        p
+    }
+
+    /// Strips and fans are read as glTF orders their triangles, each
+    /// counter-clockwise like the list's; a mirroring node keeps every
+    /// triangle facing where the unmirrored one faced (its normal's z
+    /// above zero), as the specification's winding rule says.
+    #[test]
+    fn strips_fans_and_mirrors_keep_their_facing() {
+        let dir = std::env::temp_dir().join(format!("locus-gltf-modes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // (name, mode, indices, the triangles glTF makes of them)
+        type Case<'a> = (&'a str, u32, &'a [u16], [[u32; 3]; 2]);
+        let cases: [Case; 3] = [
+            ("list", 4, &[0, 1, 2, 0, 2, 3], [[0, 1, 2], [0, 2, 3]]),
+            ("strip", 5, &[0, 1, 3, 2], [[0, 1, 3], [1, 2, 3]]),
+            ("fan", 6, &[0, 1, 2, 3], [[1, 2, 0], [2, 3, 0]]),
+        ];
+        for (name, mode, indices, want) in cases {
+            for scale in [[1.0, 1.0, 1.0], [-1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]] {
+                let m = load(&quad(&dir, name, mode, indices, scale)).unwrap();
+                let mirrored = scale.iter().product::<f32>() < 0.0;
+                let expect: Vec<[u32; 3]> = want
+                    .iter()
+                    .map(|&[a, b, c]| if mirrored { [a, c, b] } else { [a, b, c] })
+                    .collect();
+                assert_eq!(m.triangles, expect, "{name}, scale {scale:?}");
+                for t in &m.triangles {
+                    let v = t.map(|i| m.positions[i as usize]);
+                    let n = crate::geometry::tri_cross(&v);
+                    // Mirrored through z too, the quad faces -z as a whole.
+                    let facing = if scale[2] < 0.0 { -n.z } else { n.z };
+                    assert!(facing > 0.0, "{name}, scale {scale:?}: normal {n}");
+                }
+            }
         }
         let _ = std::fs::remove_dir_all(&dir);
     }
