@@ -92,9 +92,20 @@ pub(crate) fn write_farm_result(
         png.display(),
         json.display()
     );
+    // Every fixed cost, so that none hides in the total: the preview can
+    // take longer than the partition it feeds by a factor of twenty.
+    let ph = &f.phases;
     println!(
-        "  partition {:.3}s  distribution {:.3}s  render {:.3}s  {:.0} samples/s",
-        f.phases.partition_s, f.phases.distribution_s, f.phases.render_s, f.samples_per_s
+        "  load {:.3}s  octree {:.3}s  preview {:.3}s  partition {:.3}s  distribution {:.3}s (bvh {:.3}s)  render {:.3}s  total {:.3}s  {:.0} samples/s",
+        ph.load_s,
+        ph.octree_s,
+        ph.preview_s,
+        ph.partition_s,
+        ph.distribution_s,
+        ph.bvh_s,
+        ph.render_s,
+        ph.total_s,
+        f.samples_per_s
     );
     println!(
         "  load imbalance {:.3}  forwarded per ray {:.3}  bytes per sample {:.1}  prediction r: analytic {:.2}, sampled {:.2}",

@@ -152,6 +152,44 @@ fn render_with_the_irradiance_cache_reports_it() {
     std::fs::remove_dir_all(&d).ok();
 }
 
+/// An embedded farm that rendered its job ends without a warning: its
+/// scheduler's links drop as the farm shuts down, which a worker took for
+/// a failed link, warned of and tried to register again after one
+/// render in two or three. Eight renders, each printing every phase.
+#[test]
+fn embedded_farm_ends_quietly() {
+    let d = scratch("quiet");
+    let scene = root().join("scenes/cornell-box/cornell.toml");
+    for i in 0..8 {
+        let o = render(
+            &scene,
+            &d.join("q.exr"),
+            &["--workers", "2", "--spp", "1", "--threads-per-worker", "1"],
+        );
+        let (out, err) = (
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr),
+        );
+        assert!(o.status.success(), "render {i}: {err}");
+        assert!(!err.contains("WARN"), "render {i} warned: {err}");
+        for phase in [
+            "load",
+            "octree",
+            "preview",
+            "partition",
+            "distribution",
+            "render",
+            "total",
+        ] {
+            assert!(
+                out.contains(&format!(" {phase} ")),
+                "render {i}: no {phase}: {out}"
+            );
+        }
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
 #[test]
 fn bad_scene_fails_with_file_and_line() {
     let d = scratch("bad");

@@ -140,6 +140,12 @@ impl Worker {
             };
             match ctx.serve(conn, &mut backoff).await {
                 Ok(None) => break Ok(()),
+                // A farm shutting down drops the scheduler's links at the
+                // moment it tells everyone to stop: a link that fails then
+                // is the shutdown, not a fault to warn of and reconnect
+                // after (an embedded farm printed that warning after one
+                // successful render in three).
+                Ok(Some(_)) if shutdown.is_cancelled() => break Ok(()),
                 Ok(Some(why)) => warn!(scheduler = %self.cfg.scheduler, "{why}; registering again"),
                 Err(e) => break Err(e),
             }
