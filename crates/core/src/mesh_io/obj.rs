@@ -52,35 +52,42 @@ struct Reader {
 pub(super) fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
     let text = super::read_text(path)?;
     let mut r = Reader::default();
+    // A statement continued over several lines (a line ending in `\`,
+    // comments aside, as the OBJ specification allows) is joined here and
+    // read as one, its faults placed at its first line; every other line
+    // is read where it lies.
+    let mut continued = String::new();
+    let mut first = 0;
     for (i, raw) in text.split('\n').enumerate() {
-        r.statement(path, raw).map_err(|f| {
-            let (file, location) = (path.to_path_buf(), Location::line(i + 1));
-            match f {
-                Fault::Syntax(message) => SceneError::Syntax {
-                    file,
-                    location,
-                    message,
-                },
-                Fault::NonFinite(what) => SceneError::NonFinite {
-                    file,
-                    location,
-                    what,
-                },
-                Fault::Index { index, count } => SceneError::IndexOutOfRange {
-                    file,
-                    location,
-                    index,
-                    count,
-                },
-                Fault::Missing(missing) => SceneError::MissingFile {
-                    file,
-                    location,
-                    missing,
-                },
-                Fault::Io(file, source) => SceneError::Io { file, source },
-                Fault::Mtl(e) => e,
+        // Only a line ending in `\` is looked at twice.
+        if raw.trim_end().ends_with('\\')
+            && let Some(head) = raw
+                .split('#')
+                .next()
+                .unwrap_or("")
+                .trim_end()
+                .strip_suffix('\\')
+        {
+            if continued.is_empty() {
+                first = i;
             }
-        })?;
+            continued.push_str(head);
+            continued.push(' ');
+            continue;
+        }
+        let (statement, at) = if continued.is_empty() {
+            (raw, i)
+        } else {
+            continued.push_str(raw);
+            (continued.as_str(), first)
+        };
+        r.statement(path, statement)
+            .map_err(|f| fault(path, at, f))?;
+        continued.clear();
+    }
+    if !continued.is_empty() {
+        r.statement(path, &continued)
+            .map_err(|f| fault(path, first, f))?;
     }
     let mut out = r.out;
     if !r.face_without_normals && !out.normals.is_empty() {
@@ -92,6 +99,36 @@ pub(super) fn load_obj(path: &Path) -> Result<MeshData, SceneError> {
         out.normals.clear();
     }
     Ok(out)
+}
+
+/// A statement's fault, placed at its line (`i`, from 0) of `path`.
+fn fault(path: &Path, i: usize, f: Fault) -> SceneError {
+    let (file, location) = (path.to_path_buf(), Location::line(i + 1));
+    match f {
+        Fault::Syntax(message) => SceneError::Syntax {
+            file,
+            location,
+            message,
+        },
+        Fault::NonFinite(what) => SceneError::NonFinite {
+            file,
+            location,
+            what,
+        },
+        Fault::Index { index, count } => SceneError::IndexOutOfRange {
+            file,
+            location,
+            index,
+            count,
+        },
+        Fault::Missing(missing) => SceneError::MissingFile {
+            file,
+            location,
+            missing,
+        },
+        Fault::Io(file, source) => SceneError::Io { file, source },
+        Fault::Mtl(e) => e,
+    }
 }
 
 impl Reader {
@@ -572,6 +609,35 @@ mod tests {
                 "{text:?}: {e}"
             );
         }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A statement continued over lines with `\` reads as one, and a
+    /// fault in it is placed at its first line; a comment that ends in a
+    /// backslash continues nothing.
+    #[test]
+    fn continued_statements_read_as_one() {
+        let dir = std::env::temp_dir().join(format!("locus-obj-cont-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = write(
+            &dir,
+            "c.obj",
+            "# exported to C:\\models\\\r\nv 0 0 \\\r\n0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 \\\n  3 \\  \n 4\n",
+        );
+        let m = load_obj(&p).unwrap();
+        assert_eq!(m.positions.len(), 4);
+        assert_eq!(m.triangles, [[0, 1, 2], [0, 2, 3]]);
+        let p = write(
+            &dir,
+            "bad.obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 \\\n2 \\\n9\nv 1 1 1\n",
+        );
+        let e = load_obj(&p).unwrap_err().to_string();
+        assert!(e.contains("line 4") && e.contains("out of range"), "{e}");
+        // A backslash on the last line continues into nothing.
+        let p = write(&dir, "end.obj", "v 0 0 \\");
+        let e = load_obj(&p).unwrap_err().to_string();
+        assert!(e.contains("line 1") && e.contains("3 coordinates"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
