@@ -37,11 +37,18 @@ pub struct Building {
     pub bvh_s: f64,
     /// Process CPU seconds when the job started (a daemon's own process).
     pub cpu0: f64,
+    /// The worker's tracing pool (None for a worker of one thread): idle
+    /// while the region arrives, it builds the region's BVHs.
+    pub pool: Option<Arc<rayon::ThreadPool>>,
 }
 
 impl Building {
     /// Checks a job's setup before any geometry is accepted.
-    pub fn new(setup: Box<JobSetup>, dedicated: bool) -> anyhow::Result<Self> {
+    pub fn new(
+        setup: Box<JobSetup>,
+        dedicated: bool,
+        pool: Option<Arc<rayon::ThreadPool>>,
+    ) -> anyhow::Result<Self> {
         check_setup(&setup)?;
         if dedicated {
             // The job's peak is measured from here.
@@ -57,6 +64,7 @@ impl Building {
             received: 0,
             bvh_s: 0.0,
             cpu0: if dedicated { sys::process_cpu_s() } else { 0.0 },
+            pool,
         })
     }
 
@@ -97,8 +105,9 @@ impl Building {
             bail!("a region part names leaves that are not ascending or not in the octree");
         }
         let (mag, t) = (s.magnitude, Instant::now());
+        let pool = self.pool.clone();
         let part = tokio::task::spawn_blocking(move || {
-            let p = Arc::new(Part::new(Accel::from_set(chunk, mag), leaves));
+            let p = build_region_part(chunk, leaves, mag, pool.as_deref());
             sys::trim_heap();
             p
         })
@@ -144,6 +153,30 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// One part of the region's BVH, built on the worker's own threads: in its
+/// tracing pool, or on this thread alone for a worker of one thread (the
+/// BVH builds in parallel wherever a rayon pool has threads). Kept out of
+/// line so that profiles can set a region's builds apart from rendering
+/// (`bench/forward_cost.py`).
+#[inline(never)]
+pub fn build_region_part(
+    chunk: TriangleSet,
+    leaves: Vec<u32>,
+    magnitude: f32,
+    pool: Option<&rayon::ThreadPool>,
+) -> Arc<Part> {
+    let build = move || Arc::new(Part::new(Accel::from_set(chunk, magnitude), leaves));
+    match pool {
+        Some(p) => p.install(build),
+        None => {
+            // Failing to make the pool of this one thread leaves the
+            // shared pool, which the daemon holds to its threads.
+            let _alone = sys::this_thread_alone().ok();
+            build()
+        }
+    }
+}
+
 /// What starting a job needs from the daemon.
 pub struct Env {
     pub creds: Arc<Credentials>,
@@ -167,6 +200,7 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         bvh_s,
         cpu0,
         received,
+        pool: _,
     } = b;
     if received != setup.region_triangles {
         bail!(

@@ -278,7 +278,7 @@ impl Session<'_> {
                 if !jobs.admits(job) {
                     return debug!(job, "the start of a run aborted before it came; dropped");
                 }
-                match Building::new(s, self.cfg.dedicated) {
+                match Building::new(s, self.cfg.dedicated, self.pool.clone()) {
                     Ok(b) => jobs.building = Some(b),
                     Err(e) => fail(ctl_tx, job, e).await,
                 }

@@ -120,6 +120,17 @@ pub fn tune_allocator() {
     }
 }
 
+/// A rayon pool whose one thread is the calling thread, so that parallel
+/// work started on it (a BVH build's, under obvhs's `parallel` feature)
+/// runs here and not on other cores: what a worker of one thread, or a
+/// fetched-leaf merge beside busy tracing threads, builds in.
+pub fn this_thread_alone() -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .use_current_thread()
+        .build()
+}
+
 /// Returns free heap memory at the top of the allocator's arenas to the
 /// system (glibc), after a build has freed its scratch.
 pub fn trim_heap() {

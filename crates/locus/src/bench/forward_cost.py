@@ -222,6 +222,13 @@ def main():
         setup = costs.get("locus_protocol::control::_::<impl serde_core::de::Deserialize "
                           "for locus_protocol::control::SchedulerToWorker>::deserialize",
                           costs[DECODE + "/largest"])
+        # A worker of more than one thread builds its region's BVH parts
+        # in its tracing pool (`locus_worker::job::build_region_part`),
+        # outside the blocking pool: setup as well. A worker of one thread
+        # builds them on the blocking thread, counted above.
+        builds = costs.get("locus_worker::job::build_region_part::{{closure}}", 0) \
+            if a.threads > 1 else 0
+        setup += builds
         render = total - blocking + turns - setup
         stats = next((w["stats"] for w in report["workers"] if w["addr"] == listen[i]), {})
         rows.append((f"w{i}", turns, total - blocking - setup, render, stats))

@@ -63,7 +63,7 @@ impl Builder {
                 // busy, the merge's memory plan is for one build, and
                 // its CPU seconds are this thread's. A pool of this one
                 // thread keeps the build here.
-                let Ok(_alone) = this_thread_alone() else {
+                let Ok(_alone) = sys::this_thread_alone() else {
                     tracing::error!("cannot start the fetched-leaf builder's pool");
                     return;
                 };
@@ -104,15 +104,6 @@ impl Builder {
             busy: false,
         }
     }
-}
-
-/// A rayon pool whose one thread is the calling thread, so that parallel
-/// work started on it (a BVH build's) runs here, not on other cores.
-fn this_thread_alone() -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .use_current_thread()
-        .build()
 }
 
 /// Rebuilds every part into parts of at most `max_part` triangles.
@@ -443,7 +434,7 @@ mod tests {
     #[test]
     fn work_stays_on_the_thread_alone() {
         let alone = std::thread::spawn(|| {
-            let _pool = this_thread_alone().expect("pool");
+            let _pool = sys::this_thread_alone().expect("pool");
             threads_of_a_loop()
         })
         .join()
