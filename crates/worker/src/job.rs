@@ -155,26 +155,29 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
 
 /// One part of the region's BVH, built on the worker's own threads: in its
 /// tracing pool, or on this thread alone for a worker of one thread (the
-/// BVH builds in parallel wherever a rayon pool has threads). Kept out of
-/// line so that profiles can set a region's builds apart from rendering
-/// (`bench/forward_cost.py`).
-#[inline(never)]
+/// BVH builds in parallel wherever a rayon pool has threads).
 pub fn build_region_part(
     chunk: TriangleSet,
     leaves: Vec<u32>,
     magnitude: f32,
     pool: Option<&rayon::ThreadPool>,
 ) -> Arc<Part> {
-    let build = move || Arc::new(Part::new(Accel::from_set(chunk, magnitude), leaves));
+    let build = move || region_part_now(chunk, leaves, magnitude);
     match pool {
         Some(p) => p.install(build),
         None => {
-            // Failing to make the pool of this one thread leaves the
-            // shared pool, which the daemon holds to its threads.
-            let _alone = sys::this_thread_alone().ok();
+            let _alone = sys::this_thread_alone();
             build()
         }
     }
+}
+
+/// The build itself, out of line so that profiles can set a region's
+/// builds apart from rendering on whichever thread they ran
+/// (`bench/forward_cost.py`).
+#[inline(never)]
+fn region_part_now(chunk: TriangleSet, leaves: Vec<u32>, magnitude: f32) -> Arc<Part> {
+    Arc::new(Part::new(Accel::from_set(chunk, magnitude), leaves))
 }
 
 /// What starting a job needs from the daemon.

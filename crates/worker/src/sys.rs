@@ -120,15 +120,25 @@ pub fn tune_allocator() {
     }
 }
 
-/// A rayon pool whose one thread is the calling thread, so that parallel
-/// work started on it (a BVH build's, under obvhs's `parallel` feature)
-/// runs here and not on other cores: what a worker of one thread, or a
-/// fetched-leaf merge beside busy tracing threads, builds in.
-pub fn this_thread_alone() -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
+/// Makes parallel work started on the calling thread (a BVH build's, under
+/// obvhs's `parallel` feature) run on that thread alone, not on other
+/// cores: what a worker of one thread, or a fetched-leaf merge beside busy
+/// tracing threads, builds in. Returns the pool of this one thread, to be
+/// kept while that should hold; None when the thread already belongs to a
+/// rayon pool: rayon keeps a thread in the pool it joined until the thread
+/// ends, even past the pool's drop, so a tokio blocking thread that built
+/// before still builds alone (and a second pool could not be made). Call
+/// it from threads of one's own, not from a pool's.
+pub fn this_thread_alone() -> Option<rayon::ThreadPool> {
+    if rayon::current_thread_index().is_some() {
+        return None;
+    }
     rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .use_current_thread()
         .build()
+        .map_err(|e| tracing::warn!(error = %e, "cannot keep a build on its thread; it may use the shared pool"))
+        .ok()
 }
 
 /// Returns free heap memory at the top of the allocator's arenas to the

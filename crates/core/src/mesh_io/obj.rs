@@ -414,6 +414,17 @@ mod tests {
         p
     }
 
+    /// Asserts that `p` fails to load with an error at `line` that says
+    /// each of `says` (a file name, a value, what is wrong).
+    fn fails_at(p: &Path, line: usize, says: &[&str]) {
+        let e = load_obj(p).expect_err("a fault").to_string();
+        assert!(
+            e.contains(&format!("line {line}")) && says.iter().all(|w| e.contains(w)),
+            "{}: expected line {line} and {says:?}, got {e}",
+            p.display()
+        );
+    }
+
     /// On every file tobj read, this reader gives the same triangles, bit
     /// for bit, in the same order, with the same materials and normals:
     /// quads and polygons fanned, negative and slashed indices, weights,
@@ -522,11 +533,7 @@ mod tests {
             ("v 0 0 0\nv 1 0 0 1e-45\n", 2, "weight"),
         ] {
             let p = write(&dir, "bad.obj", text);
-            let e = load_obj(&p).expect_err(text).to_string();
-            assert!(
-                e.contains(&format!("line {line}")) && e.contains(what),
-                "{text:?}: {e}"
-            );
+            fails_at(&p, line, &[what]);
         }
         let _ = std::fs::remove_dir_all(&dir);
     }
@@ -584,8 +591,7 @@ mod tests {
             "gone.obj",
             &format!("{tri}mtllib a.mtl nowhere.mtl\n"),
         );
-        let e = load_obj(&p).unwrap_err().to_string();
-        assert!(e.contains("nowhere.mtl") && e.contains("line 4"), "{e}");
+        fails_at(&p, 4, &["nowhere.mtl"]);
         for (text, line, what) in [
             (
                 "newmtl x\nKd 0.5 0.5\n",
@@ -603,11 +609,7 @@ mod tests {
         ] {
             write(&dir, "bad.mtl", text);
             let p = write(&dir, "bad.obj", &format!("mtllib bad.mtl\n{tri}"));
-            let e = load_obj(&p).unwrap_err().to_string();
-            assert!(
-                e.contains("bad.mtl") && e.contains(&format!("line {line}")) && e.contains(what),
-                "{text:?}: {e}"
-            );
+            fails_at(&p, line, &["bad.mtl", what]);
         }
         let _ = std::fs::remove_dir_all(&dir);
     }
@@ -632,12 +634,10 @@ mod tests {
             "bad.obj",
             "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 \\\n2 \\\n9\nv 1 1 1\n",
         );
-        let e = load_obj(&p).unwrap_err().to_string();
-        assert!(e.contains("line 4") && e.contains("out of range"), "{e}");
+        fails_at(&p, 4, &["out of range"]);
         // A backslash on the last line continues into nothing.
         let p = write(&dir, "end.obj", "v 0 0 \\");
-        let e = load_obj(&p).unwrap_err().to_string();
-        assert!(e.contains("line 1") && e.contains("3 coordinates"), "{e}");
+        fails_at(&p, 1, &["3 coordinates"]);
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -223,11 +223,10 @@ def main():
                           "for locus_protocol::control::SchedulerToWorker>::deserialize",
                           costs[DECODE + "/largest"])
         # A worker of more than one thread builds its region's BVH parts
-        # in its tracing pool (`locus_worker::job::build_region_part`),
-        # outside the blocking pool: setup as well. A worker of one thread
-        # builds them on the blocking thread, counted above.
-        builds = costs.get("locus_worker::job::build_region_part::{{closure}}", 0) \
-            if a.threads > 1 else 0
+        # in its tracing pool (`locus_worker::job::region_part_now`, kept
+        # out of line), outside the blocking pool: setup as well. A worker
+        # of one thread builds them on the blocking thread, counted above.
+        builds = costs.get("locus_worker::job::region_part_now", 0) if a.threads > 1 else 0
         setup += builds
         render = total - blocking + turns - setup
         stats = next((w["stats"] for w in report["workers"] if w["addr"] == listen[i]), {})

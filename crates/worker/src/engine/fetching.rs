@@ -63,10 +63,7 @@ impl Builder {
                 // busy, the merge's memory plan is for one build, and
                 // its CPU seconds are this thread's. A pool of this one
                 // thread keeps the build here.
-                let Ok(_alone) = sys::this_thread_alone() else {
-                    tracing::error!("cannot start the fetched-leaf builder's pool");
-                    return;
-                };
+                let _alone = sys::this_thread_alone();
                 while let Ok(r) = rx.recv() {
                     let t = Instant::now();
                     let cpu0 = sys::thread_cpu_s();
@@ -429,17 +426,24 @@ mod tests {
 
     /// Parallel work started on a thread that made `this_thread_alone`
     /// runs on that thread only: what keeps a merge's build, and its CPU
-    /// seconds, on the builder thread. In a pool of three, the same loop
-    /// spreads.
+    /// seconds, on the builder thread. Asked again on the same thread (a
+    /// tokio blocking thread building a second region part), it makes no
+    /// second pool and the work still stays. In a pool of three, the same
+    /// loop spreads.
     #[test]
     fn work_stays_on_the_thread_alone() {
         let alone = std::thread::spawn(|| {
-            let _pool = sys::this_thread_alone().expect("pool");
-            threads_of_a_loop()
+            let first = sys::this_thread_alone();
+            assert!(first.is_some(), "a fresh thread gets its pool");
+            let a = threads_of_a_loop();
+            drop(first);
+            let again = sys::this_thread_alone();
+            assert!(again.is_none(), "the thread is still in its pool");
+            (a, threads_of_a_loop())
         })
         .join()
         .expect("thread");
-        assert_eq!(alone, (1, true));
+        assert_eq!(alone, ((1, true), (1, true)));
         let three = rayon::ThreadPoolBuilder::new()
             .num_threads(3)
             .build()
