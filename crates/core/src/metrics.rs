@@ -2,7 +2,8 @@
 //! `locus render --reference`.
 
 use crate::image_io::{Image, ImageError};
-use serde::Serialize;
+use crate::passes::PixelSum;
+use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct ErrorMetrics {
@@ -18,6 +19,57 @@ pub struct ErrorMetrics {
     pub ssim: f64,
     /// Channels counted (3 per pixel).
     pub count: usize,
+}
+
+/// The error an image carries, read from its own samples where no
+/// reference is at hand: each pixel mean's variance, the spread of its
+/// samples over their number ([`PixelSum::variance_of_mean`]), in place of
+/// its squared difference from a reference. `rel_mse` is [`compare`]'s with
+/// the image's own values in the denominator. The samples' spread is the
+/// error of independent samples; the Sobol sampler's samples of a pixel are
+/// stratified and usually leave less (`locus bench quality` prints both).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ErrorEstimate {
+    pub rmse: f64,
+    pub rel_mse: f64,
+    /// Samples per pixel it was read from.
+    pub samples: u32,
+}
+
+/// [`ErrorEstimate`] of `image`, whose pixel means have the variances
+/// `variance` ([`variance_image`]), each from `samples` samples.
+pub fn estimate_error(image: &Image, variance: &Image, samples: u32) -> ErrorEstimate {
+    let (mut se, mut rel) = (0f64, 0f64);
+    for (m, v) in image.pixels.iter().zip(&variance.pixels) {
+        for c in 0..3 {
+            let v = v[c] as f64;
+            se += v;
+            rel += v / ((m[c] as f64).powi(2) + 1e-2);
+        }
+    }
+    let n = (image.pixels.len().min(variance.pixels.len()) * 3).max(1) as f64;
+    ErrorEstimate {
+        rmse: (se / n).sqrt(),
+        rel_mse: rel / n,
+        samples,
+    }
+}
+
+/// Each pixel mean's variance ([`PixelSum::variance_of_mean`]) as an image
+/// of `width` by `height` from the pixels' sums in row-major order; None
+/// for fewer than two samples a pixel, whose spread says nothing.
+pub fn variance_image<'a>(
+    width: u32,
+    height: u32,
+    sums: impl IntoIterator<Item = &'a PixelSum>,
+    samples: u32,
+) -> Option<Image> {
+    let mut img = Image::new(width, height);
+    for (px, s) in img.pixels.iter_mut().zip(sums) {
+        let v = s.variance_of_mean(samples)?;
+        *px = [v[0] as f32, v[1] as f32, v[2] as f32];
+    }
+    Some(img)
 }
 
 /// Error of `image` against `reference`.
@@ -130,6 +182,16 @@ impl std::fmt::Display for ErrorMetrics {
             f,
             "RMSE {:.6e}  relMSE {:.6e}  MAE {:.6e}  SSIM {:.4}",
             self.rmse, self.rel_mse, self.mae, self.ssim
+        )
+    }
+}
+
+impl std::fmt::Display for ErrorEstimate {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "RMSE {:.6e}  relMSE {:.6e} (from the spread of {} samples a pixel)",
+            self.rmse, self.rel_mse, self.samples
         )
     }
 }

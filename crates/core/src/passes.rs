@@ -12,6 +12,7 @@
 
 use crate::stats::TraceStats;
 use glam::{DVec3, Vec3};
+use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
 /// The most passes a render is split into: each pass is another message
@@ -39,11 +40,22 @@ pub fn passes(spp: u32) -> Vec<Range<u32>> {
     v
 }
 
+/// What a pixel's samples add up to: per channel, their sum and the sum of
+/// their squares (f64), the first for the pixel's value, the second for the
+/// error it carries ([`crate::metrics::estimate_error`]). This is what a
+/// tile's pass sends and the scheduler's film and store keep.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Moments {
+    pub sum: [f64; 3],
+    pub squares: [f64; 3],
+}
+
 /// A pixel's samples summed in sample-index order (f64), with non-finite
 /// values dropped and counted.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PixelSum {
     sum: DVec3,
+    squares: DVec3,
 }
 
 impl PixelSum {
@@ -51,27 +63,34 @@ impl PixelSum {
     pub fn add(&mut self, l: Vec3, st: &mut TraceStats) {
         st.samples += 1;
         if l.is_finite() {
-            self.sum += l.as_dvec3();
+            let l = l.as_dvec3();
+            self.sum += l;
+            self.squares += l * l;
         } else {
             st.invalid_samples += 1;
         }
     }
 
-    /// Adds the sum of the pixel's next pass.
+    /// Adds the sums of the pixel's next pass.
     #[inline]
-    pub fn add_pass(&mut self, pass: [f64; 3]) {
-        self.sum += DVec3::from_array(pass);
+    pub fn add_pass(&mut self, pass: Moments) {
+        self.sum += DVec3::from_array(pass.sum);
+        self.squares += DVec3::from_array(pass.squares);
     }
 
-    /// The sum, to send or keep.
-    pub fn total(&self) -> [f64; 3] {
-        self.sum.to_array()
+    /// The sums, to send or keep.
+    pub fn total(&self) -> Moments {
+        Moments {
+            sum: self.sum.to_array(),
+            squares: self.squares.to_array(),
+        }
     }
 
-    /// A sum kept earlier.
-    pub fn from_total(total: [f64; 3]) -> Self {
+    /// Sums kept earlier.
+    pub fn from_total(total: Moments) -> Self {
         Self {
-            sum: DVec3::from_array(total),
+            sum: DVec3::from_array(total.sum),
+            squares: DVec3::from_array(total.squares),
         }
     }
 
@@ -80,10 +99,24 @@ impl PixelSum {
         let m = self.sum / samples.max(1) as f64;
         [m.x as f32, m.y as f32, m.z as f32]
     }
+
+    /// Per channel, the variance of the mean over `samples` samples as
+    /// their spread gives it: the unbiased sample variance over `samples`
+    /// (a non-finite sample counts as zero, as in the mean). None for
+    /// fewer than two samples.
+    pub fn variance_of_mean(&self, samples: u32) -> Option<[f64; 3]> {
+        if samples < 2 {
+            return None;
+        }
+        let n = samples as f64;
+        let v = ((self.squares - self.sum * self.sum / n) / (n - 1.0)).max(DVec3::ZERO) / n;
+        Some(v.to_array())
+    }
 }
 
-/// The value of one pixel whose samples `sample(s)` are evaluated here, in
-/// the passes of [`passes`]: the one definition both renderers reproduce.
+/// One pixel's samples `sample(s)`, evaluated here in the passes of
+/// [`passes`] and summed: the one definition both renderers reproduce. Its
+/// mean is the pixel's value; its squares, the error the value carries.
 /// Never inlined, so that profiles (`bench/forward_cost.py`) can count a
 /// render's work by it; a call per pixel costs nothing next to its samples.
 #[inline(never)]
@@ -91,7 +124,7 @@ pub fn pixel_mean(
     spp: u32,
     st: &mut TraceStats,
     mut sample: impl FnMut(u32, &mut TraceStats) -> Vec3,
-) -> [f32; 3] {
+) -> PixelSum {
     let mut total = PixelSum::default();
     for pass in passes(spp) {
         let mut p = PixelSum::default();
@@ -101,7 +134,7 @@ pub fn pixel_mean(
         }
         total.add_pass(p.total());
     }
-    total.mean(spp)
+    total
 }
 
 #[cfg(test)]
@@ -154,7 +187,7 @@ mod tests {
         for &x in &xs {
             straight.add(Vec3::splat(x), &mut st);
         }
-        let passed = pixel_mean(4, &mut st, |s, _| Vec3::splat(xs[s as usize]));
+        let passed = pixel_mean(4, &mut st, |s, _| Vec3::splat(xs[s as usize])).mean(4);
         assert_eq!((straight.mean(4), passed), ([0.0; 3], [0.25; 3]));
         // And a film that adds the same passes' sums in order agrees.
         let mut film = PixelSum::default();
@@ -176,7 +209,45 @@ mod tests {
             &mut st,
             |s, _| if s == 2 { Vec3::NAN } else { Vec3::ONE },
         );
-        assert_eq!(m, [0.75; 3]);
+        assert_eq!(m.mean(4), [0.75; 3]);
         assert_eq!((st.samples, st.invalid_samples), (4, 1));
+        // The variance counts it as zero too: samples 1, 1, 0, 1.
+        let v = m.variance_of_mean(4).unwrap();
+        assert!((v[0] - 0.25 / 4.0).abs() < 1e-15, "{v:?}");
+    }
+
+    /// The variance of the mean from the sums and squares, as a two-pass
+    /// computation over the samples gives it, whether the samples came in
+    /// one pass or were summed in passes and added up (as the film does);
+    /// and none from a single sample.
+    #[test]
+    fn variance_of_the_mean_from_the_sums() {
+        let xs: Vec<f32> = (0..37)
+            .map(|i| ((i * 7919) % 101) as f32 * 0.37 + 2.0)
+            .collect();
+        let n = xs.len() as f64;
+        let mean = xs.iter().map(|&x| x as f64).sum::<f64>() / n;
+        let var = xs.iter().map(|&x| (x as f64 - mean).powi(2)).sum::<f64>() / (n - 1.0);
+        let mut st = TraceStats::default();
+        let sums = pixel_mean(37, &mut st, |s, _| Vec3::new(xs[s as usize], 0.0, 1.0));
+        let v = sums.variance_of_mean(37).unwrap();
+        assert!(
+            (v[0] / (var / n) - 1.0).abs() < 1e-9,
+            "{} against {}",
+            v[0],
+            var / n
+        );
+        assert_eq!((v[1], v[2]), (0.0, 0.0));
+        let mut kept = PixelSum::default();
+        for pass in passes(37) {
+            let mut p = PixelSum::default();
+            for s in pass {
+                p.add(Vec3::splat(xs[s as usize]), &mut st);
+            }
+            kept = PixelSum::from_total(kept.total());
+            kept.add_pass(p.total());
+        }
+        assert_eq!(kept.variance_of_mean(37).unwrap()[0], v[0]);
+        assert_eq!(sums.variance_of_mean(1), None);
     }
 }

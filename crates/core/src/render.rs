@@ -12,8 +12,9 @@ use crate::image_io::Image;
 use crate::irradiance::IrradianceParams;
 use crate::irradiance::overture::{self, OvertureStats};
 use crate::light::LightSet;
+use crate::metrics::{ErrorEstimate, estimate_error};
 use crate::octree::Octree;
-use crate::passes::pixel_mean;
+use crate::passes::{PixelSum, pixel_mean};
 use crate::path::{CacheUse, ChainVertex, Kernel, WholeScene};
 use crate::sampler::{Sampler, mix64};
 use crate::scene::Scene;
@@ -194,7 +195,7 @@ pub fn render_pixel(
     spp: u32,
     chain: &mut Vec<ChainVertex>,
     stats: &mut TraceStats,
-) -> [f32; 3] {
+) -> PixelSum {
     pixel_mean(spp, stats, |s, st| {
         kernel.sample(tracer, x, y, s, chain, st)
     })
@@ -204,6 +205,11 @@ pub struct RenderOutput {
     pub image: Image,
     pub stats: TraceStats,
     pub render_s: f64,
+    /// Each pixel mean's variance, from its samples' spread (None for one
+    /// sample a pixel).
+    pub variance: Option<Image>,
+    /// The error the image carries, read from `variance`.
+    pub error_estimate: Option<ErrorEstimate>,
     /// What the directional caches held at the end, when they were on.
     pub cache_memory: Option<CacheMemory>,
     /// How the irradiance cache was built, when it was on.
@@ -248,7 +254,7 @@ pub fn render(
         pool.install(|| overture::build(&kernel.without_caches(), &tracer, p, &bounds))
     });
     kernel.irradiance = ambient.as_ref().map(|a| &a.0);
-    let results: Vec<(Tile, Vec<[f32; 3]>, TraceStats)> = pool.install(|| {
+    let results: Vec<(Tile, Vec<PixelSum>, TraceStats)> = pool.install(|| {
         tl.par_iter()
             .map(|t| {
                 let mut st = TraceStats::default();
@@ -267,22 +273,33 @@ pub fn render(
             .collect()
     });
     let mut image = Image::new(cam.width, cam.height);
+    let mut variance = (opts.spp > 1).then(|| Image::new(cam.width, cam.height));
     let mut stats = TraceStats::default();
     for (t, px, st) in results {
         let mut k = 0;
         for y in t.y0..t.y1 {
             for x in t.x0..t.x1 {
-                image.pixels[(y * cam.width + x) as usize] = px[k];
+                let i = (y * cam.width + x) as usize;
+                image.pixels[i] = px[k].mean(opts.spp);
+                if let (Some(v), Some(var)) = (variance.as_mut(), px[k].variance_of_mean(opts.spp))
+                {
+                    v.pixels[i] = var.map(|c| c as f32);
+                }
                 k += 1;
             }
         }
         stats += st;
     }
+    let error_estimate = variance
+        .as_ref()
+        .map(|v| estimate_error(&image, v, opts.spp));
     let render_s = duration_s(start.elapsed());
     RenderOutput {
         image,
         stats,
         render_s,
+        variance,
+        error_estimate,
         cache_memory: caches.map(|c| c.memory()),
         irradiance: ambient.map(|a| a.1),
     }

@@ -1,6 +1,6 @@
 //! The JSON report written beside every image.
 
-use crate::metrics::ErrorMetrics;
+use crate::metrics::{ErrorEstimate, ErrorMetrics};
 use crate::render::RenderOptions;
 use crate::scene::LoadStats;
 use crate::stats::TraceStats;
@@ -34,6 +34,9 @@ pub struct RenderReport {
     pub samples_per_second: f64,
     pub rays_per_second: f64,
     pub error_vs_reference: Option<ErrorMetrics>,
+    /// The error the image carries, from its samples' spread: the report's
+    /// error where no reference is given.
+    pub error_estimate: Option<ErrorEstimate>,
     /// What the directional caches held at the end (when on).
     pub cache_memory: Option<crate::dircache::CacheMemory>,
     /// How the irradiance cache was built (when on); its time is part of

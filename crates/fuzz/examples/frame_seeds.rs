@@ -57,7 +57,13 @@ fn main() {
             job: 3,
             tile: 7,
             pass: 1,
-            sums: vec![[0.5, 1.0, 2.0]; 4],
+            sums: vec![
+                locus_core::passes::Moments {
+                    sum: [0.5, 1.0, 2.0],
+                    squares: [0.25, 1.0, 4.0],
+                };
+                4
+            ],
         }))
         .unwrap(),
     );

@@ -235,10 +235,13 @@ impl LocalFarm {
         }
     }
 
-    /// Cancels every task, stops the worker processes and waits for them.
+    /// Stops the worker processes, then cancels every task and waits for
+    /// them. The processes go first: with the scheduler gone first they
+    /// would warn, each, that it refused them as they tried to register
+    /// again.
     pub async fn stop(self) -> anyhow::Result<()> {
-        self.shutdown.cancel();
         drop(self.children);
+        self.shutdown.cancel();
         for t in self.tasks {
             t.await.context("farm task panicked")??;
         }

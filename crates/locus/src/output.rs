@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result};
 use locus_core::image_io::Image;
-use locus_core::metrics::{ErrorMetrics, compare};
+use locus_core::metrics::{ErrorEstimate, ErrorMetrics, compare};
 use locus_protocol::report::FarmReport;
 use locus_protocol::submit::{FetchPolicy, JobResult};
 use std::path::{Path, PathBuf};
@@ -187,8 +187,29 @@ pub(crate) fn write_farm_result(
             w.measured_cost_share * 100.0
         );
     }
-    if let Some(e) = error {
+    print_error(f.error_estimate.as_ref(), &f.sampler, error.as_ref());
+    Ok(())
+}
+
+/// The error a rendered image carries: as its samples' spread gives it,
+/// and against the reference when one was given.
+pub(crate) fn print_error(
+    estimate: Option<&ErrorEstimate>,
+    sampler: &str,
+    reference: Option<&ErrorMetrics>,
+) {
+    if let Some(e) = estimate {
+        // The spread is the error of independent samples; Sobol's are
+        // stratified (`locus bench quality` on the Cornell box: the true
+        // relMSE 0.65 of the estimate at 16 spp, 0.49 at 64, 0.43 at 256).
+        let note = if sampler == locus_core::sampler::Sampler::Sobol.name() {
+            "; an upper estimate with the Sobol sampler, whose stratified samples usually leave less"
+        } else {
+            ""
+        };
+        println!("estimated error: {e}{note}");
+    }
+    if let Some(e) = reference {
         println!("error vs reference: {e}");
     }
-    Ok(())
 }

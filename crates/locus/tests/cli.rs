@@ -45,6 +45,16 @@ fn render_writes_exr_png_and_report_and_measures_error() {
     assert!(report["stats"]["camera_rays"].as_u64().unwrap() == 256 * 256 * 2);
     assert!(report["stats"]["shadow_rays"].as_u64().unwrap() > 0);
     assert!(report["times"]["render_s"].as_f64().unwrap() > 0.0);
+    // The error it carries, read from its samples without a reference.
+    let e = &report["error_estimate"];
+    assert_eq!(e["samples"], 2);
+    assert!(e["rel_mse"].as_f64().unwrap() > 0.0, "{e}");
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("estimated error: RMSE")
+            && out.contains("upper estimate with the Sobol sampler"),
+        "{out}"
+    );
     // Same seed, other thread count: identical image, zero error.
     let b = d.join("b.exr");
     let o = render(
@@ -315,6 +325,11 @@ fn daemons_as_processes_match_single_machine() {
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d.join("farm.json")).unwrap()).unwrap();
     assert_eq!(report["farm"]["workers"].as_array().unwrap().len(), 2);
+    // The same error estimate as one machine's, to the bit.
+    let one: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("single.json")).unwrap()).unwrap();
+    assert!(one["error_estimate"]["rel_mse"].as_f64().unwrap() > 0.0);
+    assert_eq!(report["farm"]["error_estimate"], one["error_estimate"]);
     // A submit with the wrong token is refused with a message.
     let bad = locus()
         .args(["submit", "--scheduler", &addr, "--token", "wrong"])

@@ -13,6 +13,10 @@ fn small_cornell() -> locus_core::scene::Scene {
 fn farm_matches_single_machine_bit_for_bit() {
     let scene = small_cornell();
     let reference = single_machine(&scene);
+    // The error the image reports from its samples' spread, the same to
+    // the bit: the farm's film adds each pass's squares in pass order too.
+    let error = common::single_machine_error(&scene);
+    assert!(error.is_some_and(|e| e.rel_mse > 0.0), "{error:?}");
     let rt = runtime();
     rt.block_on(async {
         for workers in [1usize, 2, 3, 4, 8] {
@@ -33,6 +37,7 @@ fn farm_matches_single_machine_bit_for_bit() {
                     rep.forwarded_fraction, rep.bytes_per_sample, rep.load_imbalance
                 );
                 assert_eq!(bits(&r), reference, "{workers} workers, {partitioner:?}");
+                assert_eq!(rep.error_estimate, error, "{workers} workers, {partitioner:?}");
                 assert_eq!(rep.totals.trace.samples, (40 * 32 * 3) as u64);
                 if workers > 1 {
                     assert!(rep.totals.forwarded_out > 0, "rays crossed regions");

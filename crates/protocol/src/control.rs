@@ -11,6 +11,7 @@ use crate::submit::JobRequest;
 use locus_core::dircache::CacheParams;
 pub use locus_core::geometry::TriangleSet;
 use locus_core::light::LightSet;
+use locus_core::passes::Moments;
 use locus_core::region::{ProcessorMap, WorkerId};
 use locus_core::sampler::Sampler;
 use locus_core::scene::{Camera, Material};
@@ -284,12 +285,13 @@ impl TileAssignment {
     }
 }
 
-/// A tile's pass, rendered: per pixel (row-major), the sum of the pass's
-/// samples in index order, which the scheduler's film adds in pass order.
+/// A tile's pass, rendered: per pixel (row-major), the sums of the pass's
+/// samples and of their squares in index order, which the scheduler's film
+/// adds in pass order.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileResult {
     pub job: u64,
     pub tile: u32,
     pub pass: u32,
-    pub sums: Vec<[f64; 3]>,
+    pub sums: Vec<Moments>,
 }

@@ -214,6 +214,9 @@ pub struct FarmReport {
     pub recovery: Recovery,
     /// The irradiance cache's overture, when it was on.
     pub irradiance: Option<IrradianceReport>,
+    /// The error the image carries, from its samples' spread (as one
+    /// machine's report gives it); None for one sample a pixel.
+    pub error_estimate: Option<locus_core::metrics::ErrorEstimate>,
 }
 
 /// How the irradiance cache's records were made and shared: measured

@@ -240,7 +240,7 @@ proptest! {
         for m in [
             WorkerToScheduler::Ready { job: seed },
             WorkerToScheduler::NeedTiles { job: seed, count },
-            WorkerToScheduler::TileDone(TileResult { job: seed, tile: count, pass: workers as u32, sums: vec![[n as f64, 0.5, -1e300]; 12] }),
+            WorkerToScheduler::TileDone(TileResult { job: seed, tile: count, pass: workers as u32, sums: vec![locus_core::passes::Moments { sum: [n as f64, 0.5, -1e300], squares: [1e300, 0.25, n as f64] }; 12] }),
             WorkerToScheduler::Report { job: seed, stats: Box::new(stats) },
             WorkerToScheduler::Failed { job: seed, reason: reason.clone() },
             WorkerToScheduler::Heartbeat,

@@ -9,7 +9,8 @@
 //! progress is O(passes) to read, not O(tiles).
 
 use locus_core::image_io::Image;
-use locus_core::passes::{PixelSum, passes};
+use locus_core::metrics::{ErrorEstimate, estimate_error, variance_image};
+use locus_core::passes::{Moments, PixelSum, passes};
 use locus_core::render::Tile;
 use locus_protocol::control::TileAssignment;
 use serde::{Deserialize, Serialize};
@@ -28,7 +29,7 @@ pub struct Unit {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileSums {
     pub passes: u32,
-    pub sums: Vec<[f64; 3]>,
+    pub sums: Vec<Moments>,
 }
 
 /// Why a tile's pass was not taken.
@@ -53,7 +54,7 @@ pub struct Film {
     /// `complete[p]`: tiles whose pass `p` is added.
     complete: Vec<u32>,
     /// Passes that came before an earlier pass of their tile.
-    early: BTreeMap<Unit, Vec<[f64; 3]>>,
+    early: BTreeMap<Unit, Vec<Moments>>,
     samples_done: u64,
 }
 
@@ -115,7 +116,7 @@ impl Film {
 
     /// Takes tile `u.tile`'s sums of pass `u.pass`. Returns whether the
     /// tile's state in the film changed (an earlier pass was not held up).
-    pub fn add(&mut self, u: Unit, sums: Vec<[f64; 3]>) -> Result<bool, Refused> {
+    pub fn add(&mut self, u: Unit, sums: Vec<Moments>) -> Result<bool, Refused> {
         let Some(t) = self.tiles.get(u.tile as usize) else {
             return Err(Refused::Unknown);
         };
@@ -160,7 +161,7 @@ impl Film {
     }
 
     /// Sets or adds to tile `t`'s pixels from its row-major `sums`.
-    fn each_pixel(&mut self, t: Tile, sums: &[[f64; 3]], f: impl Fn(&mut PixelSum, [f64; 3])) {
+    fn each_pixel(&mut self, t: Tile, sums: &[Moments], f: impl Fn(&mut PixelSum, Moments)) {
         let mut from = sums.iter();
         for row in self.rows(t) {
             for (p, s) in self.sums[row].iter_mut().zip(&mut from) {
@@ -169,7 +170,7 @@ impl Film {
         }
     }
 
-    fn add_in_order(&mut self, tile: u32, sums: &[[f64; 3]]) {
+    fn add_in_order(&mut self, tile: u32, sums: &[Moments]) {
         let t = self.tiles[tile as usize];
         let pass = self.passes_in[tile as usize];
         self.each_pixel(t, sums, |p, s| p.add_pass(s));
@@ -262,6 +263,22 @@ impl Film {
         }
         img
     }
+
+    /// Each pixel mean's variance in the finished image (None before the
+    /// film is complete, or for one sample a pixel).
+    pub fn variance(&self) -> Option<Image> {
+        let height = (self.sums.len() / self.width.max(1) as usize) as u32;
+        self.is_complete()
+            .then(|| variance_image(self.width, height, &self.sums, self.spp))
+            .flatten()
+    }
+
+    /// The error the finished image carries, from its samples' spread, as
+    /// one machine's report gives it (None where [`Self::variance`] is).
+    pub fn error_estimate(&self) -> Option<ErrorEstimate> {
+        self.variance()
+            .map(|v| estimate_error(&self.image(), &v, self.spp))
+    }
 }
 
 #[cfg(test)]
@@ -287,7 +304,7 @@ mod tests {
     }
 
     /// What a worker sends for unit `u`.
-    fn render(f: &Film, u: Unit) -> Vec<[f64; 3]> {
+    fn render(f: &Film, u: Unit) -> Vec<Moments> {
         let a = f.assignment(u, 3);
         let mut st = TraceStats::default();
         let mut v = Vec::new();
@@ -304,6 +321,18 @@ mod tests {
     }
 
     fn one_machine() -> Vec<[f32; 3]> {
+        one_machine_sums().iter().map(|p| p.mean(SPP)).collect()
+    }
+
+    fn one_machine_estimate() -> ErrorEstimate {
+        let sums = one_machine_sums();
+        let variance = variance_image(W, H, &sums, SPP).unwrap();
+        let mut image = Image::new(W, H);
+        image.pixels = one_machine();
+        estimate_error(&image, &variance, SPP)
+    }
+
+    fn one_machine_sums() -> Vec<PixelSum> {
         let mut st = TraceStats::default();
         (0..H)
             .flat_map(|y| (0..W).map(move |x| (x, y)))
@@ -327,6 +356,10 @@ mod tests {
         assert!(f.missing().is_empty());
         assert_eq!(f.samples(), ((W * H * SPP) as u64, (W * H * SPP) as u64));
         assert_eq!(f.image().pixels, one_machine());
+        // The squares add up in the same order: the same error estimate
+        // to the bit.
+        let one = one_machine_estimate();
+        assert_eq!(f.error_estimate(), Some(one));
     }
 
     #[test]
@@ -350,6 +383,7 @@ mod tests {
             again.add(u, s).unwrap();
         }
         assert_eq!(again.image().pixels, one_machine());
+        assert_eq!(again.error_estimate(), Some(one_machine_estimate()));
     }
 
     #[test]
@@ -365,7 +399,7 @@ mod tests {
             Err(Refused::Unknown)
         );
         assert_eq!(
-            f.add(u, vec![[0.0; 3]; 2]),
+            f.add(u, vec![Moments::default(); 2]),
             Err(Refused::Size { got: 2, want: 9 })
         );
         let s = render(&f, u);
@@ -381,7 +415,7 @@ mod tests {
             2,
             TileSums {
                 passes: 9,
-                sums: vec![[0.0; 3]; 9]
+                sums: vec![Moments::default(); 9]
             }
         ));
     }

@@ -111,5 +111,6 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         totals,
         recovery: j.recovery.clone(),
         irradiance: j.overture.as_ref().map(|o| o.report()),
+        error_estimate: j.film.error_estimate(),
     }
 }

@@ -148,7 +148,13 @@ fn result(t: &TileAssignment, value: f32) -> WorkerToScheduler {
         job: t.job,
         tile: t.tile,
         pass: t.pass,
-        sums: vec![[value as f64 * t.pass_samples() as f64; 3]; t.pixels() as usize],
+        sums: vec![
+            locus_core::passes::Moments {
+                sum: [value as f64 * t.pass_samples() as f64; 3],
+                squares: [(value as f64).powi(2) * t.pass_samples() as f64; 3],
+            };
+            t.pixels() as usize
+        ],
     })
 }
 

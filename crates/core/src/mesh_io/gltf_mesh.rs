@@ -150,35 +150,56 @@ fn read(path: &Path, doc: &gltf::Gltf, buffers: &[&[u8]]) -> Result<MeshData, Sc
 }
 
 /// Says what of the file is not rendered, rather than rendering it
-/// differently without a word: texture maps (their materials keep the
-/// constant factors) and punctual lights (only surfaces emit here).
+/// differently without a word.
 fn warn_unmodelled(path: &Path, doc: &gltf::Gltf) {
-    let textured: Vec<String> = doc
-        .materials()
-        .filter(|m| {
-            m.pbr_metallic_roughness().base_color_texture().is_some()
-                || m.emissive_texture().is_some()
-        })
-        .map(|m| {
-            m.name().map_or_else(
-                || format!("materials[{}]", m.index().unwrap_or(0)),
-                str::to_string,
-            )
-        })
-        .collect();
-    if !textured.is_empty() {
-        tracing::warn!(
-            file = %path.display(),
-            materials = %textured.join(", "),
-            "texture maps are not rendered: these materials keep their constant base colour and emissive factors"
-        );
+    for why in unmodelled(doc) {
+        tracing::warn!(file = %path.display(), "{why}");
+    }
+}
+
+/// What of `doc` is not rendered as written: texture maps (their materials
+/// keep the constant factors), metals (diffuse here) and punctual lights
+/// (only surfaces emit here).
+fn unmodelled(doc: &gltf::Gltf) -> Vec<String> {
+    let named = |m: &gltf::Material| {
+        m.name().map_or_else(
+            || format!("materials[{}]", m.index().unwrap_or(0)),
+            str::to_string,
+        )
+    };
+    let list = |keep: &dyn Fn(&gltf::Material) -> bool| {
+        let names: Vec<String> = doc
+            .materials()
+            .filter(|m| keep(m))
+            .map(|m| named(&m))
+            .collect();
+        (!names.is_empty()).then(|| names.join(", "))
+    };
+    let mut out = Vec::new();
+    if let Some(names) = list(&|m| {
+        m.pbr_metallic_roughness().base_color_texture().is_some() || m.emissive_texture().is_some()
+    }) {
+        out.push(format!(
+            "texture maps are not rendered: these materials keep their constant base colour and \
+             emissive factors: {names}"
+        ));
+    }
+    // glTF's metallic factor is 1 unless the file says otherwise: a
+    // material that leaves it out is a metal.
+    if let Some(names) = list(&|m| m.pbr_metallic_roughness().metallic_factor() > 0.0) {
+        out.push(format!(
+            "metallic materials are rendered as diffuse reflectors of their base colour (the \
+             metallic factor is 1 where a material leaves it out): {names}"
+        ));
     }
     if doc.extensions_used().any(|e| e == "KHR_lights_punctual") {
-        tracing::warn!(
-            file = %path.display(),
-            "punctual lights (KHR_lights_punctual) are not modelled: only emissive surfaces and the scene file's area lights emit"
+        out.push(
+            "punctual lights (KHR_lights_punctual) are not modelled: only emissive surfaces and \
+             the scene file's area lights emit"
+                .into(),
         );
     }
+    out
 }
 
 fn add_primitive(
@@ -445,6 +466,38 @@ mod tests {
             assert!(e.contains("materials[0]") && e.contains("emission"), "{e}");
         }
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Metals, texture maps and punctual lights are named, each once; a
+    /// material that leaves its metallic factor out is a metal (glTF's
+    /// default is 1), one that says 0 is not.
+    #[test]
+    fn what_is_not_rendered_is_named() {
+        let g = serde_json::json!({
+            "asset": {"version": "2.0"},
+            "extensionsUsed": ["KHR_lights_punctual"],
+            "materials": [
+                {"name": "paint", "pbrMetallicRoughness": {"metallicFactor": 0.0}},
+                {"name": "steel"},
+                {"name": "gold", "pbrMetallicRoughness": {"metallicFactor": 0.8}},
+                {"name": "wood", "pbrMetallicRoughness": {"metallicFactor": 0.0,
+                    "baseColorTexture": {"index": 0}}}
+            ],
+            "textures": [{"source": 0}],
+            "images": [{"uri": "wood.png"}]
+        });
+        let doc = gltf::Gltf::from_slice(g.to_string().as_bytes()).unwrap();
+        let why = unmodelled(&doc);
+        assert_eq!(why.len(), 3, "{why:?}");
+        assert!(
+            why[0].starts_with("texture maps") && why[0].ends_with(": wood"),
+            "{why:?}"
+        );
+        assert!(
+            why[1].starts_with("metallic") && why[1].ends_with(": steel, gold"),
+            "{why:?}"
+        );
+        assert!(why[2].contains("KHR_lights_punctual"), "{why:?}");
     }
 
     /// A quad of four vertices in the plane z = 0, counter-clockwise seen

@@ -57,6 +57,9 @@ pub struct Row {
     pub spp: u32,
     pub seconds: f64,
     pub rel_mse: f64,
+    /// The relMSE the render reported from its samples' spread, without
+    /// the reference (locus's path-traced rows).
+    pub estimated_rel_mse: Option<f64>,
 }
 
 impl Row {
@@ -208,6 +211,7 @@ pub fn run(plan: &Plan) -> Result<Outcome> {
                 spp,
                 seconds: out.render_s,
                 rel_mse: m.rel_mse,
+                estimated_rel_mse: out.error_estimate.map(|e| e.rel_mse),
             });
             tracing::info!(
                 sampler = sampler.name(),
@@ -235,6 +239,7 @@ pub fn run(plan: &Plan) -> Result<Outcome> {
                 spp,
                 seconds: out.render_s,
                 rel_mse: m.rel_mse,
+                estimated_rel_mse: None,
             });
         }
     }
@@ -363,6 +368,7 @@ fn mitsuba(plan: &Plan, mi: &Mitsuba, scene: &Scene, reference: &Image) -> Resul
                 spp: r.spp,
                 seconds: r.seconds,
                 rel_mse: compare(&image, reference)?.rel_mse,
+                estimated_rel_mse: None,
             })
         })
         .collect()
@@ -461,21 +467,23 @@ fn export(scene: &Scene, dir: &Path, plan: &Plan, mi: &Mitsuba) -> Result<Spec> 
 pub fn markdown(o: &Outcome) -> String {
     let mut s = format!(
         "# Error per second: {}\n\nThe reference's own relMSE: {:.2e} (from its two halves).\n\n\
-         | renderer | sampler | spp | seconds | relMSE | seconds x relMSE | relMSE x spp |\n\
-         |---|---|---:|---:|---:|---:|---:|\n",
+         | renderer | sampler | spp | seconds | relMSE | seconds x relMSE | relMSE x spp | relMSE from the samples' spread |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|\n",
         o.title, o.reference_rel_mse
     );
     for r in &o.rows {
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {:.3} | {:.3e} | {:.3e} | {:.3e} |",
+            "| {} | {} | {} | {:.3} | {:.3e} | {:.3e} | {:.3e} | {} |",
             r.renderer,
             r.sampler,
             r.spp,
             r.seconds,
             r.rel_mse,
             r.product(),
-            r.per_sample()
+            r.per_sample(),
+            r.estimated_rel_mse
+                .map_or(String::new(), |e| format!("{e:.3e}"))
         );
     }
     let best = |spp: u32, locus: bool| {
@@ -513,18 +521,20 @@ pub fn markdown(o: &Outcome) -> String {
 }
 
 pub fn csv(rows: &[Row]) -> String {
-    let mut s = String::from("renderer,sampler,spp,seconds,rel_mse,product,per_sample\n");
+    let mut s =
+        String::from("renderer,sampler,spp,seconds,rel_mse,product,per_sample,estimated_rel_mse\n");
     for r in rows {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{}",
             r.renderer,
             r.sampler,
             r.spp,
             r.seconds,
             r.rel_mse,
             r.product(),
-            r.per_sample()
+            r.per_sample(),
+            r.estimated_rel_mse.map_or(String::new(), |e| e.to_string())
         );
     }
     s
@@ -559,6 +569,7 @@ mod tests {
             spp,
             seconds,
             rel_mse,
+            estimated_rel_mse: None,
         }
     }
 

@@ -158,6 +158,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         samples_per_second: st.samples as f64 / out.render_s,
         rays_per_second: st.rays() as f64 / out.render_s,
         error_vs_reference: error,
+        error_estimate: out.error_estimate,
         cache_memory: out.cache_memory,
         irradiance: out.irradiance,
     };
@@ -209,9 +210,11 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
             u.traced
         );
     }
-    if let Some(e) = error {
-        println!("error vs reference: {e}");
-    }
+    crate::output::print_error(
+        out.error_estimate.as_ref(),
+        opts.sampler.name(),
+        error.as_ref(),
+    );
     Ok(())
 }
 

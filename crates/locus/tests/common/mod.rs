@@ -55,6 +55,14 @@ pub fn single_machine(scene: &Scene) -> Vec<u32> {
     render(&prep, &o, &|_, _| {}).image.to_bits()
 }
 
+/// The error one machine's render of `scene` reports from its samples.
+pub fn single_machine_error(scene: &Scene) -> Option<locus_core::metrics::ErrorEstimate> {
+    let prep = Prepared::new(scene.clone());
+    let mut o = RenderOptions::from_scene(scene);
+    o.threads = 2;
+    render(&prep, &o, &|_, _| {}).error_estimate
+}
+
 /// A farm result's image bits.
 pub fn bits(r: &JobResult) -> Vec<u32> {
     Image {

@@ -379,7 +379,13 @@ mod tests {
                     tile: 7,
                     sums: TileSums {
                         passes,
-                        sums: vec![[0.5, passes as f64, f64::MIN_POSITIVE]; 4],
+                        sums: vec![
+                            locus_core::passes::Moments {
+                                sum: [0.5, passes as f64, f64::MIN_POSITIVE],
+                                squares: [1.5, 0.0, f64::MAX]
+                            };
+                            4
+                        ],
                     },
                 });
             }
@@ -388,7 +394,10 @@ mod tests {
                 tile: 1,
                 sums: TileSums {
                     passes: 1,
-                    sums: vec![[2.0; 3]],
+                    sums: vec![locus_core::passes::Moments {
+                        sum: [2.0; 3],
+                        squares: [1.5, 0.0, f64::MAX],
+                    }],
                 },
             });
             s.write(Write::End { job: 4 });
@@ -403,7 +412,13 @@ mod tests {
         assert_eq!(jobs[0].req.tris, request("a").tris);
         let kept = TileSums {
             passes: 2,
-            sums: vec![[0.5, 2.0, f64::MIN_POSITIVE]; 4],
+            sums: vec![
+                locus_core::passes::Moments {
+                    sum: [0.5, 2.0, f64::MIN_POSITIVE],
+                    squares: [1.5, 0.0, f64::MAX]
+                };
+                4
+            ],
         };
         assert_eq!(jobs[0].tiles, vec![(7, kept)]);
         let _ = std::fs::remove_dir_all(&dir);

@@ -454,6 +454,7 @@ mod tests {
     use super::*;
     use locus_core::geometry::Ray;
     use locus_core::integrator::ShadowRay;
+    use locus_core::passes::Moments;
 
     /// Tile `tile` of `w` by `h` pixels, samples 2 and 3 of 4.
     fn tile(tile: u32, w: u32, h: u32) -> TileAssignment {
@@ -542,7 +543,12 @@ mod tests {
             panic!("{fx:?}")
         };
         assert_eq!((t.tile, t.pass), (4, 2));
-        assert_eq!(t.sums, vec![[1.0; 3], [2.0; 3]]);
+        // Samples 0 and 1, then 2 and NaN (dropped): sums and squares.
+        let m = |sum: f64, squares: f64| Moments {
+            sum: [sum; 3],
+            squares: [squares; 3],
+        };
+        assert_eq!(t.sums, vec![m(1.0, 1.0), m(2.0, 4.0)]);
         assert_eq!((st.samples, st.invalid_samples), (4, 1));
     }
 
@@ -610,7 +616,13 @@ mod tests {
         let Effect::TileDone(t) = &fx[0] else {
             panic!("{fx:?}")
         };
-        assert_eq!(t.sums, vec![[4.0; 3]]);
+        assert_eq!(
+            t.sums,
+            vec![Moments {
+                sum: [4.0; 3],
+                squares: [16.0; 3]
+            }]
+        );
         assert_eq!(s.pending(), 0);
     }
 
