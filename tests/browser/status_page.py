@@ -157,6 +157,9 @@ def main():
         if client.wait(timeout=120) != 0:
             fail("the submitted job failed")
         wait("the ended job on the page", lambda: "done" in driver.find_element("id", "ended").text)
+        ended = driver.find_element("id", "ended").text
+        if not re.search(r"\d\.\d\de-\d", ended):
+            fail(f"the ended job shows no estimated relMSE: {ended!r}")
         traffic = wait("the traffic between the workers",
                        lambda: driver.find_element("id", "traffic").text)
         if not re.search(r"\d+(\.\d)? (KiB|MiB|GiB)", traffic):

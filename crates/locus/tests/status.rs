@@ -101,6 +101,9 @@ fn status_metrics_and_preview_report_the_job() {
             assert_eq!(*row, sent, "worker {w}'s traffic");
         }
         assert!(e.traffic.iter().flatten().sum::<u64>() > 0);
+        // The error the job's report carries, as the report has it.
+        let estimate = r.report.error_estimate.expect("3 samples a pixel").rel_mse;
+        assert_eq!(e.rel_mse_estimate, Some(estimate));
 
         let (code, text) = get(http, "/metrics").await;
         assert_eq!(code, 200);

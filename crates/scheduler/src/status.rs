@@ -107,6 +107,9 @@ pub struct EndedJob {
     pub traffic: Vec<Vec<u64>>,
     pub forwarded_fraction: Option<f64>,
     pub load_imbalance: Option<f64>,
+    /// The relMSE the image carries, from its samples' spread (done jobs
+    /// of more than one sample a pixel).
+    pub rel_mse_estimate: Option<f64>,
     pub attempts: u32,
     /// Peer addresses of the workers the job lost.
     pub lost: Vec<String>,

@@ -46,6 +46,7 @@ impl Actor {
             traffic: Vec::new(),
             forwarded_fraction: None,
             load_imbalance: None,
+            rel_mse_estimate: None,
             attempts: j.recovery.attempts,
             lost: j.recovery.lost.iter().map(|(a, _)| a.clone()).collect(),
         }
@@ -80,6 +81,7 @@ impl Actor {
                 .collect(),
             forwarded_fraction: Some(report.forwarded_fraction),
             load_imbalance: Some(report.load_imbalance),
+            rel_mse_estimate: report.error_estimate.map(|e| e.rel_mse),
             ..Self::ended(&j, "done", names)
         };
         self.metrics

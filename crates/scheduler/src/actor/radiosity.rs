@@ -249,6 +249,7 @@ impl Actor {
             traffic: Vec::new(),
             forwarded_fraction: None,
             load_imbalance: None,
+            rel_mse_estimate: None,
             attempts: r.attempts,
             lost: r.lost.clone(),
         };
