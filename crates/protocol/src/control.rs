@@ -232,6 +232,12 @@ pub struct MemoryPlan {
 /// so that it can sum them in index order.
 pub const MAX_TILE_PASS_SAMPLES: u64 = 1 << 25;
 
+/// The most pixels one tile may hold: its pass's result (a [`TileResult`],
+/// two sums of three f64 a pixel, 48 bytes) must fit one frame, beside its
+/// few bytes of header (1,398,016 pixels: a 1,182-pixel square).
+pub const MAX_TILE_PIXELS: u64 =
+    (crate::MAX_FRAME_LEN as u64 - 4096) / std::mem::size_of::<Moments>() as u64;
+
 /// A tile in one of the job's progressive passes (`locus_core::passes`):
 /// the worker renders samples `samples[0]..samples[1]` of every pixel of
 /// `x0..x1` by `y0..y1`.
@@ -269,6 +275,12 @@ impl TileAssignment {
             ));
         }
         let t = self.tile;
+        if self.pixels() as u64 > MAX_TILE_PIXELS {
+            return Some(format!(
+                "tile {t} holds {} pixels, more than {MAX_TILE_PIXELS}",
+                self.pixels()
+            ));
+        }
         if self.x0 >= self.x1 || self.y0 >= self.y1 || self.x1 > width || self.y1 > height {
             return Some(format!(
                 "tile {t} ({}..{} x {}..{}) is empty or outside the {width}x{height} image",

@@ -360,4 +360,17 @@ fn tile_problems_are_named() {
         assert!(p.contains("tile 7"), "{p}");
         let _ = (b.pixels(), b.pass_samples());
     }
+    // A tile whose result would not fit one message, in an image it fits.
+    let wide = TileAssignment {
+        samples: [0, 1],
+        x1: 1400,
+        y1: 1000,
+        ..t
+    };
+    assert_eq!(
+        TileAssignment { y1: 998, ..wide }.problem(1400, 1000, 1),
+        None
+    );
+    let p = wide.problem(1400, 1000, 1).expect("refused");
+    assert!(p.contains("tile 7") && p.contains("1400000 pixels"), "{p}");
 }

@@ -13,7 +13,7 @@ use locus_core::octree::Octree;
 use locus_core::region::ProcessorMap;
 use locus_core::region::WorkerId;
 use locus_core::scene::{LoadStats, Scene};
-use locus_protocol::control::MemoryPlan;
+use locus_protocol::control::{MAX_TILE_PIXELS, MemoryPlan};
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use locus_protocol::submit::{
     CostModel, FetchPolicy, JobKind, JobOptions, JobRequest, Partitioner,
@@ -201,6 +201,13 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
         return Err("tile size, packet size and max in-flight must be positive".into());
     }
     let ts = o.tile_size.max(1);
+    let tile_pixels = ts.min(c.width) as u64 * ts.min(c.height) as u64;
+    if tile_pixels > MAX_TILE_PIXELS {
+        return Err(format!(
+            "a tile of {ts} pixels a side holds {tile_pixels} pixels, more than {MAX_TILE_PIXELS} \
+             (a tile's result must fit one message): choose a smaller tile size"
+        ));
+    }
     let tiles = c.width.div_ceil(ts) as u64 * c.height.div_ceil(ts) as u64;
     if tiles > MAX_TILES {
         return Err(format!(
@@ -586,6 +593,39 @@ mod tests {
             16,
             locus_core::render::TileOrder::Scanline,
         )
+    }
+
+    /// A tile whose result would not fit one message is refused when the
+    /// job arrives, naming the tile size (a worker's oversized result once
+    /// closed its connection, and the job retried without end); a tile
+    /// size larger than the image is clamped to it.
+    #[test]
+    fn tiles_whose_results_would_not_fit_a_message_are_refused() {
+        let mut scene = crate::cornell_box();
+        scene.camera.width = 1500;
+        scene.camera.height = 1500;
+        let req = |scene: &Scene, tile_size: u32| {
+            crate::client::request(
+                scene,
+                JobOptions {
+                    tile_size,
+                    ..Default::default()
+                },
+            )
+        };
+        let e = validate(&req(&scene, 2048)).expect_err("1500 x 1500 pixels a tile");
+        assert!(
+            e.contains("tile of 2048 pixels") && e.contains("smaller tile size"),
+            "{e}"
+        );
+        const { assert!(1500 * 1500 > MAX_TILE_PIXELS && 1024 * 1024 <= MAX_TILE_PIXELS) };
+        assert_eq!(validate(&req(&scene, 1024)), Ok(()));
+        scene.camera.height = 400;
+        assert_eq!(
+            validate(&req(&scene, 4096)),
+            Ok(()),
+            "1500 x 400 pixels a tile"
+        );
     }
 
     /// The preview runs only where a partition or a rent-or-buy decision
