@@ -272,24 +272,7 @@ pub fn render(
             })
             .collect()
     });
-    let mut image = Image::new(cam.width, cam.height);
-    let mut variance = (opts.spp > 1).then(|| Image::new(cam.width, cam.height));
-    let mut stats = TraceStats::default();
-    for (t, px, st) in results {
-        let mut k = 0;
-        for y in t.y0..t.y1 {
-            for x in t.x0..t.x1 {
-                let i = (y * cam.width + x) as usize;
-                image.pixels[i] = px[k].mean(opts.spp);
-                if let (Some(v), Some(var)) = (variance.as_mut(), px[k].variance_of_mean(opts.spp))
-                {
-                    v.pixels[i] = var.map(|c| c as f32);
-                }
-                k += 1;
-            }
-        }
-        stats += st;
-    }
+    let (image, variance, stats) = assemble(cam.width, cam.height, opts.spp, results);
     let error_estimate = variance
         .as_ref()
         .map(|v| estimate_error(&image, v, opts.spp));
@@ -303,6 +286,33 @@ pub fn render(
         cache_memory: caches.map(|c| c.memory()),
         irradiance: ambient.map(|a| a.1),
     }
+}
+
+/// The image, each pixel mean's variance (None for one sample a pixel)
+/// and the counters, from the tiles' pixel sums.
+fn assemble(
+    width: u32,
+    height: u32,
+    spp: u32,
+    results: Vec<(Tile, Vec<PixelSum>, TraceStats)>,
+) -> (Image, Option<Image>, TraceStats) {
+    let mut image = Image::new(width, height);
+    let mut variance = (spp > 1).then(|| Image::new(width, height));
+    let mut stats = TraceStats::default();
+    for (t, px, st) in results {
+        let mut sums = px.iter();
+        for y in t.y0..t.y1 {
+            for (x, p) in (t.x0..t.x1).zip(&mut sums) {
+                let i = (y * width + x) as usize;
+                image.pixels[i] = p.mean(spp);
+                if let (Some(v), Some(var)) = (variance.as_mut(), p.variance_of_mean(spp)) {
+                    v.pixels[i] = var.map(|c| c as f32);
+                }
+            }
+        }
+        stats += st;
+    }
+    (image, variance, stats)
 }
 
 fn duration_s(d: Duration) -> f64 {
