@@ -1,5 +1,6 @@
 //! Image error metrics: the one implementation behind `locus diff` and
-//! `locus render --reference`.
+//! `locus render --reference`, and the error every report estimates from
+//! the image's own samples ([`ErrorEstimate`]).
 
 use crate::image_io::{Image, ImageError};
 use crate::passes::PixelSum;
@@ -36,40 +37,62 @@ pub struct ErrorEstimate {
     pub samples: u32,
 }
 
-/// [`ErrorEstimate`] of `image`, whose pixel means have the variances
-/// `variance` ([`variance_image`]), each from `samples` samples.
-pub fn estimate_error(image: &Image, variance: &Image, samples: u32) -> ErrorEstimate {
-    let (mut se, mut rel) = (0f64, 0f64);
-    for (m, v) in image.pixels.iter().zip(&variance.pixels) {
+/// The sums behind an [`ErrorEstimate`], pixel by pixel. One machine (from
+/// its image and variance image) and the farm's film (from its pixel sums)
+/// add the same pixels' f32 means and variances in the same row-major
+/// order, so their estimates agree to the bit.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ErrorSum {
+    se: f64,
+    rel: f64,
+    channels: usize,
+}
+
+impl ErrorSum {
+    /// Adds a pixel of mean `m` whose mean has the variance `v`.
+    #[inline]
+    pub fn add(&mut self, m: [f32; 3], v: [f32; 3]) {
         for c in 0..3 {
             let v = v[c] as f64;
-            se += v;
-            rel += v / ((m[c] as f64).powi(2) + 1e-2);
+            self.se += v;
+            self.rel += v / ((m[c] as f64).powi(2) + 1e-2);
         }
+        self.channels += 3;
     }
-    let n = (image.pixels.len().min(variance.pixels.len()) * 3).max(1) as f64;
-    ErrorEstimate {
-        rmse: (se / n).sqrt(),
-        rel_mse: rel / n,
-        samples,
+
+    /// The estimate of the pixels added, each of `samples` samples.
+    pub fn finish(&self, samples: u32) -> ErrorEstimate {
+        let n = self.channels.max(1) as f64;
+        ErrorEstimate {
+            rmse: (self.se / n).sqrt(),
+            rel_mse: self.rel / n,
+            samples,
+        }
     }
 }
 
-/// Each pixel mean's variance ([`PixelSum::variance_of_mean`]) as an image
-/// of `width` by `height` from the pixels' sums in row-major order; None
-/// for fewer than two samples a pixel, whose spread says nothing.
-pub fn variance_image<'a>(
-    width: u32,
-    height: u32,
+/// [`ErrorEstimate`] of `image`, whose pixel means have the variances
+/// `variance`, each from `samples` samples.
+pub fn estimate_error(image: &Image, variance: &Image, samples: u32) -> ErrorEstimate {
+    let mut e = ErrorSum::default();
+    for (m, v) in image.pixels.iter().zip(&variance.pixels) {
+        e.add(*m, *v);
+    }
+    e.finish(samples)
+}
+
+/// [`ErrorEstimate`] of pixels kept as their sums (row-major), each of
+/// `samples` samples; None for fewer than two samples a pixel, whose
+/// spread says nothing.
+pub fn estimate_error_of_sums<'a>(
     sums: impl IntoIterator<Item = &'a PixelSum>,
     samples: u32,
-) -> Option<Image> {
-    let mut img = Image::new(width, height);
-    for (px, s) in img.pixels.iter_mut().zip(sums) {
-        let v = s.variance_of_mean(samples)?;
-        *px = [v[0] as f32, v[1] as f32, v[2] as f32];
+) -> Option<ErrorEstimate> {
+    let mut e = ErrorSum::default();
+    for p in sums {
+        e.add(p.mean(samples), p.variance_of_mean_f32(samples)?);
     }
-    Some(img)
+    Some(e.finish(samples))
 }
 
 /// Error of `image` against `reference`.

@@ -112,6 +112,11 @@ impl PixelSum {
         let v = ((self.squares - self.sum * self.sum / n) / (n - 1.0)).max(DVec3::ZERO) / n;
         Some(v.to_array())
     }
+
+    /// [`Self::variance_of_mean`] as an image holds it (f32).
+    pub fn variance_of_mean_f32(&self, samples: u32) -> Option<[f32; 3]> {
+        self.variance_of_mean(samples).map(|v| v.map(|c| c as f32))
+    }
 }
 
 /// One pixel's samples `sample(s)`, evaluated here in the passes of

@@ -305,8 +305,8 @@ fn assemble(
             for (x, p) in (t.x0..t.x1).zip(&mut sums) {
                 let i = (y * width + x) as usize;
                 image.pixels[i] = p.mean(spp);
-                if let (Some(v), Some(var)) = (variance.as_mut(), p.variance_of_mean(spp)) {
-                    v.pixels[i] = var.map(|c| c as f32);
+                if let (Some(v), Some(var)) = (variance.as_mut(), p.variance_of_mean_f32(spp)) {
+                    v.pixels[i] = var;
                 }
             }
         }

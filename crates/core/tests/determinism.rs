@@ -6,10 +6,7 @@ use locus_core::render::{Prepared, RenderOptions, TileOrder, render};
 
 #[test]
 fn same_bits_for_any_threads_and_tile_order() {
-    let mut s = common::cornell();
-    s.camera.width = 40;
-    s.camera.height = 30;
-    s.settings.spp = 8;
+    let s = common::small_cornell(40, 30, 8);
     let prep = Prepared::new(s);
     let base = RenderOptions::from_scene(&prep.scene);
     let run = |threads, order, tile| {

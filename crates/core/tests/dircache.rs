@@ -13,10 +13,7 @@ use locus_core::render::{Prepared, RenderOptions, render};
 /// exactly zero. The image must be bit-identical to the cache-free render.
 #[test]
 fn cache_with_all_geometry_inside_the_radius_changes_no_bit() {
-    let mut scene = common::cornell();
-    scene.camera.width = 32;
-    scene.camera.height = 32;
-    scene.settings.spp = 4;
+    let mut scene = common::small_cornell(32, 32, 4);
     scene.settings.octree.max_leaf_tris = 4;
     let prep = Prepared::new(scene);
     assert!(prep.octree().leaf_count() > 4);

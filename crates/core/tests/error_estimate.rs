@@ -9,12 +9,12 @@
 
 mod common;
 use locus_core::image_io::Image;
-use locus_core::metrics::{estimate_error, variance_image};
+use locus_core::metrics::{estimate_error, estimate_error_of_sums};
 use locus_core::passes::PixelSum;
 use locus_core::render::{Prepared, RenderOptions, RenderOutput, render};
 use locus_core::sampler::Sampler;
 
-/// The mean over pixels of `term(pixel)` and its standard error.
+/// The mean of `terms` (one a pixel) and its standard error.
 fn mean_and_se(terms: &[f64]) -> (f64, f64) {
     let n = terms.len() as f64;
     let mean = terms.iter().sum::<f64>() / n;
@@ -45,10 +45,7 @@ fn terms(
 
 #[test]
 fn the_samples_spread_predicts_the_difference_between_seeds() {
-    let mut scene = common::cornell();
-    scene.camera.width = 64;
-    scene.camera.height = 64;
-    scene.settings.spp = 16;
+    let mut scene = common::small_cornell(64, 64, 16);
     scene.settings.sampler = Sampler::Independent;
     let prep = Prepared::new(scene);
     let run = |seed: u64| {
@@ -104,14 +101,14 @@ fn the_samples_spread_predicts_the_difference_between_seeds() {
     );
 }
 
-/// No variance from one sample a pixel; the estimate of a flat image with
+/// No estimate from one sample a pixel; the estimate of an image with
 /// known variances is their mean.
 #[test]
 fn the_estimate_is_the_mean_variance() {
     let mut st = locus_core::stats::TraceStats::default();
     let mut one = PixelSum::default();
     one.add(glam::Vec3::ONE, &mut st);
-    assert_eq!(variance_image(1, 1, &[one], 1), None);
+    assert_eq!(estimate_error_of_sums(&[one], 1), None);
     let mut image = Image::new(2, 1);
     image.pixels = vec![[0.0; 3], [1.0; 3]];
     let mut variance = Image::new(2, 1);

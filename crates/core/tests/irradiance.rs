@@ -13,10 +13,7 @@ use locus_core::sampler::SampleKey;
 use locus_core::stats::TraceStats;
 
 fn prepared(size: u32, max_depth: u32) -> Prepared {
-    let mut scene = common::cornell();
-    scene.camera.width = size;
-    scene.camera.height = size;
-    scene.settings.spp = 4;
+    let mut scene = common::small_cornell(size, size, 4);
     scene.settings.max_depth = max_depth;
     Prepared::new(scene)
 }

@@ -12,10 +12,11 @@ fn small_cornell() -> locus_core::scene::Scene {
 #[test]
 fn farm_matches_single_machine_bit_for_bit() {
     let scene = small_cornell();
-    let reference = single_machine(&scene);
+    let one = common::single_machine_output(&scene);
+    let reference = one.image.to_bits();
     // The error the image reports from its samples' spread, the same to
     // the bit: the farm's film adds each pass's squares in pass order too.
-    let error = common::single_machine_error(&scene);
+    let error = one.error_estimate;
     assert!(error.is_some_and(|e| e.rel_mse > 0.0), "{error:?}");
     let rt = runtime();
     rt.block_on(async {

@@ -9,7 +9,7 @@
 //! progress is O(passes) to read, not O(tiles).
 
 use locus_core::image_io::Image;
-use locus_core::metrics::{ErrorEstimate, estimate_error, variance_image};
+use locus_core::metrics::{ErrorEstimate, estimate_error_of_sums};
 use locus_core::passes::{Moments, PixelSum, passes};
 use locus_core::render::Tile;
 use locus_protocol::control::TileAssignment;
@@ -264,20 +264,13 @@ impl Film {
         img
     }
 
-    /// Each pixel mean's variance in the finished image (None before the
-    /// film is complete, or for one sample a pixel).
-    pub fn variance(&self) -> Option<Image> {
-        let height = (self.sums.len() / self.width.max(1) as usize) as u32;
-        self.is_complete()
-            .then(|| variance_image(self.width, height, &self.sums, self.spp))
-            .flatten()
-    }
-
     /// The error the finished image carries, from its samples' spread, as
-    /// one machine's report gives it (None where [`Self::variance`] is).
+    /// one machine's report gives it (None before the film is complete, or
+    /// for one sample a pixel).
     pub fn error_estimate(&self) -> Option<ErrorEstimate> {
-        self.variance()
-            .map(|v| estimate_error(&self.image(), &v, self.spp))
+        self.is_complete()
+            .then(|| estimate_error_of_sums(&self.sums, self.spp))
+            .flatten()
     }
 }
 
@@ -324,12 +317,18 @@ mod tests {
         one_machine_sums().iter().map(|p| p.mean(SPP)).collect()
     }
 
+    /// The estimate as one machine makes it: from its image and its
+    /// variance image.
     fn one_machine_estimate() -> ErrorEstimate {
         let sums = one_machine_sums();
-        let variance = variance_image(W, H, &sums, SPP).unwrap();
+        let mut variance = Image::new(W, H);
+        variance.pixels = sums
+            .iter()
+            .map(|p| p.variance_of_mean_f32(SPP).unwrap())
+            .collect();
         let mut image = Image::new(W, H);
         image.pixels = one_machine();
-        estimate_error(&image, &variance, SPP)
+        locus_core::metrics::estimate_error(&image, &variance, SPP)
     }
 
     fn one_machine_sums() -> Vec<PixelSum> {

@@ -14,6 +14,15 @@ pub fn cornell() -> Scene {
     Scene::load(&repo_root().join("scenes/cornell-box/cornell.toml")).expect("cornell box loads")
 }
 
+/// The Cornell box at `width` x `height` pixels and `spp` samples a pixel.
+pub fn small_cornell(width: u32, height: u32, spp: u32) -> Scene {
+    let mut s = cornell();
+    s.camera.width = width;
+    s.camera.height = height;
+    s.settings.spp = spp;
+    s
+}
+
 pub fn camera(position: Vec3, look_at: Vec3, fov_y: f32, w: u32, h: u32) -> Camera {
     Camera {
         position,

@@ -49,18 +49,16 @@ pub fn runtime() -> tokio::runtime::Runtime {
 
 /// The single-machine image's bits (no caches).
 pub fn single_machine(scene: &Scene) -> Vec<u32> {
-    let prep = Prepared::new(scene.clone());
-    let mut o = RenderOptions::from_scene(scene);
-    o.threads = 2;
-    render(&prep, &o, &|_, _| {}).image.to_bits()
+    single_machine_output(scene).image.to_bits()
 }
 
-/// The error one machine's render of `scene` reports from its samples.
-pub fn single_machine_error(scene: &Scene) -> Option<locus_core::metrics::ErrorEstimate> {
+/// One machine's render of `scene` on 2 threads: its image and the error
+/// it reports.
+pub fn single_machine_output(scene: &Scene) -> locus_core::render::RenderOutput {
     let prep = Prepared::new(scene.clone());
     let mut o = RenderOptions::from_scene(scene);
     o.threads = 2;
-    render(&prep, &o, &|_, _| {}).error_estimate
+    render(&prep, &o, &|_, _| {})
 }
 
 /// A farm result's image bits.
