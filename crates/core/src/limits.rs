@@ -28,6 +28,18 @@ pub fn check_settings(spp: u32, max_depth: u32) -> Result<(), String> {
     Ok(())
 }
 
+/// Checks a noise target (the estimated relMSE at which a render stops):
+/// a positive, finite number.
+pub fn check_target(target: f64) -> Result<(), String> {
+    if target.is_finite() && target > 0.0 {
+        Ok(())
+    } else {
+        Err(format!(
+            "target_rel_mse {target} must be a positive number (an estimated relMSE, such as 1e-3)"
+        ))
+    }
+}
+
 /// Refuses an image whose `copies` films (each [`film_bytes`]) would not
 /// fit the memory available to this process, saying how much it needs;
 /// `who` names the machine's role in the message ("the scheduler").

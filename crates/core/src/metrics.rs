@@ -95,6 +95,19 @@ pub fn estimate_error_of_sums<'a>(
     Some(e.finish(samples))
 }
 
+/// Whether a render with a noise target may stop after a pass: the
+/// estimate of its pixels' sums so far (row-major, each of `samples`
+/// samples) is at or below `target` (a relMSE). Never below two samples a
+/// pixel, whose spread says nothing. One machine and the farm's film ask it
+/// of the same sums at the same pass ends, so they stop at the same pass.
+pub fn meets_target<'a>(
+    sums: impl IntoIterator<Item = &'a PixelSum>,
+    samples: u32,
+    target: f64,
+) -> bool {
+    estimate_error_of_sums(sums, samples).is_some_and(|e| e.rel_mse <= target)
+}
+
 /// Error of `image` against `reference`.
 pub fn compare(image: &Image, reference: &Image) -> Result<ErrorMetrics, ImageError> {
     if (image.width, image.height) != (reference.width, reference.height) {

@@ -132,14 +132,26 @@ pub fn pixel_mean(
 ) -> PixelSum {
     let mut total = PixelSum::default();
     for pass in passes(spp) {
-        let mut p = PixelSum::default();
-        for s in pass {
-            let l = sample(s, st);
-            p.add(l, st);
-        }
-        total.add_pass(p.total());
+        total.add_pass(pass_sum(pass, st, &mut sample));
     }
     total
+}
+
+/// One pass of a pixel's samples `sample(s)`, summed in index order: what
+/// [`pixel_mean`] adds pass by pass, and what a render that stops at a
+/// noise target renders one pass of the whole image at a time with.
+#[inline]
+pub fn pass_sum(
+    pass: Range<u32>,
+    st: &mut TraceStats,
+    mut sample: impl FnMut(u32, &mut TraceStats) -> Vec3,
+) -> Moments {
+    let mut p = PixelSum::default();
+    for s in pass {
+        let l = sample(s, st);
+        p.add(l, st);
+    }
+    p.total()
 }
 
 #[cfg(test)]

@@ -12,9 +12,9 @@ use crate::image_io::Image;
 use crate::irradiance::IrradianceParams;
 use crate::irradiance::overture::{self, OvertureStats};
 use crate::light::LightSet;
-use crate::metrics::{ErrorEstimate, estimate_error};
+use crate::metrics::{ErrorEstimate, estimate_error, meets_target};
 use crate::octree::Octree;
-use crate::passes::{PixelSum, pixel_mean};
+use crate::passes::{PixelSum, pass_sum, passes, pixel_mean};
 use crate::path::{CacheUse, ChainVertex, Kernel, WholeScene};
 use crate::sampler::{Sampler, mix64};
 use crate::scene::Scene;
@@ -126,6 +126,9 @@ pub struct RenderOptions {
     pub cache: Option<CacheParams>,
     /// Ward's irradiance cache at the first vertex.
     pub irradiance: Option<IrradianceParams>,
+    /// Stop after the first pass whose estimated relMSE is at or below
+    /// this; `spp` is then the most a pixel gets.
+    pub target_rel_mse: Option<f64>,
 }
 
 impl RenderOptions {
@@ -140,6 +143,7 @@ impl RenderOptions {
             tile_order: TileOrder::Scanline,
             cache: None,
             irradiance: None,
+            target_rel_mse: scene.settings.target_rel_mse,
         }
     }
 }
@@ -203,6 +207,9 @@ pub fn render_pixel(
 
 pub struct RenderOutput {
     pub image: Image,
+    /// Samples each pixel got: `spp`, or fewer where a noise target was
+    /// met at the end of an earlier pass.
+    pub spp: u32,
     pub stats: TraceStats,
     pub render_s: f64,
     /// Each pixel mean's variance, from its samples' spread (None for one
@@ -223,7 +230,6 @@ pub fn render(
     opts: &RenderOptions,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> RenderOutput {
-    use rayon::prelude::*;
     let cam = &prep.scene.camera;
     let caches = opts
         .cache
@@ -239,7 +245,9 @@ pub fn render(
     kernel.sampler = opts.sampler;
     let tracer = WholeScene(&prep.accel);
     let tl = tiles(cam.width, cam.height, opts.tile_size, opts.tile_order);
-    let total = tl.len();
+    // A render with a noise target goes over every tile once a pass.
+    let rounds = opts.target_rel_mse.map_or(1, |_| passes(opts.spp).len());
+    let total = tl.len() * rounds;
     let done = AtomicUsize::new(0);
     let start = Instant::now();
     let pool = rayon::ThreadPoolBuilder::new()
@@ -254,31 +262,22 @@ pub fn render(
         pool.install(|| overture::build(&kernel.without_caches(), &tracer, p, &bounds))
     });
     kernel.irradiance = ambient.as_ref().map(|a| &a.0);
-    let results: Vec<(Tile, Vec<PixelSum>, TraceStats)> = pool.install(|| {
-        tl.par_iter()
-            .map(|t| {
-                let mut st = TraceStats::default();
-                let mut px = Vec::with_capacity(((t.x1 - t.x0) * (t.y1 - t.y0)) as usize);
-                let mut chain = Vec::with_capacity(kernel.max_depth as usize + 1);
-                for y in t.y0..t.y1 {
-                    for x in t.x0..t.x1 {
-                        let p =
-                            render_pixel(&kernel, &tracer, (x, y), opts.spp, &mut chain, &mut st);
-                        px.push(p);
-                    }
-                }
-                progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
-                (*t, px, st)
-            })
-            .collect()
-    });
-    let (image, variance, stats) = assemble(cam.width, cam.height, opts.spp, results);
-    let error_estimate = variance
-        .as_ref()
-        .map(|v| estimate_error(&image, v, opts.spp));
+    let tick = || progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
+    let (spp, results) = match opts.target_rel_mse {
+        None => {
+            let pixel = |x, y, chain: &mut _, st: &mut _| {
+                render_pixel(&kernel, &tracer, (x, y), opts.spp, chain, st)
+            };
+            (opts.spp, render_tiles(&pool, &tl, &tick, pixel))
+        }
+        Some(target) => render_to_target(&pool, &tl, &kernel, &tracer, opts.spp, target, &tick),
+    };
+    let (image, variance, stats) = assemble(cam.width, cam.height, spp, results);
+    let error_estimate = variance.as_ref().map(|v| estimate_error(&image, v, spp));
     let render_s = duration_s(start.elapsed());
     RenderOutput {
         image,
+        spp,
         stats,
         render_s,
         variance,
@@ -288,13 +287,94 @@ pub fn render(
     }
 }
 
+/// A tile's pixels' sums and what tracing them counted.
+type TileSums = (Tile, Vec<PixelSum>, TraceStats);
+
+/// Each pixel of `tiles` as `pixel(x, y, chain, stats)` sums it, tiles in
+/// parallel on `pool`; `tick` after each tile.
+fn render_tiles(
+    pool: &rayon::ThreadPool,
+    tiles: &[Tile],
+    tick: &(dyn Fn() + Sync),
+    pixel: impl Fn(u32, u32, &mut Vec<ChainVertex>, &mut TraceStats) -> PixelSum + Sync,
+) -> Vec<TileSums> {
+    use rayon::prelude::*;
+    pool.install(|| {
+        tiles
+            .par_iter()
+            .map(|t| {
+                let mut st = TraceStats::default();
+                let mut px = Vec::with_capacity(t.pixels() as usize);
+                let mut chain = Vec::new();
+                for y in t.y0..t.y1 {
+                    for x in t.x0..t.x1 {
+                        px.push(pixel(x, y, &mut chain, &mut st));
+                    }
+                }
+                tick();
+                (*t, px, st)
+            })
+            .collect()
+    })
+}
+
+/// A render with a noise target: the whole image one pass at a time
+/// ([`passes`]), each pixel's passes added in pass order as
+/// [`pixel_mean`] adds them (so a render that runs every pass is the same
+/// to the bit as one without a target), until the estimate of the sums so
+/// far meets `target` ([`meets_target`], which the farm's film asks at the
+/// same pass ends) or `spp` is reached. Returns the samples each pixel got
+/// and the image's sums as one tile.
+fn render_to_target(
+    pool: &rayon::ThreadPool,
+    tiles: &[Tile],
+    kernel: &Kernel,
+    tracer: &WholeScene,
+    spp: u32,
+    target: f64,
+    tick: &(dyn Fn() + Sync),
+) -> (u32, Vec<TileSums>) {
+    let cam = kernel.camera;
+    let (w, h) = (cam.width, cam.height);
+    let mut film = vec![PixelSum::default(); w as usize * h as usize];
+    let mut stats = TraceStats::default();
+    let mut done = 0;
+    for pass in passes(spp) {
+        let pixel = |x, y, chain: &mut _, st: &mut _| {
+            let sample = |s, st: &mut _| kernel.sample(tracer, x, y, s, chain, st);
+            PixelSum::from_total(pass_sum(pass.clone(), st, sample))
+        };
+        for (t, px, st) in render_tiles(pool, tiles, tick, pixel) {
+            let mut px = px.iter();
+            for y in t.y0..t.y1 {
+                let row = (y * w + t.x0) as usize..(y * w + t.x1) as usize;
+                for (f, p) in film[row].iter_mut().zip(&mut px) {
+                    f.add_pass(p.total());
+                }
+            }
+            stats += st;
+        }
+        done = pass.end;
+        if meets_target(&film, done, target) {
+            break;
+        }
+    }
+    let whole = Tile {
+        x0: 0,
+        y0: 0,
+        x1: w,
+        y1: h,
+    };
+    (done, vec![(whole, film, stats)])
+}
+
 /// The image, each pixel mean's variance (None for one sample a pixel)
 /// and the counters, from the tiles' pixel sums.
 fn assemble(
     width: u32,
     height: u32,
     spp: u32,
-    results: Vec<(Tile, Vec<PixelSum>, TraceStats)>,
+    results: Vec<TileSums>,
 ) -> (Image, Option<Image>, TraceStats) {
     let mut image = Image::new(width, height);
     let mut variance = (spp > 1).then(|| Image::new(width, height));

@@ -37,6 +37,9 @@ pub struct RenderReport {
     /// The error the image carries, from its samples' spread: the report's
     /// error where no reference is given.
     pub error_estimate: Option<ErrorEstimate>,
+    /// Samples each pixel got: `options.spp`, or fewer where
+    /// `options.target_rel_mse` was met at an earlier pass's end.
+    pub spp_rendered: u32,
     /// What the directional caches held at the end (when on).
     pub cache_memory: Option<crate::dircache::CacheMemory>,
     /// How the irradiance cache was built (when on); its time is part of

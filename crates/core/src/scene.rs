@@ -103,6 +103,10 @@ pub struct RenderSettings {
     pub seed: u64,
     pub sampler: Sampler,
     pub octree: OctreeParams,
+    /// Stop at the end of the first pass whose estimated relMSE is at or
+    /// below this ([`crate::metrics::meets_target`]); `spp` is then the
+    /// most samples a pixel gets.
+    pub target_rel_mse: Option<f64>,
 }
 
 impl Default for RenderSettings {
@@ -113,6 +117,7 @@ impl Default for RenderSettings {
             seed: 0,
             sampler: Sampler::default(),
             octree: OctreeParams::default(),
+            target_rel_mse: None,
         }
     }
 }
@@ -188,6 +193,9 @@ struct RenderDesc {
     /// "sobol" (the default) or "independent".
     #[serde(default)]
     sampler: Sampler,
+    /// Stop once the estimated relMSE is at or below this.
+    #[serde(default)]
+    target_rel_mse: Option<f64>,
 }
 fn d_spp() -> u32 {
     16
@@ -202,6 +210,7 @@ impl Default for RenderDesc {
             max_depth: d_depth(),
             seed: 0,
             sampler: Sampler::default(),
+            target_rel_mse: None,
         }
     }
 }
@@ -393,12 +402,17 @@ impl Scene {
             let at = text.find("[render]").unwrap_or(0);
             return Err(invalid(at..at, why));
         }
+        if let Some(Err(why)) = desc.render.target_rel_mse.map(crate::limits::check_target) {
+            let at = text.find("target_rel_mse").unwrap_or(0);
+            return Err(invalid(at..at, why));
+        }
         let settings = RenderSettings {
             spp: desc.render.spp.max(1),
             max_depth: desc.render.max_depth,
             seed: desc.render.seed,
             sampler: desc.render.sampler,
             octree,
+            target_rel_mse: desc.render.target_rel_mse,
         };
 
         let mut b = Builder::default();

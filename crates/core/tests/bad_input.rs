@@ -65,6 +65,12 @@ fn each_corpus_file_gets_its_error() {
             |l| matches!(l, Location::Line { line: 7, .. }),
         ),
         (
+            "toml_negative_target.toml",
+            "toml_negative_target.toml",
+            "Invalid",
+            |l| matches!(l, Location::Line { line: 9, .. }),
+        ),
+        (
             "toml_deep_paths.toml",
             "toml_deep_paths.toml",
             "Invalid",

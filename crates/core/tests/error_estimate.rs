@@ -118,3 +118,45 @@ fn the_estimate_is_the_mean_variance() {
     let rel = (0.02 / 1e-2 + 0.04 / (1.0 + 1e-2)) / 2.0;
     assert!((e.rel_mse - rel).abs() < 1e-7, "{e:?}");
 }
+
+/// One machine's render of `scene` at `spp` with the noise target `target`.
+fn render_to(scene: &locus_core::scene::Scene, spp: u32, target: Option<f64>) -> RenderOutput {
+    let prep = Prepared::new(scene.clone());
+    let mut o = RenderOptions::from_scene(scene);
+    o.spp = spp;
+    o.threads = 2;
+    o.target_rel_mse = target;
+    render(&prep, &o, &|_, _| {})
+}
+
+/// A noise target stops the render at the end of the first pass whose
+/// estimate meets it, and the image is then the one a render of that many
+/// samples gives, to the bit (the passes of 16 samples begin with those of
+/// 2, 4 and 8); a target never met renders every pass, the same to the bit
+/// as a render without one.
+#[test]
+fn a_noise_target_stops_at_the_first_pass_that_meets_it() {
+    let scene = common::small_cornell(24, 20, 16);
+    let at: Vec<RenderOutput> = [2, 4, 8, 16].map(|spp| render_to(&scene, spp, None)).into();
+    let rel = |o: &RenderOutput| o.error_estimate.expect("two samples or more").rel_mse;
+    for w in at.windows(2) {
+        assert!(rel(&w[1]) < rel(&w[0]), "more samples, less error");
+    }
+    // Between the estimates at 4 and 8 samples: met at 8, not at 4.
+    let target = (rel(&at[1]) * rel(&at[2])).sqrt();
+    let cases = [
+        (Some(1e9), 0),
+        (Some(target), 2),
+        (Some(rel(&at[3])), 3),
+        (Some(1e-12), 3),
+        (None, 3),
+    ];
+    for (target, stop) in cases {
+        let o = render_to(&scene, 16, target);
+        let want = &at[stop];
+        assert_eq!(o.spp, want.spp, "target {target:?}");
+        assert_eq!(o.image.to_bits(), want.image.to_bits(), "target {target:?}");
+        assert_eq!(o.error_estimate, want.error_estimate, "target {target:?}");
+        assert_eq!(o.stats.samples, want.stats.samples, "target {target:?}");
+    }
+}

@@ -312,6 +312,10 @@ pub(crate) struct SubmitArgs {
     /// The sample sequence: sobol (the scene's default) or independent.
     #[arg(long)]
     pub(crate) sampler: Option<locus_core::sampler::Sampler>,
+    /// Stop at the end of the first pass whose estimated relMSE is at or
+    /// below this (e.g. 1e-3); --spp is then the most a pixel gets.
+    #[arg(long)]
+    pub(crate) target_rel_mse: Option<f64>,
     #[arg(long)]
     pub(crate) reference: Option<PathBuf>,
     #[arg(long, default_value_t = 1.0)]
@@ -362,6 +366,10 @@ pub(crate) struct RenderArgs {
     /// The sample sequence: sobol (the scene's default) or independent.
     #[arg(long)]
     pub(crate) sampler: Option<locus_core::sampler::Sampler>,
+    /// Stop at the end of the first pass whose estimated relMSE is at or
+    /// below this (e.g. 1e-3); --spp is then the most a pixel gets.
+    #[arg(long)]
+    pub(crate) target_rel_mse: Option<f64>,
     /// Compute threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     pub(crate) threads: usize,

@@ -86,7 +86,7 @@ pub(crate) fn write_farm_result(
         output.display(),
         r.width,
         r.height,
-        f.spp,
+        f.spp_rendered,
         f.workers.len(),
         f.partitioner,
         png.display(),
@@ -188,6 +188,12 @@ pub(crate) fn write_farm_result(
         );
     }
     print_error(f.error_estimate.as_ref(), &f.sampler, error.as_ref());
+    print_target(
+        f.target_rel_mse,
+        f.error_estimate.as_ref(),
+        f.spp_rendered,
+        f.spp,
+    );
     Ok(())
 }
 
@@ -211,5 +217,22 @@ pub(crate) fn print_error(
     }
     if let Some(e) = reference {
         println!("error vs reference: {e}");
+    }
+}
+
+/// Says whether a render with a noise target met it (its final estimate is
+/// the one the last pass was judged by), at `rendered` samples a pixel of
+/// at most `spp`.
+pub(crate) fn print_target(
+    target: Option<f64>,
+    estimate: Option<&ErrorEstimate>,
+    rendered: u32,
+    spp: u32,
+) {
+    let Some(t) = target else { return };
+    if estimate.is_some_and(|e| e.rel_mse <= t) {
+        println!("noise target {t:.3e} met after {rendered} of at most {spp} spp");
+    } else {
+        println!("noise target {t:.3e} not met within {spp} spp: raise --spp to go on");
     }
 }

@@ -484,3 +484,61 @@ fn the_irradiance_cache_keeps_the_bits_on_the_farm() {
         farm.stop().await.expect("clean stop");
     });
 }
+
+/// A noise target on the farm: the scheduler hands out a pass only once
+/// the one before is in, judges the film at each pass end as one machine
+/// judges its image, and stops at the same pass with the same image, to the
+/// bit, under every policy.
+#[test]
+fn a_noise_target_stops_the_farm_where_it_stops_one_machine() {
+    let mut scene = common::small_cornell(40, 32, 5);
+    // Between the estimates after 4 and 8 samples (the passes of 16
+    // samples end at 1, 2, 4, 8 and 16): met after 8.
+    let estimate = |spp| {
+        let mut s = scene.clone();
+        s.settings.spp = spp;
+        let o = common::single_machine_output(&s);
+        o.error_estimate.expect("two samples or more").rel_mse
+    };
+    let (at_4, at_8) = (estimate(4), estimate(8));
+    assert!(at_8 < at_4);
+    scene.settings.spp = 16;
+    scene.settings.target_rel_mse = Some((at_4 * at_8).sqrt());
+    let one = common::single_machine_output(&scene);
+    assert_eq!(one.spp, 8, "stopped after the fourth pass");
+    let reference = one.image.to_bits();
+    let rt = runtime();
+    rt.block_on(async {
+        for (workers, fetch) in [
+            (2usize, FetchPolicy::Forward),
+            (3, FetchPolicy::Forward),
+            (3, FetchPolicy::Adaptive),
+        ] {
+            let farm = locus::farm::LocalFarm::start(workers, 1)
+                .await
+                .expect("farm");
+            let opts = JobOptions {
+                workers: workers as u32,
+                tile_size: 8,
+                fetch,
+                ..Default::default()
+            };
+            let req = locus_scheduler::client::request(&scene, opts);
+            let r = farm.render(req, &|_, _| {}).await.expect("job");
+            let rep = &r.report;
+            let what = format!("{workers} workers, {fetch:?}");
+            assert_eq!(bits(&r), reference, "{what}");
+            assert_eq!(rep.spp_rendered, one.spp, "{what}");
+            assert_eq!(rep.spp, 16, "{what}");
+            assert_eq!(rep.error_estimate, one.error_estimate, "{what}");
+            assert_eq!(rep.target_rel_mse, scene.settings.target_rel_mse);
+            // Only the passes kept were rendered.
+            assert_eq!(
+                rep.totals.trace.samples,
+                (40 * 32 * one.spp) as u64,
+                "{what}"
+            );
+            farm.stop().await.expect("clean stop");
+        }
+    });
+}

@@ -217,6 +217,11 @@ pub struct FarmReport {
     /// The error the image carries, from its samples' spread (as one
     /// machine's report gives it); None for one sample a pixel.
     pub error_estimate: Option<locus_core::metrics::ErrorEstimate>,
+    /// The noise target (an estimated relMSE) the job stopped at, if any.
+    pub target_rel_mse: Option<f64>,
+    /// Samples each pixel got: `spp`, or fewer where the noise target was
+    /// met at an earlier pass's end.
+    pub spp_rendered: u32,
 }
 
 /// How the irradiance cache's records were made and shared: measured

@@ -2,6 +2,15 @@
 //! ([`locus_core::passes`]), added in pass order however the passes
 //! arrive, so that the image is bit-identical to one machine's.
 //!
+//! With a noise target (`target_rel_mse`), the film is judged whenever a
+//! pass is complete, as one machine judges its image after each pass
+//! ([`locus_core::metrics::meets_target`] of the same sums): once the
+//! estimate meets the target, no later pass is rendered. For that, no tile
+//! may hold a later pass than the others when one is judged, so the
+//! scheduler hands out a pass only once the one before is complete
+//! ([`Film::open_passes`]): a barrier at each pass end, paid only by jobs
+//! with a target.
+//!
 //! A tile's pass that arrives before an earlier pass of the same tile is
 //! held until that one is in. The scheduler hands passes out in order
 //! (every tile of a pass before the next pass), so what is held is
@@ -9,7 +18,7 @@
 //! progress is O(passes) to read, not O(tiles).
 
 use locus_core::image_io::Image;
-use locus_core::metrics::{ErrorEstimate, estimate_error_of_sums};
+use locus_core::metrics::{ErrorEstimate, estimate_error_of_sums, meets_target};
 use locus_core::passes::{Moments, PixelSum, passes};
 use locus_core::render::Tile;
 use locus_protocol::control::TileAssignment;
@@ -56,6 +65,11 @@ pub struct Film {
     /// Passes that came before an earlier pass of their tile.
     early: BTreeMap<Unit, Vec<Moments>>,
     samples_done: u64,
+    /// The noise target (an estimated relMSE), if the job has one.
+    target: Option<f64>,
+    /// The passes kept once the target was met: later ones are never
+    /// rendered.
+    kept: Option<u32>,
 }
 
 impl Film {
@@ -73,7 +87,51 @@ impl Film {
             sums: vec![PixelSum::default(); width as usize * height as usize],
             early: BTreeMap::new(),
             samples_done: 0,
+            target: None,
+            kept: None,
         }
+    }
+
+    /// The film of a job with a noise target: it stops after the first
+    /// pass whose estimated relMSE is at or below `target`.
+    pub fn with_target(mut self, target: Option<f64>) -> Self {
+        self.target = target;
+        self
+    }
+
+    /// How many passes may be handed out: every pass, or with a noise
+    /// target those up to the first incomplete one (none past the passes
+    /// kept once it is met).
+    pub fn open_passes(&self) -> u32 {
+        let all = self.passes.len() as u32;
+        match (self.target, self.kept) {
+            (_, Some(k)) => k,
+            (Some(_), None) => (self.pass() + 1).min(all),
+            (None, None) => all,
+        }
+    }
+
+    /// Judges the film against its target once pass `k - 1` is complete
+    /// and no tile holds a later one (the pixels' sums are then those of
+    /// `k` passes everywhere).
+    fn judge(&mut self, k: u32) {
+        let (Some(t), None) = (self.target, self.kept) else {
+            return;
+        };
+        if k == 0 || k as usize >= self.passes.len() || self.complete[k as usize] > 0 {
+            return;
+        }
+        let samples = self.passes[k as usize - 1].end;
+        if meets_target(&self.sums, samples, t) {
+            self.kept = Some(k);
+            self.early.retain(|u, _| u.pass < k);
+        }
+    }
+
+    /// After tiles were restored from the store: judges the film as the
+    /// running job would have when its last complete pass came in.
+    pub fn resume(&mut self) {
+        self.judge(self.pass());
     }
 
     pub fn tiles(&self) -> &[Tile] {
@@ -110,7 +168,7 @@ impl Film {
     pub fn missing(&self) -> Vec<Unit> {
         (0..self.passes.len() as u32)
             .flat_map(|pass| (0..self.tiles.len() as u32).map(move |tile| Unit { tile, pass }))
-            .filter(|&u| !self.has(u))
+            .filter(|&u| !self.has(u) && u.pass < self.kept_or_all())
             .collect()
     }
 
@@ -120,7 +178,7 @@ impl Film {
         let Some(t) = self.tiles.get(u.tile as usize) else {
             return Err(Refused::Unknown);
         };
-        if u.pass as usize >= self.passes.len() {
+        if u.pass as usize >= self.passes.len() || u.pass >= self.kept_or_all() {
             return Err(Refused::Unknown);
         }
         if sums.len() != t.pixels() as usize {
@@ -178,6 +236,23 @@ impl Film {
         self.samples_done += t.pixels() as u64 * (r.end - r.start) as u64;
         self.complete[pass as usize] += 1;
         self.passes_in[tile as usize] += 1;
+        if self.complete[pass as usize] == self.tiles.len() as u32 {
+            self.judge(pass + 1);
+        }
+    }
+
+    /// The passes the film ends with: all, or those kept at the target.
+    fn kept_or_all(&self) -> u32 {
+        self.kept.unwrap_or(self.passes.len() as u32)
+    }
+
+    /// Samples each pixel has once every tile's passes so far are in: the
+    /// image's samples per pixel when the film is complete.
+    pub fn spp_done(&self) -> u32 {
+        match self.pass() {
+            0 => 0,
+            k => self.passes[k as usize - 1].end,
+        }
     }
 
     /// What the store keeps of tile `tile`.
@@ -240,8 +315,10 @@ impl Film {
         (self.units().0, self.samples_done)
     }
 
+    /// Whether every pass is in, or every pass kept once the noise target
+    /// was met.
     pub fn is_complete(&self) -> bool {
-        self.pass() as usize == self.passes.len()
+        self.pass() == self.kept_or_all()
     }
 
     /// The image so far: each pixel the mean of its tile's passes in (the
@@ -269,7 +346,7 @@ impl Film {
     /// for one sample a pixel).
     pub fn error_estimate(&self) -> Option<ErrorEstimate> {
         self.is_complete()
-            .then(|| estimate_error_of_sums(&self.sums, self.spp))
+            .then(|| estimate_error_of_sums(&self.sums, self.spp_done()))
             .flatten()
     }
 }
@@ -445,5 +522,103 @@ mod tests {
                 (f.tiles().len() * f.passes().len()) as u64
             )
         );
+    }
+
+    /// One machine's sums after the first `k` passes of [`SPP`], pass by
+    /// pass as a render with a noise target adds them.
+    fn sums_after(k: usize) -> Vec<PixelSum> {
+        let mut st = TraceStats::default();
+        (0..H)
+            .flat_map(|y| (0..W).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let mut p = PixelSum::default();
+                for pass in passes(SPP).into_iter().take(k) {
+                    let m = locus_core::passes::pass_sum(pass, &mut st, |s, _| sample(x, y, s));
+                    p.add_pass(m);
+                }
+                p
+            })
+            .collect()
+    }
+
+    /// Adds every unit of the passes open now; returns how many.
+    fn add_open(f: &mut Film) -> usize {
+        let open: Vec<Unit> = f
+            .missing()
+            .into_iter()
+            .filter(|u| u.pass < f.open_passes())
+            .collect();
+        for u in &open {
+            let s = render(f, *u);
+            f.add(*u, s).unwrap();
+        }
+        open.len()
+    }
+
+    #[test]
+    fn a_noise_target_opens_one_pass_at_a_time_and_stops_where_one_machine_does() {
+        // 13 spp: passes end at 2, 4, 7 and 13 samples. A target between
+        // the estimates after 4 and after 7 samples is met after 7.
+        let est = |k: usize| {
+            let end = passes(SPP)[k - 1].end;
+            locus_core::metrics::estimate_error_of_sums(&sums_after(k), end).unwrap()
+        };
+        let target = (est(2).rel_mse * est(3).rel_mse).sqrt();
+        assert!(est(3).rel_mse < target && target < est(2).rel_mse);
+        let mut f = film().with_target(Some(target));
+        assert_eq!(f.open_passes(), 1, "the first pass alone");
+        for pass in 0..3u32 {
+            assert_eq!(f.pass(), pass);
+            assert_eq!(f.open_passes(), pass + 1, "the next pass waits");
+            assert!(!f.is_complete());
+            assert_eq!(add_open(&mut f), f.tiles().len());
+        }
+        assert!(f.is_complete(), "met after the third pass");
+        assert_eq!(f.open_passes(), 3, "the fourth is never handed out");
+        assert!(f.missing().is_empty());
+        assert_eq!(f.spp_done(), 7);
+        let want: Vec<[f32; 3]> = sums_after(3).iter().map(|p| p.mean(7)).collect();
+        assert_eq!(f.image().pixels, want);
+        assert_eq!(f.error_estimate(), Some(est(3)));
+        let late = Unit { tile: 0, pass: 3 };
+        let s = render(&f, late);
+        assert_eq!(f.add(late, s), Err(Refused::Unknown));
+
+        // A scheduler restarted on its stored tiles judges them as the
+        // running job did: stopped when every tile holds the passes kept,
+        // going on when some hold a pass more than the others (then the
+        // earlier pass was judged and not met).
+        let mut again = film().with_target(Some(target));
+        for t in 0..f.tiles().len() as u32 {
+            assert!(again.restore(t, f.tile_sums(t)));
+        }
+        again.resume();
+        assert!(again.is_complete());
+        assert_eq!(again.error_estimate(), Some(est(3)));
+        let mut mixed = film().with_target(Some(target));
+        add_open(&mut mixed);
+        add_open(&mut mixed);
+        let u = Unit { tile: 1, pass: 2 };
+        let s = render(&mixed, u);
+        mixed.add(u, s).unwrap();
+        let mut resumed = film().with_target(Some(target));
+        for t in 0..mixed.tiles().len() as u32 {
+            assert!(resumed.restore(t, mixed.tile_sums(t)));
+        }
+        resumed.resume();
+        assert!(!resumed.is_complete());
+        assert_eq!(resumed.open_passes(), 3);
+        while !resumed.is_complete() {
+            assert!(add_open(&mut resumed) > 0);
+        }
+        assert_eq!(resumed.image().pixels, want);
+
+        // A target never met renders every pass, as without one.
+        let mut all = film().with_target(Some(1e-30));
+        while !all.is_complete() {
+            add_open(&mut all);
+        }
+        assert_eq!(all.image().pixels, one_machine());
+        assert_eq!(all.error_estimate(), Some(one_machine_estimate()));
     }
 }

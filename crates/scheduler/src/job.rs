@@ -180,6 +180,9 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     }
     let s = &req.settings;
     locus_core::limits::check_settings(s.spp, s.max_depth)?;
+    if let Some(t) = s.target_rel_mse {
+        locus_core::limits::check_target(t)?;
+    }
     // The film's f64 sums (two f32 films' worth), and an image made from
     // them (a preview being encoded, or the result).
     locus_core::limits::check_film(c.width, c.height, 3, "the scheduler")?;
@@ -626,6 +629,22 @@ mod tests {
             Ok(()),
             "1500 x 400 pixels a tile"
         );
+    }
+
+    /// A client's noise target that is not a positive number is refused
+    /// when the job arrives (a NaN would never be met, a negative one
+    /// neither).
+    #[test]
+    fn a_noise_target_must_be_a_positive_number() {
+        let mut scene = crate::cornell_box();
+        for (t, ok) in [(1e-3, true), (0.0, false), (-1.0, false), (f64::NAN, false)] {
+            scene.settings.target_rel_mse = Some(t);
+            let r = validate(&crate::client::request(&scene, JobOptions::default()));
+            assert_eq!(r.is_ok(), ok, "{t}: {r:?}");
+            if let Err(e) = r {
+                assert!(e.contains("target_rel_mse"), "{e}");
+            }
+        }
     }
 
     /// The preview runs only where a partition or a rent-or-buy decision

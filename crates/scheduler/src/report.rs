@@ -112,5 +112,7 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         recovery: j.recovery.clone(),
         irradiance: j.overture.as_ref().map(|o| o.report()),
         error_estimate: j.film.error_estimate(),
+        target_rel_mse: j.req.settings.target_rel_mse,
+        spp_rendered: j.film.spp_done(),
     }
 }

@@ -123,15 +123,25 @@ impl TileQueue {
 
     /// The next tile pass for worker `w`: its own or a shared one,
     /// whichever is of the earlier pass (its own on a tie), so that no
-    /// worker runs passes ahead of the image.
-    pub fn next_for(&mut self, w: usize) -> Option<Unit> {
+    /// worker runs passes ahead of the image; None if it is of a pass not
+    /// yet `open` (see [`crate::film::Film::open_passes`]) or none is left.
+    pub fn next_for(&mut self, w: usize, open: u32) -> Option<Unit> {
         let shared_pass = self.shared.front().map(|u| u.pass);
-        let own = self.own.get_mut(w);
-        match (own, shared_pass) {
-            (Some(q), Some(sp)) if q.front().is_some_and(|u| u.pass <= sp) => q.pop_front(),
-            (Some(q), None) => q.pop_front(),
-            _ => self.shared.pop_front(),
+        let own_pass = self.own.get(w).and_then(|q| q.front()).map(|u| u.pass);
+        let q = match (own_pass, shared_pass) {
+            (Some(o), Some(s)) if o <= s => &mut self.own[w],
+            (Some(_), None) => &mut self.own[w],
+            _ => &mut self.shared,
+        };
+        if q.front()?.pass >= open {
+            return None;
         }
+        q.pop_front()
+    }
+
+    /// Whether any tile pass is left that worker `w` could be given.
+    pub fn has_for(&self, w: usize) -> bool {
+        !self.shared.is_empty() || self.own.get(w).is_some_and(|q| !q.is_empty())
     }
 
     /// Returns a unit `next_for` gave that could not be handed out (its
@@ -158,7 +168,7 @@ mod tests {
 
     fn tiles(q: &mut TileQueue, w: usize, n: usize) -> Vec<(u32, u32)> {
         (0..n)
-            .map_while(|_| q.next_for(w))
+            .map_while(|_| q.next_for(w, u32::MAX))
             .map(|u| (u.tile, u.pass))
             .collect()
     }
@@ -175,7 +185,7 @@ mod tests {
         // Worker 1: its own, in order.
         assert_eq!(tiles(&mut q, 1, 3), [(3, 0), (0, 0), (4, 0)]);
         assert_eq!(tiles(&mut q, 0, 9), [(1, 0)]);
-        assert_eq!(q.next_for(9), None);
+        assert_eq!(q.next_for(9, u32::MAX), None);
         assert!(q.is_empty());
     }
 
@@ -189,6 +199,25 @@ mod tests {
             tiles(&mut q, 0, 9),
             [(0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (2, 1)]
         );
+    }
+
+    #[test]
+    fn a_closed_pass_is_held_back_without_saying_none_is_left() {
+        // Tile 0 is worker 0's, tile 1 nobody's; two passes, the second
+        // closed (a noise target's barrier until the first is in).
+        let aff = [Some(0), None];
+        let order = (0..2).flat_map(|pass| (0..2).map(move |tile| Unit { tile, pass }));
+        let mut q = TileQueue::new(order, &aff, 2);
+        assert_eq!(q.next_for(0, 1), Some(Unit { tile: 0, pass: 0 }));
+        assert_eq!(q.next_for(1, 1), Some(Unit { tile: 1, pass: 0 }));
+        assert_eq!(q.next_for(0, 1), None);
+        assert_eq!(q.next_for(1, 1), None);
+        assert!(q.has_for(0) && q.has_for(1), "held back, not gone");
+        assert_eq!(q.len(), 2);
+        // Opened: the second pass goes out as the first did.
+        assert_eq!(tiles(&mut q, 1, 9), [(1, 1)]);
+        assert_eq!(tiles(&mut q, 0, 9), [(0, 1)]);
+        assert!(!q.has_for(0) && q.is_empty());
     }
 
     #[test]

@@ -106,6 +106,7 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
             max_depth: a.max_depth,
             seed: a.seed,
             sampler: a.sampler,
+            target_rel_mse: a.target_rel_mse,
         },
     )?;
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;

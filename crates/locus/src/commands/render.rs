@@ -108,8 +108,15 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if let Some(s) = a.sampler {
         opts.sampler = s;
     }
+    if let Some(t) = a.target_rel_mse {
+        opts.target_rel_mse = Some(t);
+    }
     opts.threads = a.threads;
     locus_core::limits::check_settings(opts.spp, opts.max_depth).map_err(anyhow::Error::msg)?;
+    if let Some(t) = opts.target_rel_mse {
+        locus_core::limits::check_target(t)
+            .map_err(|e| anyhow::anyhow!("--target-rel-mse: {e}"))?;
+    }
     // The film and the image written from it.
     let cam = &scene.camera;
     locus_core::limits::check_film(cam.width, cam.height, 2, "this machine")
@@ -121,8 +128,9 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     let (w, h) = (prep.scene.camera.width, prep.scene.camera.height);
     let ntiles = locus_core::render::tiles(w, h, opts.tile_size, opts.tile_order).len();
     let pb = progress_bar(ntiles as u64, "render");
-    let out = render(&prep, &opts, &|done, _| {
+    let out = render(&prep, &opts, &|done, total| {
         if let Some(pb) = &pb {
+            pb.set_length(total as u64);
             pb.set_position(done as u64);
         }
     });
@@ -159,6 +167,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         rays_per_second: st.rays() as f64 / out.render_s,
         error_vs_reference: error,
         error_estimate: out.error_estimate,
+        spp_rendered: out.spp,
         cache_memory: out.cache_memory,
         irradiance: out.irradiance,
     };
@@ -176,7 +185,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         a.output.display(),
         w,
         h,
-        opts.spp,
+        out.spp,
         png.display(),
         json.display(),
         load_s,
@@ -215,6 +224,12 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         opts.sampler.name(),
         error.as_ref(),
     );
+    crate::output::print_target(
+        opts.target_rel_mse,
+        out.error_estimate.as_ref(),
+        out.spp,
+        opts.spp,
+    );
     Ok(())
 }
 
@@ -224,6 +239,7 @@ pub(crate) struct Overrides {
     pub(crate) max_depth: Option<u32>,
     pub(crate) seed: Option<u64>,
     pub(crate) sampler: Option<Sampler>,
+    pub(crate) target_rel_mse: Option<f64>,
 }
 
 pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
@@ -232,6 +248,7 @@ pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
         max_depth,
         seed,
         sampler,
+        target_rel_mse,
     } = o;
     let mut scene = Scene::load(path)?;
     if let Some(s) = spp {
@@ -246,8 +263,15 @@ pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
     if let Some(s) = sampler {
         scene.settings.sampler = s;
     }
+    if let Some(t) = target_rel_mse {
+        scene.settings.target_rel_mse = Some(t);
+    }
     let st = &scene.settings;
     locus_core::limits::check_settings(st.spp, st.max_depth).map_err(anyhow::Error::msg)?;
+    if let Some(t) = st.target_rel_mse {
+        locus_core::limits::check_target(t)
+            .map_err(|e| anyhow::anyhow!("--target-rel-mse: {e}"))?;
+    }
     // The client holds the image it receives.
     let cam = &scene.camera;
     locus_core::limits::check_film(cam.width, cam.height, 1, "this client")
@@ -285,6 +309,7 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
             max_depth: depth,
             seed: a.seed,
             sampler: a.sampler,
+            target_rel_mse: a.target_rel_mse,
         },
     )?;
     let load_s = t.elapsed().as_secs_f64();

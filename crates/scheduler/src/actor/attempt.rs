@@ -42,6 +42,7 @@ impl Actor {
             phase: Phase::Preparing,
             reports: vec![None; n],
             told_no_more: vec![false; n],
+            owed: vec![0; n],
             ready: vec![false; n],
             ended: vec![false; n],
             tiles_by: vec![0; n],
@@ -161,35 +162,7 @@ impl Actor {
                 // was still receiving its region.
                 self.send_ends();
             }
-            WorkerToScheduler::NeedTiles { count, .. } => {
-                let tx = &self.workers[&id].tx;
-                for _ in 0..count.min(MAX_TILE_REQUEST) {
-                    if let Some(u) = a.queue.next_for(w) {
-                        let t = j.film.assignment(u, a.run);
-                        if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
-                            // A full channel (a worker asking far ahead, or
-                            // one whose socket is slow): the tile waits for
-                            // the next request, its own or another's. Lost
-                            // here, it would never be rendered and the job
-                            // would never end.
-                            a.queue.put_back(u);
-                            break;
-                        }
-                        a.t_first_tile.get_or_insert_with(Instant::now);
-                    } else {
-                        // A full channel: the worker asks again when it
-                        // runs out, and is told then.
-                        if !a.told_no_more[w]
-                            && tx
-                                .try_send(SchedulerToWorker::NoMoreTiles { job: a.run })
-                                .is_ok()
-                        {
-                            a.told_no_more[w] = true;
-                        }
-                        break;
-                    }
-                }
-            }
+            WorkerToScheduler::NeedTiles { count, .. } => self.hand_tiles(id, w, count),
             WorkerToScheduler::TileDone(r) => self.on_tile(id, w, r),
             WorkerToScheduler::Report { stats, .. } => {
                 if a.phase != Phase::Collecting {
@@ -215,6 +188,71 @@ impl Actor {
             }
             WorkerToScheduler::Measured(c) => self.on_measured(w, *c),
             WorkerToScheduler::Heartbeat => {}
+        }
+    }
+
+    /// Hands member `w` (registry id `id`) up to `count` tile passes. What
+    /// a closed pass holds back (a noise target's barrier) is owed and
+    /// handed out when the pass opens; a worker with none left at all is
+    /// told so.
+    fn hand_tiles(&mut self, id: u32, w: usize, count: u32) {
+        let Some(j) = self.job.as_mut() else { return };
+        let a = &mut j.attempt;
+        let Some(entry) = self.workers.get(&id) else {
+            return;
+        };
+        let tx = &entry.tx;
+        let open = j.film.open_passes();
+        let count = count.min(MAX_TILE_REQUEST);
+        for given in 0..count {
+            if let Some(u) = a.queue.next_for(w, open) {
+                let t = j.film.assignment(u, a.run);
+                if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
+                    // A full channel (a worker asking far ahead, or
+                    // one whose socket is slow): the tile waits for
+                    // the next request, its own or another's. Lost
+                    // here, it would never be rendered and the job
+                    // would never end.
+                    a.queue.put_back(u);
+                    break;
+                }
+                a.t_first_tile.get_or_insert_with(Instant::now);
+            } else if a.queue.has_for(w) {
+                // The next pass is closed until this one is in: the
+                // worker, which does not ask again while its request is
+                // open, gets the rest when it opens.
+                a.owed[w] = (a.owed[w] + count - given).min(MAX_TILE_REQUEST);
+                break;
+            } else {
+                // A full channel: the worker asks again when it
+                // runs out, and is told then.
+                if !a.told_no_more[w]
+                    && tx
+                        .try_send(SchedulerToWorker::NoMoreTiles { job: a.run })
+                        .is_ok()
+                {
+                    a.told_no_more[w] = true;
+                }
+                break;
+            }
+        }
+    }
+
+    /// Hands out the tiles owed to members while a pass was closed, once
+    /// the film has opened the next.
+    fn serve_owed(&mut self) {
+        let Some(j) = self.job.as_mut() else { return };
+        let a = &mut j.attempt;
+        let owed: Vec<(usize, u32)> = a
+            .owed
+            .iter_mut()
+            .enumerate()
+            .filter(|(_, n)| **n > 0)
+            .map(|(w, n)| (w, std::mem::take(n)))
+            .collect();
+        let members = a.members.clone();
+        for (w, n) in owed {
+            self.hand_tiles(members[w], w, n);
         }
     }
 
@@ -272,6 +310,8 @@ impl Actor {
             a.advance(Phase::Collecting);
             a.t_rendered = Some(Instant::now());
             self.send_ends();
+        } else if j.attempt.owed.iter().any(|&n| n > 0) {
+            self.serve_owed();
         }
     }
 

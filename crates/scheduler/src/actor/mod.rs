@@ -213,6 +213,9 @@ pub struct Attempt {
     /// The film's tile passes and pixel samples when the attempt started.
     pub(crate) before: (u64, u64),
     told_no_more: Vec<bool>,
+    /// Tiles each member asked for while the next pass was closed (a noise
+    /// target's barrier, [`Film::open_passes`]): handed out when it opens.
+    owed: Vec<u32>,
     /// Members that said `Ready`: their region has arrived and their job
     /// runs, so a message for it reaches its engine. One that is not ready
     /// yet may still be receiving its region (shipped by a task of its
@@ -246,6 +249,7 @@ impl Attempt {
             tiles_by: Vec::new(),
             before,
             told_no_more: Vec::new(),
+            owed: Vec::new(),
             ready: Vec::new(),
             ended: Vec::new(),
             round: None,
@@ -593,7 +597,8 @@ impl Actor {
         );
         let mut req = q.req;
         let scene = job::scene_of(&mut req);
-        let mut film = Film::new(cam.width, cam.height, req.settings.spp, tiles);
+        let mut film = Film::new(cam.width, cam.height, req.settings.spp, tiles)
+            .with_target(req.settings.target_rel_mse);
         for (k, kept) in q.tiles {
             // A stored tile that does not fit the job is rendered again.
             if !film.restore(k, kept) {
@@ -604,6 +609,7 @@ impl Actor {
                 );
             }
         }
+        film.resume();
         let before = film.done();
         let req_irradiance = req.options.irradiance;
         self.job = Some(Running {
