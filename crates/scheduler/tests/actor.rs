@@ -8,7 +8,7 @@ use locus_protocol::control::{
     Registration, SchedulerToWorker, TileAssignment, TileResult, WorkerToScheduler,
 };
 use locus_protocol::report::WorkerStats;
-use locus_protocol::submit::{JobOptions, SchedulerToClient};
+use locus_protocol::submit::{JobOptions, JobRequest, SchedulerToClient};
 use locus_scheduler::actor::{Actor, Event, MAX_FAILED_ATTEMPTS, WORKER_WAIT};
 use locus_scheduler::metrics::Metrics;
 use std::path::Path;
@@ -60,17 +60,10 @@ impl Farm {
     }
 
     async fn submit(&self, workers: u32) -> mpsc::Receiver<SchedulerToClient> {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-        let mut scene = Scene::load(&root.join("scenes/cornell-box/cornell.toml")).unwrap();
-        scene.camera.width = 32;
-        scene.camera.height = 32;
-        scene.settings.spp = 1;
-        let opts = JobOptions {
-            workers,
-            tile_size: 16,
-            ..Default::default()
-        };
-        let req = locus_scheduler::client::request(&scene, opts);
+        self.submit_request(request(workers, 1, None)).await
+    }
+
+    async fn submit_request(&self, req: JobRequest) -> mpsc::Receiver<SchedulerToClient> {
         let (tx, rx) = mpsc::channel(64);
         self.events
             .send(Event::Submit {
@@ -95,6 +88,23 @@ impl Farm {
         self.events.send(Event::Status(tx)).await.unwrap();
         rx.await.unwrap().running.map_or(0, |j| j.tile_passes_done)
     }
+}
+
+/// The Cornell box at 32x32 in four tiles of 16x16, at `spp` with the
+/// noise target `target`, for `workers` workers.
+fn request(workers: u32, spp: u32, target: Option<f64>) -> JobRequest {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let mut scene = Scene::load(&root.join("scenes/cornell-box/cornell.toml")).unwrap();
+    scene.camera.width = 32;
+    scene.camera.height = 32;
+    scene.settings.spp = spp;
+    scene.settings.target_rel_mse = target;
+    let opts = JobOptions {
+        workers,
+        tile_size: 16,
+        ..Default::default()
+    };
+    locus_scheduler::client::request(&scene, opts)
 }
 
 async fn recv<T>(rx: &mut mpsc::Receiver<T>) -> T {
@@ -582,4 +592,141 @@ async fn an_abort_that_finds_the_channel_full_comes_later() {
         other => panic!("expected the abort, got {other:?}"),
     }
     farm.shutdown.cancel();
+}
+
+/// The tiles the worker is sent until nothing more comes for a moment (a
+/// `NoMoreTiles` is a failure here: the job still has passes to come).
+async fn tiles_sent(w: &mut mpsc::Receiver<SchedulerToWorker>) -> Vec<TileAssignment> {
+    let mut tiles = Vec::new();
+    while let Ok(m) = timeout(Duration::from_millis(300), w.recv()).await {
+        match m.expect("channel open") {
+            SchedulerToWorker::Tile(t) => tiles.push(t),
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    tiles
+}
+
+/// A job with a noise target: a worker asking for every tile gets the
+/// first pass's alone, without being told there are no more; the next
+/// pass's come, owed, once the first is in; and a film that meets the
+/// target (samples of one value: no spread) ends the job after the second
+/// pass of four, with the samples of two passes in the image.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_noise_target_holds_each_pass_until_the_one_before_is_in() {
+    let farm = start();
+    let mut w = farm.worker(1).await;
+    let mut client = farm.submit_request(request(1, 8, Some(1e-3))).await;
+    accepted(&mut client).await;
+    let job = until_shipped(&mut w).await;
+    farm.from(1, WorkerToScheduler::Ready { job }).await;
+    farm.from(1, WorkerToScheduler::NeedTiles { job, count: 64 })
+        .await;
+    let first = tiles_sent(&mut w).await;
+    assert_eq!(first.len(), 4, "the first pass's four tiles, no more");
+    assert!(first.iter().all(|t| t.pass == 0));
+    for t in &first[..3] {
+        farm.from(1, result(t, 0.5)).await;
+    }
+    assert!(
+        tiles_sent(&mut w).await.is_empty(),
+        "pass 1 waits for pass 0"
+    );
+    farm.from(1, result(&first[3], 0.5)).await;
+    let second = tiles_sent(&mut w).await;
+    assert_eq!(
+        second.len(),
+        4,
+        "the owed request, served when pass 1 opened"
+    );
+    assert!(second.iter().all(|t| t.pass == 1));
+    for t in &second {
+        farm.from(1, result(t, 0.5)).await;
+    }
+    assert!(matches!(
+        recv(&mut w).await,
+        SchedulerToWorker::EndJob { .. }
+    ));
+    let stats = Box::new(WorkerStats {
+        peers: vec![Default::default()],
+        ..Default::default()
+    });
+    farm.from(1, WorkerToScheduler::Report { job, stats }).await;
+    let mut collect = locus_scheduler::client::Collector::new(32, 32);
+    let done = loop {
+        if let Some(r) = collect.take(Some(recv(&mut client).await), &|_, _| {}) {
+            break r.expect("the job's image");
+        }
+    };
+    assert_eq!(done.report.spp, 8);
+    assert_eq!(
+        done.report.spp_rendered, 2,
+        "passes of 8 samples end at 1, 2, 4, 8"
+    );
+    let e = done.report.error_estimate.expect("two samples a pixel");
+    assert_eq!(e.rel_mse, 0.0);
+    assert!(done.pixels.iter().all(|p| *p == [0.5; 3]));
+    farm.shutdown.cancel();
+}
+
+/// A scheduler that stopped after the store kept a job's last tile but
+/// before it kept the job's end finds the job whole when it starts again:
+/// the job ends once its workers are ready, with no tile to render (it
+/// waited for a tile that would never come).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_restored_whole_ends_without_a_tile() {
+    use locus_scheduler::film::TileSums;
+    use locus_scheduler::store::{Store, Write};
+    let dir = std::env::temp_dir().join(format!("locus-whole-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    {
+        let (s, ..) = Store::open(&dir).unwrap();
+        let request = postcard::to_allocvec(&request(1, 1, None)).unwrap();
+        s.write(Write::Job { id: 5, request });
+        for tile in 0..4 {
+            let one = locus_core::passes::Moments {
+                sum: [0.25; 3],
+                squares: [0.0625; 3],
+            };
+            let sums = TileSums {
+                passes: 1,
+                sums: vec![one; 256],
+            };
+            s.write(Write::Tile { job: 5, tile, sums });
+        }
+        s.synced().await.expect("committed");
+    }
+    // Opened again once the first handle's writer thread lets the file go.
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    let (store, next, jobs, kept) = loop {
+        match Store::open(&dir) {
+            Ok(x) => break x,
+            Err(e) if std::time::Instant::now() < deadline => {
+                let _ = e;
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            Err(e) => panic!("{e:#}"),
+        }
+    };
+    assert_eq!(jobs.len(), 1);
+    assert_eq!(jobs[0].tiles.len(), 4);
+    let (tx, rx) = mpsc::channel(64);
+    let metrics = Arc::new(Metrics::new());
+    let shutdown = CancellationToken::new();
+    let actor = Actor::new(4, tx.clone(), metrics.clone()).with_store(store, next, jobs, kept);
+    tokio::spawn(actor.run(rx, shutdown.clone()));
+    let farm = Farm {
+        events: tx,
+        metrics,
+        shutdown,
+    };
+    let mut w = farm.worker(1).await;
+    let job = until_shipped(&mut w).await;
+    farm.from(1, WorkerToScheduler::Ready { job }).await;
+    assert!(matches!(
+        recv(&mut w).await,
+        SchedulerToWorker::EndJob { .. }
+    ));
+    farm.shutdown.cancel();
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -157,6 +157,13 @@ impl Actor {
                     a.t_ready = Some(Instant::now());
                     a.advance(Phase::Rendering);
                     info!(job = j.id, run = a.run, "all workers ready");
+                    if j.film.is_complete() {
+                        // Restored whole from the store (the scheduler
+                        // stopped after the last tile was kept, before the
+                        // job's end was): no tile will come to end it.
+                        a.advance(Phase::Collecting);
+                        a.t_rendered = Some(Instant::now());
+                    }
                 }
                 // The others may have rendered every tile while this one
                 // was still receiving its region.
