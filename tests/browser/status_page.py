@@ -4,8 +4,8 @@
 Starts a scheduler with its status address and two worker daemons, submits
 the Cornell box, and while it renders loads the page in Chromium (driven by
 Selenium through chromium-driver): the page must list both workers, show the
-running job, and show the preview change as tiles arrive (its pixels,
-read back through a canvas, differ between two moments). A screenshot goes
+running job with its noise target, and show the preview change as tiles
+arrive (its pixels, read back through a canvas, differ between two moments). A screenshot goes
 to target/browser/status-page.png. Fails, never skips, without a browser.
 
     python3 tests/browser/status_page.py [path/to/locus]
@@ -95,7 +95,10 @@ def main():
         # `forward`, so that the page has traffic between the workers to show.
         client = subprocess.Popen(
             [locus, "submit", "--scheduler", addr, os.path.join(ROOT, "scenes/cornell-box/cornell.toml"),
-             "--workers", "2", "--spp", "128", "--fetch", "forward", "-o", os.path.join(out, "job.exr")],
+             "--workers", "2", "--spp", "128", "--fetch", "forward", "-o", os.path.join(out, "job.exr"),
+             # A noise target never met: every pass is rendered, one at a
+             # time (the barrier between passes), and the page names it.
+             "--target-rel-mse", "1e-12"],
             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         procs.append(client)
 
@@ -135,6 +138,8 @@ def main():
         job_text = driver.find_element("id", "job").text
         if "rendering" not in job_text and "collecting" not in job_text:
             fail(f"the job panel does not show the running job: {job_text!r}")
+        if "128 spp to relMSE 1.00e-12" not in job_text:
+            fail(f"the job panel does not show the job's noise target: {job_text!r}")
         second = wait("more tiles in the preview", lambda: (t := tiles()) > first and t, 60)
         p2 = wait("the second preview's pixels", pixels)
         if hashlib.sha256(p1.encode()).digest() == hashlib.sha256(p2.encode()).digest():
@@ -160,6 +165,8 @@ def main():
         ended = driver.find_element("id", "ended").text
         if not re.search(r"\d\.\d\de-\d", ended):
             fail(f"the ended job shows no estimated relMSE: {ended!r}")
+        if "128 spp to relMSE 1.00e-12" not in ended:
+            fail(f"the ended job does not show its samples and noise target: {ended!r}")
         traffic = wait("the traffic between the workers",
                        lambda: driver.find_element("id", "traffic").text)
         if not re.search(r"\d+(\.\d)? (KiB|MiB|GiB)", traffic):

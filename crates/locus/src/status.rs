@@ -80,9 +80,12 @@ pub fn format(s: &Status) -> String {
             let eta = j
                 .eta_s
                 .map_or(String::new(), |e| format!(", about {e:.0} s left"));
+            let target = j
+                .target_rel_mse
+                .map_or(String::new(), |t| format!(" to relMSE {t:.2e}"));
             let _ = writeln!(
                 o,
-                "job {}: {} {}x{} {} spp ({}), {}: pass {} of {}, {:.1}% of samples after {:.1} s{eta}",
+                "job {}: {} {}x{} {} spp{target} ({}), {}: pass {} of {}, {:.1}% of samples after {:.1} s{eta}",
                 j.id,
                 j.scene,
                 j.width,
@@ -110,10 +113,13 @@ pub fn format(s: &Status) -> String {
             .reason
             .as_deref()
             .map_or(String::new(), |r| format!(": {r}"));
+        let target = e
+            .target_rel_mse
+            .map_or(String::new(), |t| format!(" to relMSE {t:.2e}"));
         let _ = writeln!(
             o,
-            "ended: job {} {} {} after {:.1} s{why}",
-            e.id, e.scene, e.outcome, e.seconds
+            "ended: job {} {} {} spp{target} {} after {:.1} s{why}",
+            e.id, e.scene, e.spp, e.outcome, e.seconds
         );
     }
     o

@@ -53,6 +53,9 @@ pub struct RunningJob {
     pub width: u32,
     pub height: u32,
     pub spp: u32,
+    /// The noise target the job stops at, if it has one.
+    #[serde(default)]
+    pub target_rel_mse: Option<f64>,
     pub policy: String,
     /// waiting for workers, preparing, distributing, rendering or
     /// collecting.
@@ -96,7 +99,12 @@ pub struct EndedJob {
     pub scene: String,
     pub width: u32,
     pub height: u32,
+    /// Samples per pixel: the image's for a done job (fewer than asked
+    /// where a noise target was met), else those asked for.
     pub spp: u32,
+    /// The noise target the job stopped at, if it had one.
+    #[serde(default)]
+    pub target_rel_mse: Option<f64>,
     /// `done` or `failed`.
     pub outcome: String,
     pub reason: Option<String>,
@@ -154,6 +162,7 @@ impl Actor {
             width: r.req.camera.width,
             height: r.req.camera.height,
             spp: 0,
+            target_rel_mse: None,
             policy: "radiosity".into(),
             phase: "radiosity".into(),
             attempt: r.attempts,
@@ -211,6 +220,7 @@ impl Actor {
             width: j.req.camera.width,
             height: j.req.camera.height,
             spp: j.req.settings.spp,
+            target_rel_mse: j.req.settings.target_rel_mse,
             policy: j.req.options.fetch.name().to_string(),
             phase: j.attempt.phase.name().to_string(),
             attempt: j.recovery.attempts,

@@ -39,6 +39,7 @@ impl Actor {
             width: j.req.camera.width,
             height: j.req.camera.height,
             spp: j.req.settings.spp,
+            target_rel_mse: j.req.settings.target_rel_mse,
             outcome: outcome.to_string(),
             reason: None,
             seconds: j.started.elapsed().as_secs_f64(),
@@ -82,6 +83,7 @@ impl Actor {
             forwarded_fraction: Some(report.forwarded_fraction),
             load_imbalance: Some(report.load_imbalance),
             rel_mse_estimate: report.error_estimate.map(|e| e.rel_mse),
+            spp: report.spp_rendered,
             ..Self::ended(&j, "done", names)
         };
         self.metrics

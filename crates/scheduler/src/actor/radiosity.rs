@@ -242,6 +242,7 @@ impl Actor {
             width: r.req.camera.width,
             height: r.req.camera.height,
             spp: r.rj.spp.max(1),
+            target_rel_mse: None,
             outcome: outcome.to_string(),
             reason,
             seconds: r.started.elapsed().as_secs_f64(),
