@@ -202,6 +202,14 @@ pub(crate) struct SchedulerArgs {
 }
 
 /// A timeout in seconds: positive, finite, at most an hour.
+/// A noise target: a positive relMSE (`limits::check_target`).
+pub(crate) fn parse_target(s: &str) -> Result<f64, String> {
+    let t: f64 = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number (an estimated relMSE, such as 1e-3)"))?;
+    locus_core::limits::check_target(t).map(|()| t)
+}
+
 pub(crate) fn parse_timeout(s: &str) -> Result<f64, String> {
     let t: f64 = s
         .parse()
@@ -314,7 +322,7 @@ pub(crate) struct SubmitArgs {
     pub(crate) sampler: Option<locus_core::sampler::Sampler>,
     /// Stop at the end of the first pass whose estimated relMSE is at or
     /// below this (e.g. 1e-3); --spp is then the most a pixel gets.
-    #[arg(long)]
+    #[arg(long, value_parser = parse_target)]
     pub(crate) target_rel_mse: Option<f64>,
     #[arg(long)]
     pub(crate) reference: Option<PathBuf>,
@@ -368,7 +376,7 @@ pub(crate) struct RenderArgs {
     pub(crate) sampler: Option<locus_core::sampler::Sampler>,
     /// Stop at the end of the first pass whose estimated relMSE is at or
     /// below this (e.g. 1e-3); --spp is then the most a pixel gets.
-    #[arg(long)]
+    #[arg(long, value_parser = parse_target)]
     pub(crate) target_rel_mse: Option<f64>,
     /// Compute threads (0: all cores).
     #[arg(long, default_value_t = 0)]

@@ -225,6 +225,29 @@ fn bad_scene_fails_with_file_and_line() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing.exr"));
 }
 
+/// A noise target that is not a positive number is refused where the flag
+/// is read, naming the flag and what it wants, before any work.
+#[test]
+fn a_bad_noise_target_is_refused_with_the_flag() {
+    let d = scratch("bad-target");
+    let scene = root().join("scenes/cornell-box/cornell.toml");
+    for bad in ["0", "-1e-3", "NaN", "abc"] {
+        let o = render(
+            &scene,
+            &d.join("x.exr"),
+            &[&format!("--target-rel-mse={bad}")],
+        );
+        assert!(!o.status.success(), "{bad}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains("--target-rel-mse") && err.contains("such as 1e-3"),
+            "{bad}: {err}"
+        );
+        assert!(!d.join("x.exr").exists());
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
 /// Reads the first stdout line of a daemon ("... listening on ADDR").
 fn listening_addr(child: &mut std::process::Child) -> String {
     use std::io::BufRead;

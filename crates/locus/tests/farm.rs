@@ -9,6 +9,17 @@ fn small_cornell() -> locus_core::scene::Scene {
     common::small_cornell(40, 32, 7)
 }
 
+/// A job for `workers` workers under `fetch`, in tiles of 8 pixels (many
+/// tiles a worker on these small images).
+fn options(workers: usize, fetch: FetchPolicy) -> JobOptions {
+    JobOptions {
+        workers: workers as u32,
+        tile_size: 8,
+        fetch,
+        ..Default::default()
+    }
+}
+
 #[test]
 fn farm_matches_single_machine_bit_for_bit() {
     let scene = small_cornell();
@@ -24,11 +35,8 @@ fn farm_matches_single_machine_bit_for_bit() {
             let farm = locus::farm::LocalFarm::start(workers, 1).await.expect("farm");
             for partitioner in [Partitioner::RegionGrowing, Partitioner::Morton] {
                 let opts = JobOptions {
-                    workers: workers as u32,
                     partitioner,
-                    tile_size: 8,
-                    fetch: FetchPolicy::Forward,
-                    ..Default::default()
+                    ..options(workers, FetchPolicy::Forward)
                 };
                 let req = locus_scheduler::client::request(&scene, opts);
                 let r = farm.render(req, &|_, _| {}).await.expect("job");
@@ -70,12 +78,7 @@ fn a_camera_inside_the_scene_lets_every_worker_start_samples() {
             let farm = locus::farm::LocalFarm::start(workers, 1)
                 .await
                 .expect("farm");
-            let opts = JobOptions {
-                workers: workers as u32,
-                tile_size: 8,
-                fetch: FetchPolicy::Forward,
-                ..Default::default()
-            };
+            let opts = options(workers, FetchPolicy::Forward);
             let req = locus_scheduler::client::request(&scene, opts);
             let r = farm.render(req, &|_, _| {}).await.expect("job");
             assert_eq!(bits(&r), reference, "{workers} workers");
@@ -110,12 +113,7 @@ fn workers_of_several_threads_keep_the_bits() {
                 .await
                 .expect("farm");
             for fetch in [FetchPolicy::Forward, FetchPolicy::Fetch] {
-                let opts = JobOptions {
-                    workers: 2,
-                    tile_size: 8,
-                    fetch,
-                    ..Default::default()
-                };
+                let opts = options(2, fetch);
                 let req = locus_scheduler::client::request(&scene, opts);
                 let r = farm.render(req, &|_, _| {}).await.expect("job");
                 assert_eq!(bits(&r), reference, "{threads} threads a worker, {fetch:?}");
@@ -347,13 +345,10 @@ fn shading_normals_travel_with_their_triangles() {
             FetchPolicy::Adaptive,
         ] {
             let opts = JobOptions {
-                workers: 3,
-                tile_size: 8,
-                fetch,
                 // Too small to hold the scene: leaves are fetched one by
                 // one, normals and all.
                 fetch_budget: 4 << 10,
-                ..Default::default()
+                ..options(3, fetch)
             };
             let req = locus_scheduler::client::request(&scene, opts);
             let r = farm.render(req, &|_, _| {}).await.expect("job");
@@ -450,11 +445,8 @@ fn the_irradiance_cache_keeps_the_bits_on_the_farm() {
             .expect("farm");
         for fetch in [FetchPolicy::Forward, FetchPolicy::Fetch] {
             let opts = JobOptions {
-                workers: workers as u32,
-                tile_size: 8,
-                fetch,
                 irradiance: Some(params),
-                ..Default::default()
+                ..options(workers, fetch)
             };
             let req = locus_scheduler::client::request(&scene, opts);
             let r = farm.render(req, &|_, _| {}).await.expect("job");
@@ -517,12 +509,7 @@ fn a_noise_target_stops_the_farm_where_it_stops_one_machine() {
             let farm = locus::farm::LocalFarm::start(workers, 1)
                 .await
                 .expect("farm");
-            let opts = JobOptions {
-                workers: workers as u32,
-                tile_size: 8,
-                fetch,
-                ..Default::default()
-            };
+            let opts = options(workers, fetch);
             let req = locus_scheduler::client::request(&scene, opts);
             let r = farm.render(req, &|_, _| {}).await.expect("job");
             let rep = &r.report;

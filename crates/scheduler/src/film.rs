@@ -124,7 +124,6 @@ impl Film {
         let samples = self.passes[k as usize - 1].end;
         if meets_target(&self.sums, samples, t) {
             self.kept = Some(k);
-            self.early.retain(|u, _| u.pass < k);
         }
     }
 

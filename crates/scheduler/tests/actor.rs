@@ -168,6 +168,28 @@ fn result(t: &TileAssignment, value: f32) -> WorkerToScheduler {
     })
 }
 
+/// The end of a one-worker job once its last tile is in: the worker is
+/// told to end, reports, and the client gets the image.
+async fn end_and_collect(
+    farm: &Farm,
+    w: &mut mpsc::Receiver<SchedulerToWorker>,
+    client: &mut mpsc::Receiver<SchedulerToClient>,
+    job: u64,
+) -> locus_protocol::submit::JobResult {
+    assert!(matches!(recv(w).await, SchedulerToWorker::EndJob { .. }));
+    let stats = Box::new(WorkerStats {
+        peers: vec![Default::default()],
+        ..Default::default()
+    });
+    farm.from(1, WorkerToScheduler::Report { job, stats }).await;
+    let mut collect = locus_scheduler::client::Collector::new(32, 32);
+    loop {
+        if let Some(r) = collect.take(Some(recv(client).await), &|_, _| {}) {
+            break r.expect("the job's image");
+        }
+    }
+}
+
 /// A request for u32::MAX tiles is answered with the tiles there are and
 /// one NoMoreTiles; a tile sent twice is counted once and its second copy
 /// does not reach the film; an unknown tile is ignored; both are counted.
@@ -211,21 +233,7 @@ async fn tiles_count_once_and_requests_are_clamped() {
     for t in &tiles[1..] {
         farm.from(1, result(t, 0.5)).await;
     }
-    assert!(matches!(
-        recv(&mut w).await,
-        SchedulerToWorker::EndJob { .. }
-    ));
-    let stats = Box::new(WorkerStats {
-        peers: vec![Default::default()],
-        ..Default::default()
-    });
-    farm.from(1, WorkerToScheduler::Report { job, stats }).await;
-    let mut collect = locus_scheduler::client::Collector::new(32, 32);
-    let done = loop {
-        if let Some(r) = collect.take(Some(recv(&mut client).await), &|_, _| {}) {
-            break r.expect("the job's image");
-        }
-    };
+    let done = end_and_collect(&farm, &mut w, &mut client, job).await;
     let t0 = tiles[0];
     let first = done.pixels[(t0.y0 * 32 + t0.x0) as usize];
     assert_eq!(first, [1.0; 3], "the duplicate overwrote the film");
@@ -594,17 +602,25 @@ async fn an_abort_that_finds_the_channel_full_comes_later() {
     farm.shutdown.cancel();
 }
 
-/// The tiles the worker is sent until nothing more comes for a moment (a
-/// `NoMoreTiles` is a failure here: the job still has passes to come).
-async fn tiles_sent(w: &mut mpsc::Receiver<SchedulerToWorker>) -> Vec<TileAssignment> {
+/// The next `n` messages to the worker, each a tile (a `NoMoreTiles` is a
+/// failure here: the job still has passes to come).
+async fn tiles_sent(w: &mut mpsc::Receiver<SchedulerToWorker>, n: usize) -> Vec<TileAssignment> {
     let mut tiles = Vec::new();
-    while let Ok(m) = timeout(Duration::from_millis(300), w.recv()).await {
-        match m.expect("channel open") {
+    while tiles.len() < n {
+        match recv(w).await {
             SchedulerToWorker::Tile(t) => tiles.push(t),
             other => panic!("unexpected {other:?}"),
         }
     }
     tiles
+}
+
+/// Nothing reaches the worker for a moment: what was not sent in 300 ms
+/// after the actor took every event before it is not coming.
+async fn nothing_sent(w: &mut mpsc::Receiver<SchedulerToWorker>, why: &str) {
+    if let Ok(m) = timeout(Duration::from_millis(300), w.recv()).await {
+        panic!("{why}, but the worker was sent {m:?}");
+    }
 }
 
 /// A job with a noise target: a worker asking for every tile gets the
@@ -622,42 +638,21 @@ async fn a_noise_target_holds_each_pass_until_the_one_before_is_in() {
     farm.from(1, WorkerToScheduler::Ready { job }).await;
     farm.from(1, WorkerToScheduler::NeedTiles { job, count: 64 })
         .await;
-    let first = tiles_sent(&mut w).await;
-    assert_eq!(first.len(), 4, "the first pass's four tiles, no more");
+    let first = tiles_sent(&mut w, 4).await;
     assert!(first.iter().all(|t| t.pass == 0));
+    nothing_sent(&mut w, "the first pass's four tiles, no more").await;
     for t in &first[..3] {
         farm.from(1, result(t, 0.5)).await;
     }
-    assert!(
-        tiles_sent(&mut w).await.is_empty(),
-        "pass 1 waits for pass 0"
-    );
+    nothing_sent(&mut w, "pass 1 waits for pass 0").await;
     farm.from(1, result(&first[3], 0.5)).await;
-    let second = tiles_sent(&mut w).await;
-    assert_eq!(
-        second.len(),
-        4,
-        "the owed request, served when pass 1 opened"
-    );
+    // The owed request, served when pass 1 opened.
+    let second = tiles_sent(&mut w, 4).await;
     assert!(second.iter().all(|t| t.pass == 1));
     for t in &second {
         farm.from(1, result(t, 0.5)).await;
     }
-    assert!(matches!(
-        recv(&mut w).await,
-        SchedulerToWorker::EndJob { .. }
-    ));
-    let stats = Box::new(WorkerStats {
-        peers: vec![Default::default()],
-        ..Default::default()
-    });
-    farm.from(1, WorkerToScheduler::Report { job, stats }).await;
-    let mut collect = locus_scheduler::client::Collector::new(32, 32);
-    let done = loop {
-        if let Some(r) = collect.take(Some(recv(&mut client).await), &|_, _| {}) {
-            break r.expect("the job's image");
-        }
-    };
+    let done = end_and_collect(&farm, &mut w, &mut client, job).await;
     assert_eq!(done.report.spp, 8);
     assert_eq!(
         done.report.spp_rendered, 2,

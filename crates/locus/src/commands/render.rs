@@ -113,10 +113,6 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     opts.threads = a.threads;
     locus_core::limits::check_settings(opts.spp, opts.max_depth).map_err(anyhow::Error::msg)?;
-    if let Some(t) = opts.target_rel_mse {
-        locus_core::limits::check_target(t)
-            .map_err(|e| anyhow::anyhow!("--target-rel-mse: {e}"))?;
-    }
     // The film and the image written from it.
     let cam = &scene.camera;
     locus_core::limits::check_film(cam.width, cam.height, 2, "this machine")
@@ -268,10 +264,6 @@ pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
     }
     let st = &scene.settings;
     locus_core::limits::check_settings(st.spp, st.max_depth).map_err(anyhow::Error::msg)?;
-    if let Some(t) = st.target_rel_mse {
-        locus_core::limits::check_target(t)
-            .map_err(|e| anyhow::anyhow!("--target-rel-mse: {e}"))?;
-    }
     // The client holds the image it receives.
     let cam = &scene.camera;
     locus_core::limits::check_film(cam.width, cam.height, 1, "this client")

@@ -276,6 +276,7 @@ impl Actor {
             tile: r.tile,
             pass: r.pass,
         };
+        let open = j.film.open_passes();
         let changed = match j.film.add(u, r.sums) {
             Ok(changed) => changed,
             Err(Refused::Size { got, want }) => {
@@ -317,7 +318,7 @@ impl Actor {
             a.advance(Phase::Collecting);
             a.t_rendered = Some(Instant::now());
             self.send_ends();
-        } else if j.attempt.owed.iter().any(|&n| n > 0) {
+        } else if j.film.open_passes() > open {
             self.serve_owed();
         }
     }
