@@ -9,10 +9,13 @@ not. This script renders a small version of a scene three ways, each under
   - one machine (`locus render --threads 2`), counting the render's
     instructions (`locus_core::passes::pixel_mean`, inclusive);
   - a farm of a scheduler and `--workers` (two) `locus worker --threads 1` processes
-    (the workers under callgrind; the scheduler natively, with a worker
-    timeout long enough for valgrind's pace), counting each worker's
-    render phase: its engine (`locus_worker::engine::turns`) plus what its
-    async runtime spends outside setup (sockets, frames, control);
+    (the workers under callgrind, one file per thread; the scheduler
+    natively, with a worker timeout long enough for valgrind's pace),
+    counting each worker's render phase thread by thread: its engine
+    (`locus_worker::engine::turns`), its tracing pool's batches where it
+    has a pool (`--threads` above 1), and its async runtime's worker
+    threads (sockets, frames, packets decoded and encoded, control; see
+    `render_by_thread`);
 
 and prints the farm's instructions above one machine's per forwarded query,
 with the farm image checked bit for bit against one machine's. It needs
@@ -21,7 +24,7 @@ valgrind and callgrind_annotate on the PATH.
     python3 crates/locus/src/bench/forward_cost.py [--locus target/release/locus]
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
         [--fetch forward] [--workers 2] [--cost sampled|analytic]
-        [--partitioner region-growing|morton] [--per-thread] [--out bench-out/forward-cost]
+        [--partitioner region-growing|morton] [--threads 1] [--per-thread] [--out bench-out/forward-cost]
 
 LOCUS_CALLGRIND_ARGS adds options to every valgrind call (for instance
 `--dump-instr=yes`, to see a function's cost instruction by instruction).
@@ -40,32 +43,25 @@ import sys
 import time
 
 
-# The connection's decode, into which the compiler may inline the setup
-# message's deserializer.
-DECODE = "locus_protocol::connection::decode"
-
-
 def inclusive(path):
     """Inclusive instruction counts by function, and the program total, of
-    callgrind's file `path`, or summed over its per-thread files `path-NN`
-    (`--per-thread`: every function here runs on one thread at a time).
-    Under the key `DECODE + "/largest"`: the most one file's decode ran,
-    which is the thread that decoded the setup message."""
-    parts = sorted(glob.glob(path + "-*"))
-    if parts:
-        costs, total, largest = {}, 0, 0
-        for part in parts:
-            c, t = inclusive_one(part)
-            total += t
-            largest = max(largest, c.get(DECODE, 0))
-            for fn, n in c.items():
-                costs[fn] = costs.get(fn, 0) + n
-        costs[DECODE + "/largest"] = largest
-        return costs, total
-    costs, total = inclusive_one(path)
-    costs[DECODE + "/largest"] = costs.get(DECODE, 0)
+    callgrind's per-thread files `path-NN`, summed (every function counted
+    here runs on one thread at a time)."""
+    costs, total = {}, 0
+    for part in sorted(glob.glob(path + "-*")):
+        c, t = inclusive_one(part)
+        total += t
+        for fn, n in c.items():
+            costs[fn] = costs.get(fn, 0) + n
     return costs, total
 
+
+# A tracing pool thread's share of the render, and the loop of the async
+# runtime's worker threads.
+TRACE_BATCH = "locus_worker::engine::kernel::trace_batch"
+RUNTIME_WORKER = "tokio::runtime::scheduler::multi_thread::worker::run"
+SETUP_DECODE = ("locus_protocol::control::_::<impl serde_core::de::Deserialize "
+                "for locus_protocol::control::SchedulerToWorker>::deserialize")
 
 # What a worker's engine thread spends, printed by `--per-thread`.
 ENGINE_PARTS = [
@@ -81,6 +77,35 @@ ENGINE_PARTS = [
 ]
 
 
+def render_by_thread(path):
+    """A worker's render phase from its per-thread files `path-NN`, thread
+    by thread: the engine's thread counts its loop (`turns`, with whatever
+    it traces itself); a tracing pool thread the batches it traced
+    (`trace_batch`, inclusive: not the parts of the region's BVH build it
+    stole before the render); the async runtime's worker threads their
+    totals (peer sockets, frames, packets decoded, the link writers'
+    encoding, control messages; tokio runs its workers on blocking-pool
+    threads, so they are told by the scheduler's loop, `worker::run`), less
+    the job's setup message where one of them decoded it. Nothing else
+    counts: the main thread reads the setup message and builds the job
+    from it (and then only waits on control messages), and the other
+    blocking-pool threads build the region's BVH parts. Returns (engine,
+    pool, runtime, setup), `runtime` before `setup` is taken off it."""
+    engine = pool = runtime = setup = 0
+    for part in sorted(glob.glob(path + "-*")):
+        costs, total = inclusive_one(part)
+        turns = costs.get(ENGINE_PARTS[0], 0)
+        traced = costs.get(TRACE_BATCH, 0)
+        if turns:
+            engine += turns
+        elif traced:
+            pool += traced
+        elif costs.get(RUNTIME_WORKER, 0):
+            runtime += total
+            setup += costs.get(SETUP_DECODE, 0)
+    return engine, pool, runtime, setup
+
+
 def engine_thread(path):
     """The per-thread file of worker file `path` that holds its engine's
     loop, and that thread's inclusive counts of ENGINE_PARTS."""
@@ -93,8 +118,8 @@ def engine_thread(path):
     return best
 
 
-# `--per-thread` reads each thread's file twice (the sums, then the engine
-# threads): callgrind_annotate runs once a file.
+# Each thread's file is read twice (the render, then the engine threads):
+# callgrind_annotate runs once a file.
 @functools.lru_cache(maxsize=None)
 def inclusive_one(path):
     out = subprocess.run(
@@ -153,8 +178,7 @@ def main():
                          "build whose tracer counts nodes differently, for comparing two builds")
     ap.add_argument("--partitioner", default="region-growing")
     ap.add_argument("--per-thread", action="store_true",
-                    help="one callgrind file per thread (valgrind's --separate-threads), and "
-                         "print what each worker's engine thread spends by function")
+                    help="print what each worker's engine thread spends by function")
     ap.add_argument("--out", default="bench-out/forward-cost")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -162,7 +186,9 @@ def main():
     locus = os.path.abspath(a.locus)
     scene = os.path.join(out, "scene.toml")
     small_scene(a.scene, scene, a.width, a.height, a.spp)
-    cg = ["valgrind", "--tool=callgrind"] + (["--separate-threads=yes"] if a.per_thread else []) + os.environ.get("LOCUS_CALLGRIND_ARGS", "").split()
+    # One file per thread: the render is told from the setup thread by
+    # thread (`render_by_thread`).
+    cg = ["valgrind", "--tool=callgrind", "--separate-threads=yes"] + os.environ.get("LOCUS_CALLGRIND_ARGS", "").split()
     for old in glob.glob(os.path.join(out, "*.cg*")):
         os.remove(old)
 
@@ -206,38 +232,19 @@ def main():
     rows = []
     farm = 0
     for i in range(1, a.workers + 1):
-        costs, total = inclusive(f"{out}/w{i}.cg")
-        # Everything the worker did but its setup: the blocking pool holds
-        # the BVH builds and the engine, the async side the job's setup
-        # message with its triangles.
-        blocking = costs.get("tokio::runtime::blocking::pool::Inner::run", 0)
-        turns = costs.get("locus_worker::engine::turns", 0)
-        # The setup message's decoding: named by the message's own
-        # deserializer where the compiler kept it apart, else by the
-        # connection's decode it was inlined into, on the thread that
-        # decoded it (with `--per-thread`; that thread's decode also holds
-        # whatever few small messages it decoded besides, about 1% of it
-        # here; without `--per-thread` every thread's decode, peer
-        # messages included, counts as setup).
-        setup = costs.get("locus_protocol::control::_::<impl serde_core::de::Deserialize "
-                          "for locus_protocol::control::SchedulerToWorker>::deserialize",
-                          costs[DECODE + "/largest"])
-        # A worker of more than one thread builds its region's BVH parts
-        # in its tracing pool (`locus_worker::job::region_part_now`, kept
-        # out of line), outside the blocking pool: setup as well. A worker
-        # of one thread builds them on the blocking thread, counted above.
-        builds = costs.get("locus_worker::job::region_part_now", 0) if a.threads > 1 else 0
-        setup += builds
-        render = total - blocking + turns - setup
         stats = next((w["stats"] for w in report["workers"] if w["addr"] == listen[i]), {})
-        rows.append((f"w{i}", turns, total - blocking - setup, render, stats))
+        engine, pool, runtime, setup = render_by_thread(f"{out}/w{i}.cg")
+        render = engine + pool + runtime - setup
+        rows.append((f"w{i}", engine, runtime - setup, render, stats, pool))
         farm += render
     print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, {a.workers} workers x {a.threads} threads, "
           f"{a.fetch}, {a.cost} cost, {a.partitioner}")
     print(f"one machine's render: {one / 1e6:.1f} M instructions")
-    for name, turns, runtime, render, st in rows:
+    for name, turns, runtime, render, st, pool in rows:
         t = st.get("trace", {})
-        print(f"{name}: engine {turns / 1e6:.1f} M, runtime {runtime / 1e6:.1f} M, "
+        print(f"{name}: engine {turns / 1e6:.1f} M, "
+              + (f"pool {pool / 1e6:.1f} M, " if pool else "")
+              + f"runtime {runtime / 1e6:.1f} M, "
               f"render phase {render / 1e6:.1f} M; tiles {st.get('tiles', 0)}, "
               f"BVH steps {(t.get('bvh_nodes', 0) + t.get('tri_tests', 0)) / 1e6:.2f} M, "
               f"queries in {st.get('queries_in', 0)}, forwarded {st.get('forwarded_out', 0)}")
