@@ -8,6 +8,8 @@
 //!   wait for answers from other workers.
 //! - [`outbox`]: ray items packed per peer, flushed by size, deadline or
 //!   idleness, and held back (never blocking) when a peer is full.
+//! - `queue`: the work waiting to be traced, peers' packets of queries
+//!   kept as the lists their links decoded.
 //! - `state`: the engine's bookkeeping (samples, batches, answers,
 //!   routing); `fetching`: fetch requests, served leaves, and the builder
 //!   thread that merges fetched leaves into BVH parts; `polling`: random
@@ -38,6 +40,7 @@ mod fetching;
 pub mod kernel;
 pub mod outbox;
 mod polling;
+mod queue;
 pub mod slots;
 mod state;
 mod tiles;
@@ -48,12 +51,12 @@ use kernel::{Batch, Work, trace_batch};
 use locus_core::accel_set::Part;
 use locus_core::dircache::LeafCaches;
 use locus_core::irradiance::IrradianceCache;
-use locus_core::path::{Answer, CacheUse, Kernel, Query};
-use locus_core::region::{Resume, WorkerId};
+use locus_core::path::{Answer, CacheUse, Kernel, Task};
+use locus_core::region::WorkerId;
 use locus_core::sampler::Sampler;
 use locus_protocol::control::{JobSetup, TileAssignment, WorkerToScheduler};
 use locus_protocol::packet::PacketError;
-use locus_protocol::rays::{HandedSample, LeafGeometry, Packet, RayItem, ReplyTo};
+use locus_protocol::rays::{HandedSample, LeafGeometry, Packet, RayItem};
 use locus_protocol::report::WorkerStats;
 use locus_protocol::submit::FetchPolicy;
 use outbox::LinkClosed;
@@ -165,13 +168,15 @@ pub enum Input {
 }
 
 /// A packet's items as the reader of its link sorted them: queries to trace
-/// here and answers for this worker's slots. Decoding there keeps it off the
-/// engine's thread, which is serial: in a worker of 8 tracing threads on the
-/// room, decoding took 17-28% of that thread's instructions, and the
-/// engine fed its pool more slowly than the pool traced.
+/// here, as the work the engine queues and hands to its pool as it is
+/// (`queue`), and answers for this worker's slots. Decoding there keeps
+/// it off the engine's thread, which is serial: in a worker of 8 tracing
+/// threads on the room, decoding took 17-28% of that thread's
+/// instructions, and the engine fed its pool more slowly than the pool
+/// traced.
 #[derive(Default)]
 pub struct Received {
-    pub queries: Vec<(Query, Resume, ReplyTo)>,
+    pub queries: Vec<Work>,
     pub answers: Vec<(u32, Answer)>,
 }
 
@@ -187,7 +192,15 @@ impl Received {
         sampler: Sampler,
         workers: usize,
     ) -> Result<Self, EngineError> {
-        let mut r = Received::default();
+        // Room for the items a packet of this many bytes typically holds
+        // (a path query takes 59-68 bytes, a radiance answer 15-16), so
+        // that decoding seldom copies what it has decoded: growing the
+        // lists by doubling was a fifth of the decoder's instructions.
+        let n = packet.len();
+        let mut r = Received {
+            queries: Vec::with_capacity(n / 56),
+            answers: Vec::with_capacity(n / 32),
+        };
         for it in packet.items(seed, sampler) {
             match it.map_err(|why| EngineError::BadPacket { from, why })? {
                 RayItem::Trace { reply, .. } if reply.worker as usize >= workers => {
@@ -198,7 +211,14 @@ impl Received {
                     query,
                     resume,
                     reply,
-                } => r.queries.push((query, resume, reply)),
+                } => r.queries.push(Work {
+                    task: Task::Query(query),
+                    resume,
+                    reply,
+                    from,
+                    pinned: None,
+                    handed_by: None,
+                }),
                 RayItem::Answer { to, answer } => r.answers.push((to, answer)),
             }
         }
@@ -384,7 +404,7 @@ fn turns<'a: 's, 's>(
             while out < target && e.work.len() > least {
                 let share = e.work.len().div_ceil(target + 1 - out);
                 let take = share.clamp(MIN_BATCH, BATCH).min(e.work.len());
-                let batch: Vec<Work> = e.work.drain(..take).collect();
+                let batch = e.work.take(take);
                 let (job, reach, tx) = (e.job.clone(), e.reach.clone(), e.events.clone());
                 scope.spawn(move |_| {
                     let b = trace_batch(&job, &reach, batch.into_iter());
@@ -397,7 +417,8 @@ fn turns<'a: 's, 's>(
         let traced_here = engine_traces && !e.work.is_empty();
         if traced_here {
             let take = e.work.len().min(INLINE_BATCH);
-            let mut b = trace_batch(e.job, &e.reach, e.work.drain(..take));
+            let batch = e.work.take(take);
+            let mut b = trace_batch(e.job, &e.reach, batch.into_iter());
             // This thread's time is counted whole at the end.
             b.cpu_s = 0.0;
             e.now = Instant::now();
@@ -485,6 +506,9 @@ fn turns<'a: 's, 's>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use locus_core::path::Query;
+    use locus_core::region::Resume;
+    use locus_protocol::rays::ReplyTo;
 
     #[test]
     fn the_engine_thread_traces_only_beside_a_small_pool() {
@@ -524,9 +548,9 @@ mod tests {
         let replies: Vec<_> = r
             .queries
             .iter()
-            .map(|(_, _, to)| (to.worker, to.slot))
+            .map(|w| (w.reply.worker, w.reply.slot, w.from))
             .collect();
-        assert_eq!(replies, [(0, 4), (2, 5)]);
+        assert_eq!(replies, [(0, 4, 1), (2, 5, 1)]);
         let answers: Vec<_> = r.answers.iter().map(|(to, a)| (*to, *a)).collect();
         assert_eq!(
             answers,

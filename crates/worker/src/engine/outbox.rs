@@ -39,6 +39,11 @@ const MAX_PACKET_ALLOC: usize = 4096;
 struct Filling {
     encoded: Packet,
     raw: Vec<RayItem>,
+    /// The most of the engine's own items a packet to this peer has held:
+    /// the next packet's room for them, so that filling it seldom copies
+    /// them (sizing it by the last packet's alone grew every packet that
+    /// held more, about 3% of a dedicated engine thread's instructions).
+    raw_most: usize,
     n: usize,
 }
 
@@ -136,12 +141,12 @@ impl Outbox {
         if f.n == 0 {
             return Ok(());
         }
-        // Room for a full packet, so that filling it never copies it; the
-        // engine's items are sized by the last packet's (about as many
-        // come each time).
+        // Room for a full packet, so that filling it never copies it; for
+        // the engine's items, room for as many as a packet has held.
         let bytes = self.packet_items.min(MAX_PACKET_ALLOC) * MAX_ITEM;
         let encoded = std::mem::replace(&mut f.encoded, Packet::with_capacity(bytes));
-        let next_raw = Vec::with_capacity(f.raw.len());
+        f.raw_most = f.raw_most.max(f.raw.len());
+        let next_raw = Vec::with_capacity(f.raw_most);
         let raw = std::mem::replace(&mut f.raw, next_raw);
         f.n = 0;
         self.packets += 1;

@@ -146,16 +146,12 @@ impl Engine<'_> {
         // Work is taken from the back of the queue, where camera samples
         // wait (queries go to the front); a bounded stretch is looked at,
         // so that a poll costs little however long the queue.
-        let scan = self.work.len().min(2 * HAND_MAX);
-        let spare = if self.work.len() < HAND_MIN {
+        let work = self.work.items();
+        let scan = work.len().min(2 * HAND_MAX);
+        let spare = if work.len() < HAND_MIN {
             0
         } else {
-            self.work
-                .iter()
-                .rev()
-                .take(scan)
-                .filter(|w| handable(w))
-                .count()
+            work.iter().rev().take(scan).filter(|w| handable(w)).count()
         };
         if spare < HAND_MIN {
             let me = self.job.setup.me;
@@ -171,7 +167,8 @@ impl Engine<'_> {
             return Ok(self.outbox.send(from, PeerMsg::NoWork { idle })?);
         }
         let n = (spare / 2).min(HAND_MAX);
-        let tail: Vec<Work> = self.work.drain(self.work.len() - scan..).collect();
+        let work = self.work.items();
+        let tail: Vec<Work> = work.drain(work.len() - scan..).collect();
         let mut queries = Packet::default();
         let mut samples = Vec::new();
         let mut handed = 0;
@@ -219,18 +216,13 @@ impl Engine<'_> {
         if !r.answers.is_empty() {
             return Err(bad("an answer".into()));
         }
-        for (query, resume, reply) in r.queries {
+        for mut w in r.queries {
             self.stats.handed_in += 1;
-            self.work.push_front(Work {
-                task: Task::Query(query),
-                // Whatever span the sender claims lies in its leaves, not
-                // in this worker's.
-                resume: Resume::at(resume.at),
-                reply,
-                from,
-                pinned: None,
-                handed_by: Some(from),
-            });
+            // Whatever span the sender claims lies in its leaves, not in
+            // this worker's.
+            w.resume = Resume::at(w.resume.at);
+            w.handed_by = Some(from);
+            self.work.push_front(w);
         }
         for h in samples {
             let (w, ht, spp) = (s.camera.width, s.camera.height, s.spp);

@@ -6,6 +6,7 @@ use super::fetching::{Builder, MERGE_AFTER};
 use super::kernel::{Batch, Work};
 use super::outbox::Outbox;
 use super::polling::Polling;
+use super::queue::WorkQueue;
 use super::slots::{Effect, Slots, UnknownSlot};
 use super::{EngineError, EngineJob, Event, Input, Links, Received};
 use crate::fetch::FetchedLeaf;
@@ -17,7 +18,7 @@ use locus_core::region::{Resume, WorkerId};
 use locus_protocol::control::{TileResult, WorkerToScheduler};
 use locus_protocol::rays::{PeerMsg, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
-use std::collections::{HashMap, VecDeque};
+use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -39,7 +40,7 @@ pub(super) struct Engine<'a> {
     pub(super) events: flume::Sender<Event>,
     pub(super) outbox: Outbox,
     pub(super) slots: Slots,
-    pub(super) work: VecDeque<Work>,
+    pub(super) work: WorkQueue,
     pub(super) no_more_tiles: bool,
     /// Tiles asked for and not yet received.
     pub(super) tiles_asked: usize,
@@ -124,7 +125,7 @@ impl<'a> Engine<'a> {
             events: events_tx.clone(),
             outbox: Outbox::new(links.peers, s.tuning.packet_size.max(1) as usize, flush),
             slots: Slots::new(s.me, s.job, [s.camera.width, s.camera.height, s.spp]),
-            work: VecDeque::new(),
+            work: WorkQueue::default(),
             no_more_tiles: false,
             tiles_asked: 0,
             stats: WorkerStats {
@@ -215,19 +216,8 @@ impl<'a> Engine<'a> {
                 }
                 let Received { queries, answers } = items?;
                 self.stats.queries_in += queries.len() as u64;
-                // Peers' queries go first, new camera samples last: a peer
-                // whose samples all wait here would otherwise run dry while
-                // they queue behind samples this worker started.
-                for (query, resume, reply) in queries {
-                    self.work.push_front(Work {
-                        task: Task::Query(query),
-                        resume,
-                        reply,
-                        from,
-                        pinned: None,
-                        handed_by: None,
-                    });
-                }
+                // Peers' queries go first (see `queue`).
+                self.work.push_list(queries);
                 // Each answer's slot is fetched from memory a few answers
                 // ahead (answers arrive for slots at random), and what it
                 // will write next half as far ahead.
