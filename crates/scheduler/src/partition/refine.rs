@@ -5,24 +5,30 @@
 use super::{BALANCE_SLACK, LeafGraph, Limits, REFINE_PASSES};
 
 /// What a forwarded query costs its sender and receiver beyond the
-/// tracing the cost preview counts (sending it; decoding it, walking the
-/// route again, restarting a BVH traversal, answering), in the preview's
-/// units of BVH steps (about 28 instructions, see `cost::VERTEX_COST`):
-/// 813 instructions to forward and 1,676 to receive in
-/// `crates/locus/src/bench/fit_costs.py`'s fit. A region's load is its
-/// leaves' cost plus, for every preview crossing of its border, the
-/// sender's part of this ([`SENDER_SHARE`]) where the ray leaves it and
-/// the receiver's where it enters: borders make work.
-pub const FORWARD_COST: f64 = 90.0;
+/// tracing the cost preview counts (sending it, its answer coming back and
+/// its slot answered; decoding it, walking the route again, restarting a
+/// BVH traversal, answering), in the preview's units of BVH steps (about
+/// 28 instructions, see `cost::VERTEX_COST`): 2,163 instructions to
+/// forward and 1,710 to receive in `crates/locus/src/bench/fit_costs.py`'s
+/// fit over 36 workers of 8 `forward_cost.py` runs (room and conference
+/// room, 2 to 8 workers), a worker's BVH step held at the 76 instructions
+/// of the fit before. That fit (813 and 1,676, charged 90 steps with a
+/// third to the sender) counted no instruction of the async runtime's
+/// worker threads, where packets are read, decoded and written: counted
+/// whole, a query costs more, and more of it falls on its sender. A
+/// region's load is its leaves' cost plus, for every preview crossing of
+/// its border, the sender's part of this ([`SENDER_SHARE`]) where the ray
+/// leaves it and the receiver's where it enters: borders make work.
+/// Recharged so, the room's busiest worker (`forward_cost.py`, one thread
+/// a worker) did 3.2%, 6.7% and 3.7% less at 2, 4 and 8 workers, and the
+/// conference room's partitions did not change.
+pub const FORWARD_COST: f64 = 140.0;
 
-/// The sender's part of [`FORWARD_COST`] (813 of 813 + 1,676
+/// The sender's part of [`FORWARD_COST`] (2,163 of 2,163 + 1,710
 /// instructions); the receiver pays the rest. Where a border's rays go
 /// mostly one way (out of the region that starts the camera samples), the
-/// side they enter does more of its work. Measured by `forward_cost.py`
-/// on the room at two workers, the busiest worker's instructions over the
-/// mean went from 1.021 (half and half) to 1.009; the conference room's
-/// partition did not change.
-pub const SENDER_SHARE: f64 = 813.0 / (813.0 + 1676.0);
+/// side they leave does more of its work.
+pub const SENDER_SHARE: f64 = 2163.0 / (2163.0 + 1710.0);
 
 /// Loads that count borders: cost plus each region's part of
 /// [`FORWARD_COST`] for the weight crossing its border, kept up to date
