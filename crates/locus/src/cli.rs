@@ -201,7 +201,6 @@ pub(crate) struct SchedulerArgs {
     pub(crate) auth: TokenArgs,
 }
 
-/// A timeout in seconds: positive, finite, at most an hour.
 /// A noise target: a positive relMSE (`limits::check_target`).
 pub(crate) fn parse_target(s: &str) -> Result<f64, String> {
     let t: f64 = s
@@ -210,6 +209,7 @@ pub(crate) fn parse_target(s: &str) -> Result<f64, String> {
     locus_core::limits::check_target(t).map(|()| t)
 }
 
+/// A timeout in seconds: positive, finite, at most an hour.
 pub(crate) fn parse_timeout(s: &str) -> Result<f64, String> {
     let t: f64 = s
         .parse()

@@ -195,7 +195,8 @@ impl Received {
         // Room for the items a packet of this many bytes typically holds
         // (a path query takes 59-68 bytes, a radiance answer 15-16), so
         // that decoding seldom copies what it has decoded: growing the
-        // lists by doubling was a fifth of the decoder's instructions.
+        // lists by doubling was about a seventh of the decoder's
+        // instructions (3.3 M of 23.2 M on the room, `forward_cost.py`).
         let n = packet.len();
         let mut r = Received {
             queries: Vec::with_capacity(n / 56),

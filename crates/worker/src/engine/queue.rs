@@ -109,18 +109,22 @@ mod tests {
         v.iter().map(|w| w.reply.slot).collect()
     }
 
-    fn list(r: std::ops::Range<u32>) -> Vec<Work> {
-        r.map(work).collect()
+    /// A queue of camera sample 100 at the back, item 101 at the front,
+    /// and a peer's list of each range, in order.
+    fn queue(lists: &[std::ops::Range<u32>]) -> WorkQueue {
+        let mut q = WorkQueue::default();
+        q.push_back(work(100));
+        q.push_front(work(101));
+        for r in lists {
+            q.push_list(r.clone().map(work).collect());
+        }
+        q
     }
 
     #[test]
     fn lists_go_first_whole_or_cut_from_their_end() {
-        let mut q = WorkQueue::default();
-        q.push_back(work(100));
-        q.push_list(list(0..5));
-        q.push_front(work(101));
-        q.push_list(Vec::new());
-        q.push_list(list(10..12));
+        // The empty list is not kept.
+        let mut q = queue(&[0..5, 0..0, 10..12]);
         assert_eq!(q.len(), 9);
         // The first list is longer than asked: its last three.
         assert_eq!(slots(&q.take(3)), [2, 3, 4]);
@@ -138,11 +142,7 @@ mod tests {
 
     #[test]
     fn polling_sees_every_item_in_the_order_they_would_go() {
-        let mut q = WorkQueue::default();
-        q.push_back(work(100));
-        q.push_list(list(0..3));
-        q.push_list(list(3..5));
-        q.push_front(work(101));
+        let mut q = queue(&[0..3, 3..5]);
         let order: Vec<u32> = q.items().iter().map(|w| w.reply.slot).collect();
         assert_eq!(order, [0, 1, 2, 3, 4, 101, 100]);
         assert_eq!(q.len(), 7);
