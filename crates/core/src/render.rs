@@ -14,12 +14,13 @@ use crate::irradiance::overture::{self, OvertureStats};
 use crate::light::LightSet;
 use crate::metrics::{ErrorEstimate, estimate_error, meets_target};
 use crate::octree::Octree;
-use crate::passes::{PixelSum, pass_sum, passes, pixel_mean};
-use crate::path::{CacheUse, ChainVertex, Kernel, WholeScene};
+use crate::passes::{Moments, PixelSum, pass_sum, passes, pixel_mean};
+use crate::path::{CacheUse, ChainVertex, Kernel, Tracer, WholeScene};
 use crate::sampler::{Sampler, mix64};
 use crate::scene::Scene;
 use crate::stats::TraceStats;
 use serde::Serialize;
+use std::ops::Range;
 use std::sync::OnceLock;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
@@ -205,6 +206,21 @@ pub fn render_pixel(
     })
 }
 
+/// One pass of pixel `(x, y)`: its samples `pass` summed in index order
+/// ([`pass_sum`]). What one machine renders each pass of a noise-targeted
+/// render with, and what a farm worker that holds the whole scene renders
+/// a tile's pass with, on any tracer that finishes every segment.
+pub fn pixel_pass<T: Tracer>(
+    kernel: &Kernel,
+    tracer: &T,
+    (x, y): (u32, u32),
+    pass: Range<u32>,
+    chain: &mut Vec<ChainVertex>,
+    st: &mut TraceStats,
+) -> Moments {
+    pass_sum(pass, st, |s, st| kernel.sample(tracer, x, y, s, chain, st))
+}
+
 pub struct RenderOutput {
     pub image: Image,
     /// Samples each pixel got: `spp`, or fewer where a noise target was
@@ -341,8 +357,7 @@ fn render_to_target(
     let mut done = 0;
     for pass in passes(spp) {
         let pixel = |x, y, chain: &mut _, st: &mut _| {
-            let sample = |s, st: &mut _| kernel.sample(tracer, x, y, s, chain, st);
-            PixelSum::from_total(pass_sum(pass.clone(), st, sample))
+            PixelSum::from_total(pixel_pass(kernel, tracer, (x, y), pass.clone(), chain, st))
         };
         for (t, px, st) in render_tiles(pool, tiles, tick, pixel) {
             let mut px = px.iter();

@@ -48,6 +48,11 @@ fn farm_matches_single_machine_bit_for_bit() {
                 assert_eq!(bits(&r), reference, "{workers} workers, {partitioner:?}");
                 assert_eq!(rep.error_estimate, error, "{workers} workers, {partitioner:?}");
                 assert_eq!(rep.totals.trace.samples, (40 * 32 * 3) as u64);
+                // A worker alone holds every leaf: its tiles go whole; a
+                // worker of several, under `forward`, holds only its
+                // region.
+                let whole = if workers == 1 { rep.totals.tiles } else { 0 };
+                assert_eq!(rep.totals.whole_tiles, whole, "{workers} workers");
                 if workers > 1 {
                     assert!(rep.totals.forwarded_out > 0, "rays crossed regions");
                     let sent: u64 = rep.workers.iter().flat_map(|w| &w.stats.peers).map(|p| p.bytes_sent).sum();
@@ -117,7 +122,20 @@ fn workers_of_several_threads_keep_the_bits() {
                 let req = locus_scheduler::client::request(&scene, opts);
                 let r = farm.render(req, &|_, _| {}).await.expect("job");
                 assert_eq!(bits(&r), reference, "{threads} threads a worker, {fetch:?}");
-                assert_eq!(r.report.totals.trace.samples, (40 * 32 * 3) as u64);
+                let t = &r.report.totals;
+                assert_eq!(t.trace.samples, (40 * 32 * 3) as u64);
+                // The scene is shipped whole under `fetch`: every tile is
+                // traced whole, by the engine's thread or by its pool.
+                let whole = if fetch == FetchPolicy::Fetch {
+                    t.tiles
+                } else {
+                    0
+                };
+                assert!(t.tiles > 0);
+                assert_eq!(
+                    t.whole_tiles, whole,
+                    "{threads} threads a worker, {fetch:?}"
+                );
             }
             farm.stop().await.expect("clean stop");
         }

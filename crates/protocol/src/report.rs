@@ -35,6 +35,9 @@ pub struct WorkerStats {
     /// Times origination stopped because a peer's queue was full.
     pub backpressure_stalls: u64,
     pub tiles: u32,
+    /// Of `tiles`, those traced whole, a pool task each, with no slot per
+    /// sample: by a worker that held every leaf when the tile started.
+    pub whole_tiles: u32,
     pub triangles: u64,
     pub leaves: u32,
     pub bvh_build_s: f64,
@@ -99,6 +102,7 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.engine_wait_s += o.engine_wait_s;
         self.backpressure_stalls += o.backpressure_stalls;
         self.tiles += o.tiles;
+        self.whole_tiles += o.whole_tiles;
         self.triangles += o.triangles;
         self.leaves += o.leaves;
         self.bvh_build_s = self.bvh_build_s.max(o.bvh_build_s);

@@ -29,7 +29,12 @@
 //!
 //! Work arrives as ray items from peers, tiles from the scheduler and
 //! answers to this worker's own queries; a camera sample is the root of a
-//! path, and a tile is done when all its samples are in. Queues are bounded
+//! path, and a tile is done when all its samples are in. A worker that
+//! holds every leaf (the scene replicated, or a farm of one) traces each
+//! tile's pass whole instead, as a pool task that sums its pixels the way
+//! one machine does (`kernel::trace_tile`): its samples finish where they
+//! start, and a slot and a queue entry per sample cost it about 5% of its
+//! render. Queues are bounded
 //! by construction: a worker keeps at most `max_inflight` camera samples
 //! open, each sample has at most `max_depth + 1` vertices pending and two
 //! queries in flight per vertex, so the ray items in the whole farm are
@@ -47,7 +52,7 @@ mod tiles;
 
 use crate::fetch::{FetchedLeaf, Locality};
 use crate::sys;
-use kernel::{Batch, Work, trace_batch};
+use kernel::{Batch, Work, trace_batch, trace_tile};
 use locus_core::accel_set::Part;
 use locus_core::dircache::LeafCaches;
 use locus_core::irradiance::IrradianceCache;
@@ -230,7 +235,9 @@ impl Received {
 /// What the engine loop waits for.
 pub enum Event {
     Input(Input),
-    Traced(Batch),
+    /// Boxed: a batch's lists are most of its size, and a batch comes
+    /// back once per thousands of items.
+    Traced(Box<Batch>),
     /// A fetched leaf's BVH, built on the pool.
     LeafBuilt(Arc<FetchedLeaf>, f64),
     /// New BVH parts with pending leaves merged, from the builder thread.
@@ -410,22 +417,43 @@ fn turns<'a: 's, 's>(
                 scope.spawn(move |_| {
                     let b = trace_batch(&job, &reach, batch.into_iter());
                     // A closed inbox means the job is over.
-                    let _ = tx.send(Event::Traced(b));
+                    let _ = tx.send(Event::Traced(Box::new(b)));
+                });
+                out += 1;
+            }
+            // Beside what waits in the queue (answers to peers first),
+            // tiles traced whole, a task each.
+            while out < target
+                && e.work.len() <= least
+                && let Some(a) = e.take_whole()
+            {
+                let (job, reach, tx) = (e.job.clone(), e.reach.clone(), e.events.clone());
+                scope.spawn(move |_| {
+                    let _ = tx.send(Event::Traced(Box::new(trace_tile(&job, &reach, a))));
                 });
                 out += 1;
             }
         }
-        let traced_here = engine_traces && !e.work.is_empty();
-        if traced_here {
+        let here = if !engine_traces {
+            None
+        } else if !e.work.is_empty() {
             let take = e.work.len().min(INLINE_BATCH);
             let batch = e.work.take(take);
-            let mut b = trace_batch(e.job, &e.reach, batch.into_iter());
+            Some(trace_batch(e.job, &e.reach, batch.into_iter()))
+        } else {
+            e.take_whole().map(|a| trace_tile(e.job, &e.reach, a))
+        };
+        let traced_here = here.is_some();
+        // A worker tracing tiles whole on this thread has an empty queue
+        // between them: it is not idle.
+        let tile_here = here.as_ref().is_some_and(|b| !b.tiles.is_empty());
+        if let Some(mut b) = here {
             // This thread's time is counted whole at the end.
             b.cpu_s = 0.0;
             e.now = Instant::now();
             e.apply(b)?;
         }
-        if out == 0 && e.work.is_empty() {
+        if out == 0 && e.work.is_empty() && !tile_here {
             // Nothing is being traced: what waits in packets must go, and
             // a peer may have queries to spare.
             e.outbox.flush_all()?;
@@ -481,7 +509,7 @@ fn turns<'a: 's, 's>(
             match ev {
                 Event::Traced(b) => {
                     out -= 1;
-                    e.apply(b)?;
+                    e.apply(*b)?;
                 }
                 Event::LeafBuilt(f, cpu) => e.leaf_built(f, cpu),
                 Event::Merged(m) => e.merged(m),

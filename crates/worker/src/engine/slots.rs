@@ -235,9 +235,11 @@ impl Slots {
             return Err(p);
         }
         let n = a.pixels() * a.pass_samples();
+        // Room for the samples' values is made when the first starts: a
+        // tile traced whole ([`Slots::take_whole`]) never needs it.
         let st = TileState {
             a,
-            values: vec![Vec3::ZERO; n as usize],
+            values: Vec::new(),
             remaining: n,
             next: 0,
         };
@@ -257,6 +259,31 @@ impl Slots {
         Ok(())
     }
 
+    /// Whether the next tile to start has started some of its samples
+    /// already: its others go on one by one.
+    pub fn front_started(&self) -> bool {
+        self.fresh
+            .front()
+            .and_then(|&ti| self.tiles[ti as usize].as_ref())
+            .is_some_and(|t| t.next > 0)
+    }
+
+    /// The next tile to start, to be traced whole, if none of its samples
+    /// has started. It stays counted as held until [`Slots::whole_done`].
+    pub fn take_whole(&mut self) -> Option<TileAssignment> {
+        let &ti = self.fresh.front()?;
+        if self.front_started() {
+            return None;
+        }
+        self.fresh.pop_front();
+        self.tiles[ti as usize].take().map(|t| t.a)
+    }
+
+    /// A tile taken by [`Slots::take_whole`] is done.
+    pub fn whole_done(&mut self) {
+        self.held -= 1;
+    }
+
     /// The next camera sample of a held tile that has not started, with
     /// the slot its radiance goes to; pixel by pixel, sample by sample.
     pub fn start_sample(&mut self) -> Option<NewSample> {
@@ -264,6 +291,9 @@ impl Slots {
         let t = self.tiles[ti as usize]
             .as_mut()
             .expect("a fresh tile is held");
+        if t.next == 0 {
+            t.values = vec![Vec3::ZERO; t.remaining as usize];
+        }
         let (index, a) = (t.next, t.a);
         t.next += 1;
         if t.next as usize >= t.values.len() {
@@ -505,6 +535,37 @@ mod tests {
             assert!(s.add_tile(t).unwrap_err().contains("tile 0"));
         }
         assert!(s.start_sample().is_none());
+    }
+
+    #[test]
+    fn a_tile_goes_whole_only_before_its_first_sample() {
+        let mut s = Slots::new(0, 9, IMAGE);
+        s.add_tile(tile(1, 2, 1)).unwrap();
+        s.add_tile(tile(2, 1, 1)).unwrap();
+        assert!(!s.front_started());
+        let first = s.start_sample().unwrap();
+        // Tile 1 has started: its other samples go one by one.
+        assert!(s.front_started());
+        assert_eq!(s.take_whole(), None);
+        let rest: Vec<_> = (0..3).map_while(|_| s.start_sample()).collect();
+        assert_eq!(rest.len(), 3);
+        assert_eq!(s.samples_open(), 4);
+        // Tile 2 has not: it goes whole, no slot opens for it, and it stays
+        // held until it is done.
+        assert!(!s.front_started());
+        assert_eq!(s.take_whole(), Some(tile(2, 1, 1)));
+        assert_eq!((s.take_whole(), s.start_sample()), (None, None));
+        assert_eq!((s.tiles_held().0, s.pending()), (2, 4));
+        s.whole_done();
+        assert_eq!(s.tiles_held().0, 1);
+        // Tile 1 still finishes sample by sample.
+        let (mut fx, mut st) = (Vec::new(), TraceStats::default());
+        for n in std::iter::once(first).chain(rest) {
+            let l = Answer::Radiance(Vec3::ONE);
+            s.answer(0, n.reply.slot, l, &mut fx, &mut st).unwrap();
+        }
+        assert!(matches!(&fx[..], [Effect::TileDone(r)] if r.tile == 1 && r.sums.len() == 2));
+        assert_eq!(s.tiles_held().0, 0);
     }
 
     #[test]

@@ -15,7 +15,7 @@ use locus_core::accel_set::{AccelSet, Part};
 use locus_core::integrator::PathRay;
 use locus_core::path::{Answer, CacheKey, Dest, Outcome, Query, Task};
 use locus_core::region::{Resume, WorkerId};
-use locus_protocol::control::{TileResult, WorkerToScheduler};
+use locus_protocol::control::{TileAssignment, TileResult, WorkerToScheduler};
 use locus_protocol::rays::{PeerMsg, RayItem, ReplyTo};
 use locus_protocol::report::WorkerStats;
 use std::collections::HashMap;
@@ -182,7 +182,14 @@ impl<'a> Engine<'a> {
             cap = cap.min(LOCAL_INFLIGHT_PER_THREAD * self.threads);
         }
         let me = self.job.setup.me;
+        let whole = self.whole_tiles();
         while self.slots.samples_open() < cap {
+            // Tiles go whole where they can ([`Engine::take_whole`]); one
+            // started sample by sample before (the reach grew to every
+            // leaf meanwhile) finishes that way.
+            if whole && !self.slots.front_started() {
+                break;
+            }
             let Some(n) = self.slots.start_sample() else {
                 break;
             };
@@ -198,6 +205,25 @@ impl<'a> Engine<'a> {
                 pinned: None,
                 handed_by: None,
             });
+        }
+    }
+
+    /// Whether tiles are traced whole, a pool task each ([`trace_tile`]):
+    /// where this worker holds every leaf, so that its samples finish
+    /// where they start, and no peer polls for them.
+    ///
+    /// [`trace_tile`]: super::kernel::trace_tile
+    pub(super) fn whole_tiles(&self) -> bool {
+        self.reach.all_local && !self.polling.on
+    }
+
+    /// The next held tile to trace whole, if tiles go whole and it has not
+    /// started sample by sample.
+    pub(super) fn take_whole(&mut self) -> Option<TileAssignment> {
+        if self.whole_tiles() {
+            self.slots.take_whole()
+        } else {
+            None
         }
     }
 
@@ -269,6 +295,11 @@ impl<'a> Engine<'a> {
         self.cpu_s += b.cpu_s;
         self.stats.forwarded_out += b.sends.forwards;
         self.stats.answers_out += b.sends.answers;
+        for r in b.tiles {
+            self.stats.whole_tiles += 1;
+            self.slots.whole_done();
+            self.tile_done(r)?;
+        }
         for (to, packet, n) in &b.sends.full {
             self.outbox.push_encoded(*to, packet, *n, self.now)?;
         }
