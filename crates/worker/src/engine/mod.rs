@@ -3,7 +3,7 @@
 //! talks to peers and the scheduler through bounded channels.
 //!
 //! - [`kernel`] (pool side): work items traced through the core's path
-//!   kernel with this worker's tracer over its [`Reach`].
+//!   kernel with this worker's tracer over its [`Reach`](crate::reach::Reach).
 //! - [`slots`]: camera samples of the worker's tiles and vertices that
 //!   wait for answers from other workers.
 //! - [`outbox`]: ray items packed per peer, flushed by size, deadline or

@@ -6,13 +6,13 @@
 //! when both are in, [`ShadedVertex::finish`] gives its radiance, which
 //! answers whoever asked). Answers cascade within the worker without
 //! recursion: a finished vertex answers exactly one asker. A tile is done
-//! when all its samples are in; its pixels are the [`PixelSum`] means, the
-//! same as one machine's.
+//! when all its samples are in; each pixel's samples are summed by the
+//! core's [`pass_sum`], as one machine sums them.
 
 use glam::Vec3;
 use locus_core::integrator::PathRay;
 use locus_core::integrator::ShadedVertex;
-use locus_core::passes::PixelSum;
+use locus_core::passes::pass_sum;
 use locus_core::path::{Answer, CacheKey, ChainVertex, Child, Dest, Query};
 use locus_core::region::{Resume, WorkerId};
 use locus_core::stats::TraceStats;
@@ -462,13 +462,7 @@ impl Slots {
         let sums = t
             .values
             .chunks(t.a.pass_samples() as usize)
-            .map(|samples| {
-                let mut sum = PixelSum::default();
-                for &l in samples {
-                    sum.add(l, st);
-                }
-                sum.total()
-            })
+            .map(|samples| pass_sum(0..samples.len() as u32, st, |s, _| samples[s as usize]))
             .collect();
         TileResult {
             job: self.job,
