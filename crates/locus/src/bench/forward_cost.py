@@ -59,6 +59,8 @@ def inclusive(path):
 # A tracing pool thread's share of the render, and the loop of the async
 # runtime's worker threads.
 TRACE_BATCH = "locus_worker::engine::kernel::trace_batch"
+# A tile traced whole, by a worker that holds every leaf.
+TRACE_TILE = "locus_worker::engine::kernel::trace_tile"
 RUNTIME_WORKER = "tokio::runtime::scheduler::multi_thread::worker::run"
 SETUP_DECODE = ("locus_protocol::control::_::<impl serde_core::de::Deserialize "
                 "for locus_protocol::control::SchedulerToWorker>::deserialize")
@@ -80,9 +82,9 @@ ENGINE_PARTS = [
 def render_by_thread(path):
     """A worker's render phase from its per-thread files `path-NN`, thread
     by thread: the engine's thread counts its loop (`turns`, with whatever
-    it traces itself); a tracing pool thread the batches it traced
-    (`trace_batch`, inclusive: not the parts of the region's BVH build it
-    stole before the render); the async runtime's worker threads their
+    it traces itself); a tracing pool thread the batches and whole tiles it
+    traced (`trace_batch`, `trace_tile`, inclusive: not the parts of the
+    region's BVH build it stole before the render); the async runtime's worker threads their
     totals (peer sockets, frames, packets decoded, the link writers'
     encoding, control messages; tokio runs its workers on blocking-pool
     threads, so they are told by the scheduler's loop, `worker::run`), less
@@ -95,7 +97,7 @@ def render_by_thread(path):
     for part in sorted(glob.glob(path + "-*")):
         costs, total = inclusive_one(part)
         turns = costs.get(ENGINE_PARTS[0], 0)
-        traced = costs.get(TRACE_BATCH, 0)
+        traced = costs.get(TRACE_BATCH, 0) + costs.get(TRACE_TILE, 0)
         if turns:
             engine += turns
         elif traced:
