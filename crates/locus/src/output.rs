@@ -107,13 +107,13 @@ pub(crate) fn write_farm_result(
         ph.total_s,
         f.samples_per_s
     );
+    let r = match (f.prediction.analytic_r, f.prediction.sampled_r) {
+        (Some(a), Some(s)) => format!("  prediction r: analytic {a:.2}, sampled {s:.2}"),
+        _ => String::new(),
+    };
     println!(
-        "  load imbalance {:.3}  forwarded per ray {:.3}  bytes per sample {:.1}  prediction r: analytic {:.2}, sampled {:.2}",
-        f.load_imbalance,
-        f.forwarded_fraction,
-        f.bytes_per_sample,
-        f.prediction.analytic_r,
-        f.prediction.sampled_r
+        "  load imbalance {:.3}  forwarded per ray {:.3}  bytes per sample {:.1}{r}",
+        f.load_imbalance, f.forwarded_fraction, f.bytes_per_sample,
     );
     if f.replicated {
         let why = if f.policy == FetchPolicy::Adaptive.name() {

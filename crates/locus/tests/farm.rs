@@ -53,6 +53,11 @@ fn farm_matches_single_machine_bit_for_bit() {
                 // region.
                 let whole = if workers == 1 { rep.totals.tiles } else { 0 };
                 assert_eq!(rep.totals.whole_tiles, whole, "{workers} workers");
+                // How well the preview predicted each worker's share is a
+                // correlation over the workers: shown from three on.
+                let r = rep.prediction.sampled_r;
+                assert_eq!(r.is_some(), workers >= 3, "{workers} workers: {r:?}");
+                assert!(r.is_none_or(|r| (-1.0..=1.0).contains(&r)), "{r:?}");
                 if workers > 1 {
                     assert!(rep.totals.forwarded_out > 0, "rays crossed regions");
                     let sent: u64 = rep.workers.iter().flat_map(|w| &w.stats.peers).map(|p| p.bytes_sent).sum();

@@ -173,9 +173,12 @@ pub struct Phases {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Prediction {
     /// Pearson correlation, over workers, of predicted and measured cost
-    /// shares, for each model.
-    pub analytic_r: f64,
-    pub sampled_r: f64,
+    /// shares, for each model. None where it says nothing: with fewer than
+    /// three workers (over two points it is +1 or -1 whatever the
+    /// prediction), or with the scene replicated (no partition placed the
+    /// work; each worker's share is what tiles it took).
+    pub analytic_r: Option<f64>,
+    pub sampled_r: Option<f64>,
     /// Work counted by the sampled predictor's preview.
     pub preview_rays: u64,
 }

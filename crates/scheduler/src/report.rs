@@ -55,6 +55,9 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
     let render_s = (end - a.t_first_tile.unwrap_or(end)).as_secs_f64();
     let t = &prep.timings;
     let samples = totals.trace.samples;
+    // A correlation over workers says something about the partition only
+    // over three or more, and only where the partition placed the work.
+    let meaningful = measured.len() >= 3 && !prep.replicated;
     FarmReport {
         scene: j.req.name.clone(),
         width: j.req.camera.width,
@@ -82,8 +85,8 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
             total_s: j.started.elapsed().as_secs_f64(),
         },
         prediction: Prediction {
-            analytic_r: cost::correlation(&prep.analytic_share, &measured),
-            sampled_r: cost::correlation(&prep.sampled_share, &measured),
+            analytic_r: meaningful.then(|| cost::correlation(&prep.analytic_share, &measured)),
+            sampled_r: meaningful.then(|| cost::correlation(&prep.sampled_share, &measured)),
             preview_rays: prep.preview_rays,
         },
         workers: stats
