@@ -259,6 +259,12 @@ impl TileAssignment {
         self.x1.saturating_sub(self.x0) * self.y1.saturating_sub(self.y0)
     }
 
+    /// Pixel `p` of the tile, in the row-major order of its result's sums.
+    pub fn pixel(&self, p: u32) -> (u32, u32) {
+        let w = self.x1 - self.x0;
+        (self.x0 + p % w, self.y0 + p / w)
+    }
+
     /// Samples per pixel in this pass (0 if the range is reversed).
     pub fn pass_samples(&self) -> u32 {
         self.samples[1].saturating_sub(self.samples[0])

@@ -84,8 +84,8 @@ def render_by_thread(path):
     by thread: the engine's thread counts its loop (`turns`, with whatever
     it traces itself); a tracing pool thread the batches and whole tiles it
     traced (`trace_batch`, `trace_tile`, inclusive: not the parts of the
-    region's BVH build it stole before the render); the async runtime's worker threads their
-    totals (peer sockets, frames, packets decoded, the link writers'
+    region's BVH build it stole before the render); the async runtime's
+    worker threads their totals (peer sockets, frames, packets decoded, the link writers'
     encoding, control messages; tokio runs its workers on blocking-pool
     threads, so they are told by the scheduler's loop, `worker::run`), less
     the job's setup message where one of them decoded it. Nothing else

@@ -276,7 +276,10 @@ impl Slots {
             return None;
         }
         self.fresh.pop_front();
-        self.tiles[ti as usize].take().map(|t| t.a)
+        let t = self.tiles[ti as usize]
+            .take()
+            .expect("a fresh tile is held");
+        Some(t.a)
     }
 
     /// A tile taken by [`Slots::take_whole`] is done.
@@ -300,13 +303,12 @@ impl Slots {
             self.fresh.pop_front();
         }
         let spp = a.pass_samples();
-        let p = index / spp;
-        let w = a.x1 - a.x0;
+        let (x, y) = a.pixel(index / spp);
         let slot = self.alloc(Slot::Sample { tile: ti, index });
         self.samples_open += 1;
         Some(NewSample {
-            x: a.x0 + p % w,
-            y: a.y0 + p / w,
+            x,
+            y,
             sample: a.samples[0] + index % spp,
             reply: ReplyTo {
                 worker: self.me,
