@@ -25,6 +25,7 @@ mod cwnode;
 mod leaf;
 mod pages;
 mod split;
+mod walk;
 
 use leaf::{LeafTest, Prims};
 
@@ -360,7 +361,7 @@ impl Accel {
         let mut r = bvh_ray(ray, t1);
         let nr = cwnode::NodeRay::new(&r);
         let mut best: Option<AccelHit> = None;
-        let mut state = self.bvh.new_traversal(r.direction);
+        let mut state = walk::Walk::new(self.bvh.nodes.len(), r.direction);
         let mut node;
         let mut nodes = 0u64;
         let mut tests = 0u64;
@@ -445,7 +446,7 @@ impl Accel {
         let w = WatertightRay::new(ray);
         let r = bvh_ray(ray, t1);
         let nr = cwnode::NodeRay::new(&r);
-        let mut state = self.bvh.new_traversal(r.direction);
+        let mut state = walk::Walk::new(self.bvh.nodes.len(), r.direction);
         let mut node;
         let mut nodes = 0u64;
         let mut tests = 0u64;
@@ -544,7 +545,7 @@ impl Accel {
 /// has taken that one out of the mask; this takes the rest too, so the
 /// macro finds the group empty and goes on to the next node.
 #[inline(always)]
-fn group(state: &mut obvhs::cwbvh::Traversal) -> Prims {
+fn group(state: &mut walk::Walk) -> Prims {
     let base = state.primitive_group.x;
     let mask = state.primitive_group.y | (1 << (state.primitive_id - base));
     state.primitive_group.y = 0;
