@@ -50,8 +50,15 @@ pub struct Batch {
     /// Queries forwarded to peers and answers to their queries, encoded
     /// here; their items are not in `items`.
     pub sends: Sends,
-    /// Tile passes traced whole ([`trace_tile`]).
-    pub tiles: Vec<TileResult>,
+}
+
+/// What tracing a tile's pass whole hands back ([`trace_tile`]): the
+/// tile's sums, with no items, chains or sends, since nothing of it left
+/// this worker.
+pub struct TileDone {
+    pub tile: TileResult,
+    pub stats: TraceStats,
+    pub cpu_s: f64,
 }
 
 impl Batch {
@@ -66,7 +73,6 @@ impl Batch {
             cpu_s: 0.0,
             misrouted: None,
             sends: Sends::new(job.workers, job.setup.tuning.packet_size as usize),
-            tiles: Vec::new(),
         }
     }
 }
@@ -290,29 +296,31 @@ pub fn trace_batch(
 /// engine's books, which cost a replicated worker about 1,000
 /// instructions a camera sample (5% of the room's render, counted by
 /// `forward_cost.py --fetch fetch`).
-pub fn trace_tile(job: &EngineJob, reach: &Reach, a: TileAssignment) -> Batch {
+pub fn trace_tile(job: &EngineJob, reach: &Reach, a: TileAssignment) -> TileDone {
     debug_assert!(
         reach.all_local,
         "a tile is traced whole only where every leaf is local"
     );
     let cpu0 = sys::thread_cpu_s();
-    let mut b = Batch::new(job, 0);
+    let mut stats = TraceStats::default();
     // A BVH of one part is traced as one machine traces its BVH: the set's
     // tracer, called for every ray, stays out of line (570.6 M against
     // 559.5 M instructions, 2.0% of the room's render at 96x72, 4 spp:
     // `forward_cost.py --fetch fetch`).
     let sums = match reach.accel.parts() {
-        [p] => tile_sums(job, &WholeScene(&p.accel), &a, &mut b.stats),
-        _ => tile_sums(job, &WholeScene(&reach.accel), &a, &mut b.stats),
+        [p] => tile_sums(job, &WholeScene(&p.accel), &a, &mut stats),
+        _ => tile_sums(job, &WholeScene(&reach.accel), &a, &mut stats),
     };
-    b.tiles.push(TileResult {
-        job: job.setup.job,
-        tile: a.tile,
-        pass: a.pass,
-        sums,
-    });
-    b.cpu_s = sys::thread_cpu_s() - cpu0;
-    b
+    TileDone {
+        tile: TileResult {
+            job: job.setup.job,
+            tile: a.tile,
+            pass: a.pass,
+            sums,
+        },
+        stats,
+        cpu_s: sys::thread_cpu_s() - cpu0,
+    }
 }
 
 /// The pass sums of tile `a`'s pixels, in rows.

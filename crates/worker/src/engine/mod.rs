@@ -52,7 +52,7 @@ mod tiles;
 
 use crate::fetch::{FetchedLeaf, Locality};
 use crate::sys;
-use kernel::{Batch, Work, trace_batch, trace_tile};
+use kernel::{Batch, TileDone, Work, trace_batch, trace_tile};
 use locus_core::accel_set::Part;
 use locus_core::dircache::LeafCaches;
 use locus_core::irradiance::IrradianceCache;
@@ -238,6 +238,8 @@ pub enum Event {
     /// Boxed: a batch's lists are most of its size, and a batch comes
     /// back once per thousands of items.
     Traced(Box<Batch>),
+    /// A tile's pass traced whole on the pool.
+    Tile(TileDone),
     /// A fetched leaf's BVH, built on the pool.
     LeafBuilt(Arc<FetchedLeaf>, f64),
     /// New BVH parts with pending leaves merged, from the builder thread.
@@ -429,31 +431,33 @@ fn turns<'a: 's, 's>(
             {
                 let (job, reach, tx) = (e.job.clone(), e.reach.clone(), e.events.clone());
                 scope.spawn(move |_| {
-                    let _ = tx.send(Event::Traced(Box::new(trace_tile(&job, &reach, a))));
+                    let _ = tx.send(Event::Tile(trace_tile(&job, &reach, a)));
                 });
                 out += 1;
             }
         }
-        let here = if !engine_traces {
-            None
-        } else if !e.work.is_empty() {
+        // This thread's time is counted whole at the end: what it traces
+        // here adds none.
+        let mut traced_here = false;
+        if engine_traces && !e.work.is_empty() {
             let take = e.work.len().min(INLINE_BATCH);
             let batch = e.work.take(take);
-            Some(trace_batch(e.job, &e.reach, batch.into_iter()))
-        } else {
-            e.take_whole().map(|a| trace_tile(e.job, &e.reach, a))
-        };
-        let traced_here = here.is_some();
-        // A worker tracing tiles whole on this thread has an empty queue
-        // between them: it is not idle.
-        let tile_here = here.as_ref().is_some_and(|b| !b.tiles.is_empty());
-        if let Some(mut b) = here {
-            // This thread's time is counted whole at the end.
+            let mut b = trace_batch(e.job, &e.reach, batch.into_iter());
             b.cpu_s = 0.0;
             e.now = Instant::now();
             e.apply(b)?;
+            traced_here = true;
+        } else if engine_traces && let Some(a) = e.take_whole() {
+            let mut t = trace_tile(e.job, &e.reach, a);
+            t.cpu_s = 0.0;
+            e.now = Instant::now();
+            e.apply_tile(t)?;
+            traced_here = true;
         }
-        if out == 0 && e.work.is_empty() && !tile_here {
+        // Idle: nothing out, nothing queued, no tile waiting to be traced
+        // whole (a worker tracing tiles whole has an empty queue between
+        // them).
+        if out == 0 && e.work.is_empty() && !e.whole_ready() {
             // Nothing is being traced: what waits in packets must go, and
             // a peer may have queries to spare.
             e.outbox.flush_all()?;
@@ -510,6 +514,10 @@ fn turns<'a: 's, 's>(
                 Event::Traced(b) => {
                     out -= 1;
                     e.apply(*b)?;
+                }
+                Event::Tile(t) => {
+                    out -= 1;
+                    e.apply_tile(t)?;
                 }
                 Event::LeafBuilt(f, cpu) => e.leaf_built(f, cpu),
                 Event::Merged(m) => e.merged(m),

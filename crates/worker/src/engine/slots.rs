@@ -282,6 +282,11 @@ impl Slots {
         Some(t.a)
     }
 
+    /// Whether [`Slots::take_whole`] would hand out a tile.
+    pub fn whole_ready(&self) -> bool {
+        !self.fresh.is_empty() && !self.front_started()
+    }
+
     /// A tile taken by [`Slots::take_whole`] is done.
     pub fn whole_done(&mut self) {
         self.held -= 1;
@@ -538,18 +543,19 @@ mod tests {
         let mut s = Slots::new(0, 9, IMAGE);
         s.add_tile(tile(1, 2, 1)).unwrap();
         s.add_tile(tile(2, 1, 1)).unwrap();
-        assert!(!s.front_started());
+        assert!(!s.front_started() && s.whole_ready());
         let first = s.start_sample().unwrap();
         // Tile 1 has started: its other samples go one by one.
-        assert!(s.front_started());
+        assert!(s.front_started() && !s.whole_ready());
         assert_eq!(s.take_whole(), None);
         let rest: Vec<_> = (0..3).map_while(|_| s.start_sample()).collect();
         assert_eq!(rest.len(), 3);
         assert_eq!(s.samples_open(), 4);
         // Tile 2 has not: it goes whole, no slot opens for it, and it stays
         // held until it is done.
-        assert!(!s.front_started());
+        assert!(!s.front_started() && s.whole_ready());
         assert_eq!(s.take_whole(), Some(tile(2, 1, 1)));
+        assert!(!s.whole_ready());
         assert_eq!((s.take_whole(), s.start_sample()), (None, None));
         assert_eq!((s.tiles_held().0, s.pending()), (2, 4));
         s.whole_done();

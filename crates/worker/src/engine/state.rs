@@ -3,7 +3,7 @@
 //! into the wait for a fetched leaf.
 
 use super::fetching::{Builder, MERGE_AFTER};
-use super::kernel::{Batch, Work};
+use super::kernel::{Batch, TileDone, Work};
 use super::outbox::Outbox;
 use super::polling::Polling;
 use super::queue::WorkQueue;
@@ -227,6 +227,11 @@ impl<'a> Engine<'a> {
         }
     }
 
+    /// Whether [`Self::take_whole`] would hand out a tile.
+    pub(super) fn whole_ready(&self) -> bool {
+        self.whole_tiles() && self.slots.whole_ready()
+    }
+
     pub(super) fn input<'s>(
         &mut self,
         i: Input,
@@ -284,6 +289,15 @@ impl<'a> Engine<'a> {
         Ok(())
     }
 
+    /// Takes in a tile's pass traced whole.
+    pub(super) fn apply_tile(&mut self, t: TileDone) -> Result<(), EngineError> {
+        self.stats.trace += t.stats;
+        self.cpu_s += t.cpu_s;
+        self.stats.whole_tiles += 1;
+        self.slots.whole_done();
+        self.tile_done(t.tile)
+    }
+
     /// Applies a traced batch.
     pub(super) fn apply(&mut self, b: Batch) -> Result<(), EngineError> {
         if let Some(from) = b.misrouted {
@@ -295,11 +309,6 @@ impl<'a> Engine<'a> {
         self.cpu_s += b.cpu_s;
         self.stats.forwarded_out += b.sends.forwards;
         self.stats.answers_out += b.sends.answers;
-        for r in b.tiles {
-            self.stats.whole_tiles += 1;
-            self.slots.whole_done();
-            self.tile_done(r)?;
-        }
         for (to, packet, n) in &b.sends.full {
             self.outbox.push_encoded(*to, packet, *n, self.now)?;
         }
