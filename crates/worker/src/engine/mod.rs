@@ -22,7 +22,8 @@
 //!   too, one batch per turn, beside a pool of the others; in a larger one
 //!   the pool has every thread and the engine's only keeps the books. A
 //!   worker of one thread has no pool and no hand-over at all. Everything
-//!   the loop waits for (peer packets, tiles, traced batches, fetched leaves
+//!   the loop waits for (peer packets, tiles, traced batches and tiles
+//!   traced whole, fetched leaves
 //!   built on the pool, merged BVH parts from the builder thread) arrives as
 //!   an [`Event`] on one bounded channel, so it sleeps in one place and no
 //!   message can be missed between two sources.
