@@ -23,10 +23,10 @@
 //!   the pool has every thread and the engine's only keeps the books. A
 //!   worker of one thread has no pool and no hand-over at all. Everything
 //!   the loop waits for (peer packets, tiles, traced batches and tiles
-//!   traced whole, fetched leaves
-//!   built on the pool, merged BVH parts from the builder thread) arrives as
-//!   an [`Event`] on one bounded channel, so it sleeps in one place and no
-//!   message can be missed between two sources.
+//!   traced whole, fetched leaves built on the pool, merged BVH parts from
+//!   the builder thread) arrives as an [`Event`] on one bounded channel, so
+//!   it sleeps in one place and no message can be missed between two
+//!   sources.
 //!
 //! Work arrives as ray items from peers, tiles from the scheduler and
 //! answers to this worker's own queries; a camera sample is the root of a
