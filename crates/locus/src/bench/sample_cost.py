@@ -8,7 +8,11 @@ not. This script renders the scene twice with each renderer under
 and divides the difference of the two counts by the difference of the
 samples rendered: loading, BVH builds and Mitsuba's kernel compilation
 happen once in each run and cancel. It then splits Mitsuba's count by the
-object that ran it (Embree, Mitsuba's compiled kernels, the rest).
+object that ran it (Embree, Mitsuba's compiled kernels, the rest), and
+times a sample natively the same way (the difference of two renders'
+times: locus's report, Mitsuba's timed render), so that the ratio of
+times over the ratio of instructions says how much of the gap is
+instructions retired per second.
 
 Mitsuba's run reuses what `locus bench quality` leaves in its output folder
 when it renders with Mitsuba (`<out>/mitsuba`: the scene as PLY files, the
@@ -37,8 +41,8 @@ import tempfile
 
 
 def callgrind(cmd, out, cwd=None):
-    """Runs `cmd` under callgrind (one file for every thread) and returns
-    the file."""
+    """Runs `cmd` under callgrind (every thread counted into one file)
+    and returns the file."""
     vg = ["valgrind", "--tool=callgrind", "--smc-check=all-non-file",
           f"--callgrind-out-file={out}"]
     r = subprocess.run(vg + cmd, cwd=cwd, capture_output=True, text=True)
@@ -68,10 +72,22 @@ def by_object(path):
     return objects, total
 
 
-def pixels_of(spec_path):
-    with open(spec_path) as f:
-        cam = json.load(f)["camera"]
-    return cam["width"] * cam["height"]
+def pixels_of(spec):
+    return spec["camera"]["width"] * spec["camera"]["height"]
+
+
+def locus_run(a, spp, tmp, counted):
+    """Renders with locus on one thread, under callgrind when `counted`;
+    returns the program's instructions (or 0) and the report."""
+    base = os.path.join(tmp, f"locus-{spp}-{'cg' if counted else 'native'}")
+    cmd = [a.locus, "render", a.scene, "--threads", "1", "--spp", str(spp), "-o", base + ".exr"]
+    total = 0
+    if counted:
+        total = by_object(callgrind(cmd, base + ".cg"))[1]
+    else:
+        subprocess.run(cmd, capture_output=True, check=True)
+    with open(base + ".json") as f:
+        return total, json.load(f)
 
 
 def main():
@@ -90,24 +106,30 @@ def main():
     spec_path = os.path.join(a.mitsuba_dir, "spec.json")
     if not os.path.exists(spec_path):
         sys.exit(f"{spec_path} not found: run `locus bench quality` with Mitsuba first")
-    pixels = pixels_of(spec_path)
+    with open(spec_path) as f:
+        spec = json.load(f)
     tmp = tempfile.mkdtemp(prefix="sample-cost-")
 
     rows = []
-    # locus: the whole process, every thread.
-    totals = []
+    # locus: the whole process, every thread; its samples from its reports.
+    totals, reports, native = [], [], []
     for spp in (lo, hi):
-        f = callgrind([a.locus, "render", a.scene, "--threads", "1", "--spp", str(spp),
-                       "-o", os.path.join(tmp, f"locus-{spp}.exr")],
-                      os.path.join(tmp, f"locus-{spp}.cg"))
-        totals.append(by_object(f)[1])
-    locus = (totals[1] - totals[0]) / ((hi - lo) * pixels)
-    rows.append(("locus", totals, locus, {}))
+        t, r = locus_run(a, spp, tmp, counted=True)
+        totals.append(t)
+        reports.append(r)
+        native.append(locus_run(a, spp, tmp, counted=False)[1]["times"]["render_s"])
+    samples = [r["width"] * r["height"] * r["spp_rendered"] for r in reports]
+    if (reports[0]["width"], reports[0]["height"]) != (spec["camera"]["width"], spec["camera"]["height"]):
+        sys.exit(f"{a.scene} is not the scene exported to {a.mitsuba_dir} (its image size differs)")
+    locus = (totals[1] - totals[0]) / (samples[1] - samples[0])
+    locus_us = (native[1] - native[0]) / (samples[1] - samples[0]) * 1e6
+    rows.append(("locus", totals, locus, locus_us))
 
-    # Mitsuba: its script renders each count twice (once to compile).
-    with open(spec_path) as f:
-        spec = json.load(f)
-    objs, totals = [], []
+    # Mitsuba: its script renders each count twice (once to compile, then
+    # timed), so twice the samples; the native warm-up run's timed render
+    # gives its time a sample.
+    pixels = pixels_of(spec)
+    objs, totals, seconds = [], [], []
     for spp in (lo, hi):
         s = dict(spec, spp=[spp], samplers=[a.sampler], threads=1, variant=a.variant)
         sp = os.path.join(a.mitsuba_dir, f"sample-cost-{spp}.json")
@@ -117,9 +139,11 @@ def main():
         # it cold compiles where the other does not, and the difference
         # would take the compilation off the samples. One native run first
         # leaves both counted runs a warm cache.
-        subprocess.run([a.python, "render.py", os.path.basename(sp),
-                        os.path.join(tmp, f"warm-{spp}.json")],
+        warm = os.path.join(tmp, f"warm-{spp}.json")
+        subprocess.run([a.python, "render.py", os.path.basename(sp), warm],
                        cwd=a.mitsuba_dir, capture_output=True, check=True)
+        with open(warm) as f:
+            seconds.append(json.load(f)["runs"][0]["seconds"])
         cg = callgrind([a.python, "render.py", os.path.basename(sp),
                         os.path.join(tmp, f"mitsuba-{spp}.json")],
                        os.path.join(tmp, f"mitsuba-{spp}.cg"), cwd=a.mitsuba_dir)
@@ -130,14 +154,16 @@ def main():
     mitsuba = (totals[1] - totals[0]) / samples
     parts = {k: (objs[1].get(k, 0) - objs[0].get(k, 0)) / samples
              for k in set(objs[0]) | set(objs[1])}
-    rows.append((f"Mitsuba {a.variant} {a.sampler}", totals, mitsuba, parts))
+    mitsuba_us = (seconds[1] - seconds[0]) / ((hi - lo) * pixels) * 1e6
+    rows.append((f"Mitsuba {a.variant} {a.sampler}", totals, mitsuba, mitsuba_us))
 
-    print(f"{a.scene}: instructions a camera sample, {lo} and {hi} spp on one thread")
-    print("| renderer | at the low count | at the high count | a sample |")
-    print("|---|---:|---:|---:|")
-    for name, t, per, _ in rows:
-        print(f"| {name} | {t[0] / 1e6:,.1f} M | {t[1] / 1e6:,.1f} M | {per:,.0f} |")
-    print(f"\nlocus over Mitsuba: {locus / mitsuba:.2f}")
+    print(f"{a.scene}: a camera sample, {lo} and {hi} spp on one thread")
+    print("| renderer | instructions at the low count | at the high count | a sample | µs a sample, native |")
+    print("|---|---:|---:|---:|---:|")
+    for name, t, per, us in rows:
+        print(f"| {name} | {t[0] / 1e6:,.1f} M | {t[1] / 1e6:,.1f} M | {per:,.0f} | {us:.2f} |")
+    print(f"\nlocus over Mitsuba: instructions {locus / mitsuba:.2f}, time {locus_us / mitsuba_us:.2f}, "
+          f"so instructions a second {(locus_us / mitsuba_us) / (locus / mitsuba):.2f} times fewer")
     print("\nMitsuba's per sample, by object (`???`: compiled at run time):")
     for k, v in sorted(parts.items(), key=lambda kv: -kv[1]):
         if v >= 1:

@@ -271,11 +271,10 @@ impl Slots {
     /// The next tile to start, to be traced whole, if none of its samples
     /// has started. It stays counted as held until [`Slots::whole_done`].
     pub fn take_whole(&mut self) -> Option<TileAssignment> {
-        let &ti = self.fresh.front()?;
-        if self.front_started() {
+        if !self.whole_ready() {
             return None;
         }
-        self.fresh.pop_front();
+        let ti = self.fresh.pop_front()?;
         let t = self.tiles[ti as usize]
             .take()
             .expect("a fresh tile is held");
