@@ -12,7 +12,7 @@ not. This script renders a small version of a scene three ways, each under
     (the workers under callgrind, one file per thread; the scheduler
     natively, with a worker timeout long enough for valgrind's pace),
     counting each worker's render phase thread by thread: its engine
-    (`locus_worker::engine::turns`), its tracing pool's batches where it
+    (`locus_worker::engine::turns::turns`), its tracing pool's batches where it
     has a pool (`--threads` above 1), and its async runtime's worker
     threads (sockets, frames, packets decoded and encoded, control; see
     `render_by_thread`);
@@ -67,7 +67,7 @@ SETUP_DECODE = ("locus_protocol::control::_::<impl serde_core::de::Deserialize "
 
 # What a worker's engine thread spends, printed by `--per-thread`.
 ENGINE_PARTS = [
-    "locus_worker::engine::turns",
+    "locus_worker::engine::turns::turns",
     "locus_worker::engine::state::Engine::apply",
     "locus_worker::engine::state::Engine::input",
     "locus_worker::engine::state::Engine::route",

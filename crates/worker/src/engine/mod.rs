@@ -16,7 +16,7 @@
 //!   polling, which hands the queued work of a hot region to idle peers;
 //!   `tiles`: tiles asked for ahead of need and finished ones sent back
 //!   in bursts.
-//! - this module: the loop. It hands batches to the pool, two per pool
+//! - `turns`: the loop. It hands batches to the pool, two per pool
 //!   thread, so that none waits for the books. In a worker of fewer than
 //!   [`DEDICATED_ENGINE_THREADS`] threads the engine's own thread traces
 //!   too, one batch per turn, beside a pool of the others; in a larger one
@@ -50,10 +50,11 @@ mod queue;
 pub mod slots;
 mod state;
 mod tiles;
+mod turns;
 
 use crate::fetch::{FetchedLeaf, Locality};
 use crate::sys;
-use kernel::{Batch, TileDone, Work, trace_batch, trace_tile};
+use kernel::{Batch, TileDone, Work};
 use locus_core::accel_set::Part;
 use locus_core::dircache::LeafCaches;
 use locus_core::irradiance::IrradianceCache;
@@ -67,9 +68,9 @@ use locus_protocol::report::WorkerStats;
 use locus_protocol::submit::FetchPolicy;
 use outbox::LinkClosed;
 use slots::UnknownSlot;
-use state::{Engine, STALL_REPORT};
+use state::Engine;
+use turns::turns;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
 
 /// Everything a worker holds for one job that does not change while it
 /// runs: what the scheduler sent, its directional caches and its fetch
@@ -365,180 +366,6 @@ pub fn run(
         st.cpu_s += sys::thread_cpu_s() - cpu0;
         st
     })
-}
-
-/// The loop: a turn traces a batch here, hands batches to the pool, then
-/// takes what has arrived (waiting for it only when there is nothing to
-/// trace).
-fn turns<'a: 's, 's>(
-    mut e: Engine<'a>,
-    inbox: flume::Receiver<Event>,
-    cancel: &tokio_util::sync::CancellationToken,
-    scope: Option<&rayon::Scope<'s>>,
-    pool_threads: usize,
-    engine_traces: bool,
-) -> Result<WorkerStats, EngineError> {
-    let start = Instant::now();
-    let mut idle = Duration::ZERO;
-    // Waits for the pool's batches while they are out (see
-    // `WorkerStats::engine_wait_s`).
-    let mut waited = Duration::ZERO;
-    let mut out = 0usize;
-    let mut last_event = Instant::now();
-    let mut warned = false;
-    loop {
-        if cancel.is_cancelled() {
-            let mut stats = std::mem::take(&mut e.stats);
-            stats.busy_s = start.elapsed().saturating_sub(idle).as_secs_f64();
-            stats.idle_s = idle.as_secs_f64();
-            stats.engine_wait_s = waited.as_secs_f64();
-            return Err(EngineError::Cancelled(Box::new(stats)));
-        }
-        e.outbox.retry_stalled()?;
-        if !e.outbox.is_stalled() {
-            e.originate();
-        }
-        e.top_up_tiles()?;
-        e.maybe_merge();
-        if e.reach_dirty {
-            e.republish();
-        }
-        if let Some(scope) = scope {
-            // Two batches per pool thread, and one more: a pool thread
-            // that finishes finds the next batch queued, however long this
-            // thread's own batch or bookkeeping takes. With one batch per
-            // thread they waited for this thread to hand out more, and a
-            // worker of 16 threads traced at half of one machine's speed.
-            let target = 2 * pool_threads + 1;
-            // A dedicated engine hands out everything, however little.
-            let least = if engine_traces { MIN_BATCH } else { 0 };
-            while out < target && e.work.len() > least {
-                let share = e.work.len().div_ceil(target + 1 - out);
-                let take = share.clamp(MIN_BATCH, BATCH).min(e.work.len());
-                let batch = e.work.take(take);
-                let (job, reach, tx) = (e.job.clone(), e.reach.clone(), e.events.clone());
-                scope.spawn(move |_| {
-                    let b = trace_batch(&job, &reach, batch.into_iter());
-                    // A closed inbox means the job is over.
-                    let _ = tx.send(Event::Traced(Box::new(b)));
-                });
-                out += 1;
-            }
-            // Beside what waits in the queue (answers to peers first),
-            // tiles traced whole, a task each.
-            while out < target
-                && e.work.len() <= least
-                && let Some(a) = e.take_whole()
-            {
-                let (job, reach, tx) = (e.job.clone(), e.reach.clone(), e.events.clone());
-                scope.spawn(move |_| {
-                    let _ = tx.send(Event::Tile(trace_tile(&job, &reach, a)));
-                });
-                out += 1;
-            }
-        }
-        // This thread's time is counted whole at the end: what it traces
-        // here adds none.
-        let mut traced_here = false;
-        if engine_traces && !e.work.is_empty() {
-            let take = e.work.len().min(INLINE_BATCH);
-            let batch = e.work.take(take);
-            let mut b = trace_batch(e.job, &e.reach, batch.into_iter());
-            b.cpu_s = 0.0;
-            e.now = Instant::now();
-            e.apply(b)?;
-            traced_here = true;
-        } else if engine_traces && let Some(a) = e.take_whole() {
-            let mut t = trace_tile(e.job, &e.reach, a);
-            t.cpu_s = 0.0;
-            e.now = Instant::now();
-            e.apply_tile(t)?;
-            traced_here = true;
-        }
-        // Idle: nothing out, nothing queued, no tile waiting to be traced
-        // whole (a worker tracing tiles whole has an empty queue between
-        // them).
-        if out == 0 && e.work.is_empty() && !e.whole_ready() {
-            // Nothing is being traced: what waits in packets must go, and
-            // a peer may have queries to spare.
-            e.outbox.flush_all()?;
-            e.send_tiles_done()?;
-            e.now = Instant::now();
-            e.maybe_poll()?;
-        }
-        // A dedicated engine whose pool is full waits for a batch back.
-        let first = if traced_here || (engine_traces && !e.work.is_empty()) {
-            // There is work: take what has come, do not wait for more.
-            inbox.try_recv().map_err(|err| match err {
-                flume::TryRecvError::Empty => flume::RecvTimeoutError::Timeout,
-                flume::TryRecvError::Disconnected => flume::RecvTimeoutError::Disconnected,
-            })
-        } else {
-            let t = Instant::now();
-            let r = inbox.recv_timeout(e.wait_bound(t));
-            if out > 0 {
-                waited += t.elapsed();
-            } else {
-                idle += t.elapsed();
-                // Why a worker waits, for `RUST_LOG=locus_worker=trace`.
-                tracing::trace!(
-                    me = e.job.setup.me,
-                    ms = t.elapsed().as_secs_f64() * 1e3,
-                    open = e.slots.samples_open(),
-                    pending = e.slots.pending(),
-                    no_more_tiles = e.no_more_tiles,
-                    stalled = e.outbox.is_stalled(),
-                    "idle"
-                );
-            }
-            r
-        };
-        e.now = Instant::now();
-        let mut next = match first {
-            Ok(ev) => Some(ev),
-            Err(flume::RecvTimeoutError::Timeout) => None,
-            Err(flume::RecvTimeoutError::Disconnected) => {
-                return Err(EngineError::LinkClosed("the worker's inbox"));
-            }
-        };
-        if next.is_some() || traced_here {
-            last_event = e.now;
-            warned = false;
-        } else if !warned && e.now.duration_since(last_event) > STALL_REPORT {
-            warned = true;
-            e.report_stall(out);
-        }
-        let mut handled = 0;
-        while let Some(ev) = next.take() {
-            handled += 1;
-            match ev {
-                Event::Traced(b) => {
-                    out -= 1;
-                    e.apply(*b)?;
-                }
-                Event::Tile(t) => {
-                    out -= 1;
-                    e.apply_tile(t)?;
-                }
-                Event::LeafBuilt(f, cpu) => e.leaf_built(f, cpu),
-                Event::Merged(m) => e.merged(m),
-                Event::Input(Input::End) => {
-                    let waiting: usize = e.waiting.values().map(Vec::len).sum();
-                    let left = e.slots.pending() + e.work.len() + waiting + out;
-                    if left > 0 || e.building > 0 {
-                        return Err(EngineError::EndedEarly(left));
-                    }
-                    return Ok(e.finish(start.elapsed(), idle, waited));
-                }
-                Event::Input(i) => e.input(i, scope)?,
-            }
-            if handled < EVENTS_PER_TURN {
-                next = inbox.try_recv().ok();
-            }
-        }
-        e.outbox.flush_due(e.now)?;
-        e.send_tiles_due(e.now)?;
-    }
 }
 
 #[cfg(test)]
