@@ -69,8 +69,8 @@ use locus_protocol::submit::FetchPolicy;
 use outbox::LinkClosed;
 use slots::UnknownSlot;
 use state::Engine;
-use turns::turns;
 use std::sync::Arc;
+use turns::turns;
 
 /// Everything a worker holds for one job that does not change while it
 /// runs: what the scheduler sent, its directional caches and its fetch
