@@ -228,42 +228,49 @@ pub fn part_size_for(budget: u64, floor: usize) -> usize {
 /// Cuts `leaves` (ascending leaf ids, each with its triangle ids) into runs
 /// of at most `max_part` distinct triangles and builds one part per run.
 /// `triangle(id)` gives a triangle's vertices, material and shading normals;
-/// a leaf larger than `max_part` is a part of its own.
+/// a leaf larger than `max_part` is a part of its own. The parts are built
+/// on the calling rayon pool, several at once: each build is mostly serial
+/// (obvhs's conversion to the wide BVH is), so a set of several parts
+/// builds in about its share of the time where the pool has threads to
+/// spare. Peak memory is then that of as many builds as the pool has
+/// threads, which is why a worker with a budget builds its parts itself.
 pub fn build_parts(
     leaves: &[(u32, &[u32])],
     max_part: usize,
     magnitude: f32,
-    triangle: &dyn Fn(u32) -> ([Vec3; 3], u32, [Vec3; 3]),
+    triangle: &(dyn Fn(u32) -> ([Vec3; 3], u32, [Vec3; 3]) + Sync),
 ) -> Vec<Arc<Part>> {
-    let mut parts = Vec::new();
-    let mut ids: Vec<u32> = Vec::new();
-    let mut run: Vec<u32> = Vec::new();
-    let flush = |ids: &mut Vec<u32>, run: &mut Vec<u32>, parts: &mut Vec<Arc<Part>>| {
-        if run.is_empty() {
-            return;
-        }
-        ids.sort_unstable();
-        ids.dedup();
-        let mut set = TriangleSet::with_capacity(ids.len());
-        for &id in ids.iter() {
-            let (v, m, n) = triangle(id);
-            set.push(id, v, m, n);
-        }
-        ids.clear();
-        let accel = Accel::from_set(set, magnitude);
-        parts.push(Arc::new(Part::new(accel, std::mem::take(run))));
-    };
-    for &(leaf, tris) in leaves {
+    use rayon::prelude::*;
+    let mut runs: Vec<(usize, usize)> = Vec::new();
+    let (mut start, mut count) = (0, 0usize);
+    for (i, (_, tris)) in leaves.iter().enumerate() {
         // Counting with duplicates overestimates a run, which is the safe
         // side for memory.
-        if !run.is_empty() && ids.len() + tris.len() > max_part.max(1) {
-            flush(&mut ids, &mut run, &mut parts);
+        if i > start && count + tris.len() > max_part.max(1) {
+            runs.push((start, i));
+            (start, count) = (i, 0);
         }
-        ids.extend_from_slice(tris);
-        run.push(leaf);
+        count += tris.len();
     }
-    flush(&mut ids, &mut run, &mut parts);
-    parts
+    if start < leaves.len() {
+        runs.push((start, leaves.len()));
+    }
+    runs.into_par_iter()
+        .map(|(a, b)| {
+            let run = &leaves[a..b];
+            let mut ids: Vec<u32> = run.iter().flat_map(|(_, t)| t.iter().copied()).collect();
+            ids.sort_unstable();
+            ids.dedup();
+            let mut set = TriangleSet::with_capacity(ids.len());
+            for &id in &ids {
+                let (v, m, n) = triangle(id);
+                set.push(id, v, m, n);
+            }
+            drop(ids);
+            let accel = Accel::from_set(set, magnitude);
+            Arc::new(Part::new(accel, run.iter().map(|&(l, _)| l).collect()))
+        })
+        .collect()
 }
 
 #[cfg(test)]

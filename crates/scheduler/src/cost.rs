@@ -148,13 +148,28 @@ pub const ORIGIN_COST: u64 = 83;
 /// too little of the work to change the prediction.
 const PREVIEW_BOUNCES: u32 = 12;
 
+/// Preview pixels of the sampled prediction.
+pub const PREVIEW_PATHS: u32 = 8192;
+
 /// The sampled prediction the scheduler uses: about 8192 preview pixels
 /// (every pixel of a small image), paths to the scene's full depth. One
 /// bounce was once used, and it put half the farm's work where two thirds
 /// of it went: deep paths cross different leaves than first bounces.
 pub fn sampled(scene: &Scene, tree: &Octree, accel: &dyn Geometry, lights: &LightSet) -> Preview {
+    sampled_paths(scene, tree, accel, lights, PREVIEW_PATHS)
+}
+
+/// [`sampled`] with about `paths` preview pixels (every pixel where the
+/// image has fewer).
+pub fn sampled_paths(
+    scene: &Scene,
+    tree: &Octree,
+    accel: &dyn Geometry,
+    lights: &LightSet,
+    paths: u32,
+) -> Preview {
     let pixels = scene.camera.width as f64 * scene.camera.height as f64;
-    let div = (pixels / 8192.0).sqrt().floor().max(1.0) as u32;
+    let div = (pixels / paths.max(1) as f64).sqrt().floor().max(1.0) as u32;
     preview(
         scene,
         tree,
