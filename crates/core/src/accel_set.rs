@@ -225,15 +225,19 @@ pub fn part_size_for(budget: u64, floor: usize) -> usize {
     ((budget / BUILD_BYTES_PER_TRIANGLE as u64) as usize).max(floor)
 }
 
+/// Build memory [`build_parts`] spends on parts built at once, at most
+/// (and one part's, whatever its size).
+pub const PARALLEL_BUILD_BYTES: usize = 512 << 20;
+
 /// Cuts `leaves` (ascending leaf ids, each with its triangle ids) into runs
 /// of at most `max_part` distinct triangles and builds one part per run.
 /// `triangle(id)` gives a triangle's vertices, material and shading normals;
 /// a leaf larger than `max_part` is a part of its own. The parts are built
-/// on the calling rayon pool, several at once: each build is mostly serial
-/// (obvhs's conversion to the wide BVH is), so a set of several parts
-/// builds in about its share of the time where the pool has threads to
-/// spare. Peak memory is then that of as many builds as the pool has
-/// threads, which is why a worker with a budget builds its parts itself.
+/// on the calling rayon pool, as many at once as fit
+/// [`PARALLEL_BUILD_BYTES`]: each build is mostly serial (obvhs's
+/// conversion to the wide BVH is), so several parts build in about their
+/// share of the time where the pool has threads to spare. A worker with a
+/// memory budget builds its parts one by one elsewhere.
 pub fn build_parts(
     leaves: &[(u32, &[u32])],
     max_part: usize,
@@ -255,22 +259,27 @@ pub fn build_parts(
     if start < leaves.len() {
         runs.push((start, leaves.len()));
     }
-    runs.into_par_iter()
-        .map(|(a, b)| {
-            let run = &leaves[a..b];
-            let mut ids: Vec<u32> = run.iter().flat_map(|(_, t)| t.iter().copied()).collect();
-            ids.sort_unstable();
-            ids.dedup();
-            let mut set = TriangleSet::with_capacity(ids.len());
-            for &id in &ids {
-                let (v, m, n) = triangle(id);
-                set.push(id, v, m, n);
-            }
-            drop(ids);
-            let accel = Accel::from_set(set, magnitude);
-            Arc::new(Part::new(accel, run.iter().map(|&(l, _)| l).collect()))
-        })
-        .collect()
+    let at_once =
+        (PARALLEL_BUILD_BYTES / max_part.max(1).saturating_mul(BUILD_BYTES_PER_TRIANGLE)).max(1);
+    let build = |&(a, b): &(usize, usize)| {
+        let run = &leaves[a..b];
+        let mut ids: Vec<u32> = run.iter().flat_map(|(_, t)| t.iter().copied()).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let mut set = TriangleSet::with_capacity(ids.len());
+        for &id in &ids {
+            let (v, m, n) = triangle(id);
+            set.push(id, v, m, n);
+        }
+        drop(ids);
+        let accel = Accel::from_set(set, magnitude);
+        Arc::new(Part::new(accel, run.iter().map(|&(l, _)| l).collect()))
+    };
+    let mut parts = Vec::with_capacity(runs.len());
+    for chunk in runs.chunks(at_once) {
+        parts.par_extend(chunk.par_iter().map(build));
+    }
+    parts
 }
 
 #[cfg(test)]
@@ -322,6 +331,10 @@ mod tests {
             let set = AccelSet::from_parts(build_parts(&leaves, max_part, 12.0, &tri));
             assert!(max_part < 1 << 20 || set.parts().len() == 1);
             assert!(max_part > 40 || set.parts().len() > 50);
+            // Built several at once, the parts still come in leaf order,
+            // every leaf once.
+            let order: Vec<u32> = set.parts().iter().flat_map(|p| p.leaves.clone()).collect();
+            assert_eq!(order, (0..leaves.len() as u32).collect::<Vec<_>>());
             let mut hits = 0;
             for i in 0..3000u64 {
                 let k = SampleKey::independent(i, 1, 9);
