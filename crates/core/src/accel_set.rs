@@ -226,8 +226,10 @@ pub fn part_size_for(budget: u64, floor: usize) -> usize {
 }
 
 /// Build memory [`build_parts`] spends on parts built at once, at most
-/// (and one part's, whatever its size).
-pub const PARALLEL_BUILD_BYTES: usize = 512 << 20;
+/// (and one part's, whatever its size): the scheduler's full preview, in
+/// parts of 512k triangles, still builds one at a time, as before parts
+/// were built at once; its decision preview's parts of 32k build 29 at once.
+pub const PARALLEL_BUILD_BYTES: usize = 256 << 20;
 
 /// Cuts `leaves` (ascending leaf ids, each with its triangle ids) into runs
 /// of at most `max_part` distinct triangles and builds one part per run.
