@@ -17,16 +17,23 @@
 //!
 //! [`preview`] at full resolution is also how the bench measures per-leaf
 //! cost to judge both predictions.
+//!
+//! The scheduler takes the sampled preview on a BVH of the whole scene
+//! ([`sampled_in_parts`]): [`FULL_PREVIEW`] for the regions it draws, and,
+//! for `adaptive`, the smaller [`DECISION_PREVIEW`] first, whose crossings
+//! decide by [`buying_pays`] whether every worker gets the whole scene.
 
 use locus_core::accel::{Accel, Hit};
-use locus_core::accel_set::AccelSet;
-use locus_core::geometry::Ray;
+use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
+use locus_core::geometry::{FLAT, Ray};
 use locus_core::integrator::{DIM_PIXEL, PathRay, interpolate_normal, shade};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
+use locus_core::region::WorkerId;
 use locus_core::sampler::SampleKey;
 use locus_core::scene::Scene;
 use locus_core::stats::TraceStats;
+use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use std::collections::HashMap;
 use std::ops::ControlFlow;
 
@@ -148,15 +155,12 @@ pub const ORIGIN_COST: u64 = 83;
 /// too little of the work to change the prediction.
 const PREVIEW_BOUNCES: u32 = 12;
 
-/// Preview pixels of the sampled prediction.
-pub const PREVIEW_PATHS: u32 = 8192;
-
 /// The sampled prediction the scheduler uses: about 8192 preview pixels
 /// (every pixel of a small image), paths to the scene's full depth. One
 /// bounce was once used, and it put half the farm's work where two thirds
 /// of it went: deep paths cross different leaves than first bounces.
 pub fn sampled(scene: &Scene, tree: &Octree, accel: &dyn Geometry, lights: &LightSet) -> Preview {
-    sampled_paths(scene, tree, accel, lights, PREVIEW_PATHS)
+    sampled_paths(scene, tree, accel, lights, FULL_PREVIEW.paths)
 }
 
 /// [`sampled`] with about `paths` preview pixels (every pixel where the
@@ -179,6 +183,95 @@ pub fn sampled_paths(
         scene.settings.max_depth.min(PREVIEW_BOUNCES),
         scene.settings.seed ^ 0x5eed,
     )
+}
+
+/// How the scheduler takes a sampled preview: on a BVH over the whole
+/// scene built in parts of at most `part` triangles, tracing about `paths`
+/// paths.
+#[derive(Clone, Copy, Debug)]
+pub struct PreviewSize {
+    pub part: usize,
+    pub paths: u32,
+}
+
+/// The preview regions are drawn from: one part up to 512k triangles
+/// (which keeps a build within about 200 MB whatever the scene's size),
+/// 8,192 paths.
+pub const FULL_PREVIEW: PreviewSize = PreviewSize {
+    part: 512 << 10,
+    paths: 8192,
+};
+
+/// The preview `adaptive` decides with whether to buy the whole scene.
+/// Parts this small build several at once and each faster (obvhs's
+/// conversion to the wide BVH is serial, and its tables then fit the
+/// caches): the room's preview BVH, on 2 threads, in 67 ms against 175-188
+/// ms in one part. The rent-or-buy rule counts crossings between leaves,
+/// which hits decide, not how the BVH is cut; a quarter of the paths
+/// counted 1.921 crossings a path on the room against the full preview's
+/// 1.904, 1.545 against 1.554 on the conference room. The leaf costs, which
+/// count BVH steps, do move with the cut (the room's regions drawn from
+/// parts of 64k forwarded 0.302 queries a ray against 0.274), which is why
+/// regions that carry rays are drawn from [`FULL_PREVIEW`].
+pub const DECISION_PREVIEW: PreviewSize = PreviewSize {
+    part: 32 << 10,
+    paths: 2048,
+};
+
+/// The sampled preview (see [`sampled`]) of the size given.
+pub fn sampled_in_parts(
+    scene: &Scene,
+    tree: &Octree,
+    lights: &LightSet,
+    size: PreviewSize,
+) -> Preview {
+    let leaves: Vec<(u32, &[u32])> = tree
+        .leaves
+        .iter()
+        .enumerate()
+        .map(|(i, l)| (i as u32, l.tris.as_slice()))
+        .collect();
+    let tri = |id: u32| {
+        let i = id as usize;
+        let n = scene.tri_normals.get(i).copied().unwrap_or(FLAT);
+        (scene.tris[i], scene.tri_material[i], n)
+    };
+    let accel = AccelSet::from_parts(build_parts(
+        &leaves,
+        size.part.max(scene.tris.len().div_ceil(MAX_PARTS)),
+        scene.magnitude(),
+        &tri,
+    ));
+    sampled_paths(scene, tree, &accel, lights, size.paths)
+}
+
+/// The adaptive policy's rent-or-buy rule for the whole job, decided from
+/// the preview: whether the queries the partition `owner` would forward
+/// (each preview crossing between two workers' leaves, scaled from the
+/// preview's `paths` to the job's `samples`) cost more bytes than shipping
+/// every worker the triangle references it lacks (`scene_bytes`, all the
+/// references as shipped). Without a preview it cannot tell, and rents
+/// (the workers decide leaf by leaf as they go).
+pub fn buying_pays(
+    crossings: &HashMap<(u32, u32), u32>,
+    owner: &[WorkerId],
+    workers: usize,
+    scene_bytes: u64,
+    samples: u64,
+    paths: u64,
+) -> bool {
+    if paths == 0 {
+        return false;
+    }
+    let cut: u64 = crossings
+        .iter()
+        .filter(|((a, b), _)| owner.get(*a as usize) != owner.get(*b as usize))
+        .map(|(_, &c)| c as u64)
+        .sum();
+    let rent = cut as f64 * (samples as f64 / paths as f64) * TYPICAL_FORWARD_BYTES as f64;
+    // Each worker lacks everything but its own references.
+    let buy = (workers.saturating_sub(1) as u64 * scene_bytes) as f64;
+    rent >= buy
 }
 
 /// How well each prediction matches the per-leaf cost of the real
@@ -417,6 +510,7 @@ pub fn shares(cost: &[f64], owner: &[u16], workers: usize) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use locus_core::geometry::TRIANGLE_BYTES;
     use std::sync::atomic::{AtomicU64, Ordering};
 
     /// The scene's BVH with its work left uncounted, and its hits counted:
@@ -517,5 +611,35 @@ mod tests {
         );
         let all: f64 = (0..empty.len()).map(bvh).sum();
         assert_eq!(all as u64, pv.steps);
+    }
+
+    /// Rent or buy for the whole scene: buying pays once the predicted
+    /// forwards cost as many bytes as the references every worker lacks.
+    #[test]
+    fn buying_pays_when_the_rays_would_cost_more_than_the_geometry() {
+        // Leaves 0, 1 on worker 0 and leaf 2 on worker 1; only the border
+        // between 1 and 2 separates workers.
+        let owner = [0u16, 0, 1];
+        let crossings: HashMap<(u32, u32), u32> = [((0, 1), 1000), ((1, 2), 10)].into();
+        let buy = 3000 * TRIANGLE_BYTES;
+        let refs = buy;
+        // 10 preview crossings per 100 paths: the job forwards samples / 10.
+        let samples_even = buy * 10 / TYPICAL_FORWARD_BYTES + 10;
+        assert!(buying_pays(&crossings, &owner, 2, refs, samples_even, 100));
+        assert!(!buying_pays(
+            &crossings,
+            &owner,
+            2,
+            refs,
+            samples_even / 2,
+            100
+        ));
+        // More workers lack more.
+        assert!(!buying_pays(&crossings, &owner, 3, refs, samples_even, 100));
+        // No preview: no prediction, rent.
+        assert!(!buying_pays(&crossings, &owner, 2, refs, u64::MAX, 0));
+        // Crossings inside one worker's region cost nothing.
+        let inside: HashMap<(u32, u32), u32> = [((0, 1), 1_000_000)].into();
+        assert!(!buying_pays(&inside, &owner, 2, refs, samples_even, 100));
     }
 }

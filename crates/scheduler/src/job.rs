@@ -4,9 +4,7 @@
 //! memory ([`crate::memory`]).
 
 use crate::{cost, memory, partition};
-use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
 use locus_core::geometry::Bounds;
-use locus_core::geometry::FLAT;
 use locus_core::irradiance::overture::{Measured, OvertureStats};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
@@ -14,7 +12,6 @@ use locus_core::region::ProcessorMap;
 use locus_core::region::WorkerId;
 use locus_core::scene::{LoadStats, Scene};
 use locus_protocol::control::{MAX_TILE_PIXELS, MemoryPlan};
-use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use locus_protocol::submit::{
     CostModel, FetchPolicy, JobKind, JobOptions, JobRequest, Partitioner,
 };
@@ -107,52 +104,6 @@ pub struct Member {
     pub cores: u32,
     pub budget: u64,
     pub resident: u64,
-}
-
-/// Triangles per part of the scheduler's own preview BVH: keeps its build
-/// within about 200 MB whatever the scene's size.
-const PREVIEW_PART: usize = 512 << 10;
-
-/// The preview `adaptive` decides whether to buy the whole scene with:
-/// parts of at most this many triangles, and about [`DECISION_PATHS`]
-/// paths. Parts this small build several at once and each faster (obvhs's
-/// conversion to the wide BVH is serial, and its tables then fit the
-/// caches): on the 325k-triangle room, on 2 threads, 67 ms against 185 ms
-/// for one part. The rent-or-buy rule counts crossings between leaves,
-/// which hits decide, not how the BVH is cut, and a quarter of the paths
-/// count them within a few percent. The leaf costs, which count BVH steps,
-/// do move with the cut (the room's regions drawn from parts of 64k
-/// triangles forwarded 0.30 queries a ray against 0.27), which is why
-/// regions that carry rays are drawn from the full preview.
-const DECISION_PART: usize = 32 << 10;
-const DECISION_PATHS: u32 = 2048;
-
-/// The sampled preview of about `paths` paths (see [`cost::sampled`]) on a
-/// BVH of the whole scene built in parts of at most `part` triangles.
-fn sampled_preview(
-    scene: &Scene,
-    tree: &Octree,
-    lights: &LightSet,
-    (part, paths): (usize, u32),
-) -> cost::Preview {
-    let leaves: Vec<(u32, &[u32])> = tree
-        .leaves
-        .iter()
-        .enumerate()
-        .map(|(i, l)| (i as u32, l.tris.as_slice()))
-        .collect();
-    let tri = |id: u32| {
-        let i = id as usize;
-        let n = scene.tri_normals.get(i).copied().unwrap_or(FLAT);
-        (scene.tris[i], scene.tri_material[i], n)
-    };
-    let accel = AccelSet::from_parts(build_parts(
-        &leaves,
-        part.max(scene.tris.len().div_ceil(MAX_PARTS)),
-        scene.magnitude(),
-        &tri,
-    ));
-    cost::sampled_paths(scene, tree, &accel, lights, paths)
 }
 
 /// The largest packet a job may ask for: far below the frame limit even
@@ -342,7 +293,7 @@ pub fn prepare(
     // one BVH over everything and no ray ever waits. `fetch` always does
     // so (and its regions carry no traffic, so no preview is needed to
     // draw them); `adaptive` does when the preview predicts that the rays
-    // would cost more bytes than the geometry (see [`buying_pays`]).
+    // would cost more bytes than the geometry (see [`cost::buying_pays`]).
     let fits_everywhere = workers > 1
         && all_refs * tb.region <= options.fetch_budget
         && caps.iter().all(|c| c.is_none_or(|c| c >= all_refs));
@@ -357,16 +308,15 @@ pub fn prepare(
     let sampled_model = options.cost_model == CostModel::Sampled && needs_preview;
     // `adaptive` with the whole scene fitting everywhere asks first only
     // whether to buy, on a preview BVH of small parts built at once (see
-    // [`DECISION_PART`]); only a job that then rents, and so draws regions
+    // [`cost::DECISION_PREVIEW`]); only a job that then rents, and so draws regions
     // that carry rays, pays for the preview those regions are drawn from.
     let decide_first = sampled_model && options.fetch == FetchPolicy::Adaptive && fits_everywhere;
-    let full = (PREVIEW_PART, cost::PREVIEW_PATHS);
     let first = if decide_first {
-        (DECISION_PART, DECISION_PATHS)
+        cost::DECISION_PREVIEW
     } else {
-        full
+        cost::FULL_PREVIEW
     };
-    let mut pv = sampled_model.then(|| sampled_preview(&scene, &tree, &lights, first));
+    let mut pv = sampled_model.then(|| cost::sampled_in_parts(&scene, &tree, &lights, first));
     let mut preview_s = t_pre.elapsed().as_secs_f64();
     let lim = partition::Limits {
         targets: &targets,
@@ -413,7 +363,7 @@ pub fn prepare(
     let buys = |pv: &Option<cost::Preview>, owner: &[WorkerId]| {
         pv.as_ref().is_some_and(|pv| {
             let bytes = all_refs * tb.shipped;
-            buying_pays(&pv.crossings, owner, workers, bytes, samples, pv.paths)
+            cost::buying_pays(&pv.crossings, owner, workers, bytes, samples, pv.paths)
         })
     };
     let replicated = replicate_now
@@ -423,7 +373,12 @@ pub fn prepare(
     if decide_first && !replicated {
         decision_rays = pv.as_ref().map_or(0, |pv| pv.rays);
         let t = Instant::now();
-        pv = Some(sampled_preview(&scene, &tree, &lights, full));
+        pv = Some(cost::sampled_in_parts(
+            &scene,
+            &tree,
+            &lights,
+            cost::FULL_PREVIEW,
+        ));
         preview_s += t.elapsed().as_secs_f64();
         let t = Instant::now();
         owner = draw(&pv)?;
@@ -560,35 +515,6 @@ pub fn prepare(
     })
 }
 
-/// The adaptive policy's rent-or-buy rule for the whole job, decided from
-/// the preview: whether the queries the partition `owner` would forward
-/// (each preview crossing between two workers' leaves, scaled from the
-/// preview's `paths` to the job's `samples`) cost more bytes than shipping
-/// every worker the triangle references it lacks (`scene_bytes`, all the
-/// references as shipped). Without a preview it cannot tell, and rents
-/// (the workers decide leaf by leaf as they go).
-pub fn buying_pays(
-    crossings: &HashMap<(u32, u32), u32>,
-    owner: &[WorkerId],
-    workers: usize,
-    scene_bytes: u64,
-    samples: u64,
-    paths: u64,
-) -> bool {
-    if paths == 0 {
-        return false;
-    }
-    let cut: u64 = crossings
-        .iter()
-        .filter(|((a, b), _)| owner.get(*a as usize) != owner.get(*b as usize))
-        .map(|(_, &c)| c as u64)
-        .sum();
-    let rent = cut as f64 * (samples as f64 / paths as f64) * TYPICAL_FORWARD_BYTES as f64;
-    // Each worker lacks everything but its own references.
-    let buy = (workers.saturating_sub(1) as u64 * scene_bytes) as f64;
-    rent >= buy
-}
-
 /// Cuts a worker's leaves (in leaf order) into runs of at most `max`
 /// triangle references; returns the runs and the distinct triangles they
 /// hold, run by run.
@@ -626,7 +552,6 @@ pub fn part_triangles(run: &[(u32, Vec<u32>)]) -> Vec<u32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use locus_core::geometry::TRIANGLE_BYTES;
 
     /// A worker of one core and no memory budget.
     const MEMBER: Member = Member {
@@ -760,9 +685,23 @@ mod tests {
             buys.preview_rays,
             forward.preview_rays
         );
-        // One sample in all: renting is cheaper than shipping the box.
+        // 64 samples in all, and a cuboid of 2 x 6 x 80^2 triangles in the
+        // box: renting is cheaper than shipping, and the decision preview's
+        // BVH (parts of 32k) is cut where the full one's is not, so regions
+        // drawn from its costs would differ.
         let mut tiny = scene.clone();
-        (tiny.camera.width, tiny.camera.height, tiny.settings.spp) = (1, 1, 1);
+        (tiny.camera.width, tiny.camera.height, tiny.settings.spp) = (8, 8, 1);
+        let mut m = locus_core::generate::MeshBuilder::default();
+        let (lo, hi) = (
+            glam::Vec3::new(150.0, 0.0, 150.0),
+            glam::Vec3::new(400.0, 300.0, 400.0),
+        );
+        m.cuboid(lo, hi, 80, 0);
+        for (t, mat) in m.tagged_triangles() {
+            tiny.tris.push(t);
+            tiny.tri_material.push(mat);
+        }
+        assert!(tiny.tris.len() > 2 * cost::DECISION_PREVIEW.part);
         let (rents, forward) = (
             job(&tiny, FetchPolicy::Adaptive),
             job(&tiny, FetchPolicy::Forward),
@@ -770,36 +709,6 @@ mod tests {
         assert!(!rents.replicated);
         assert_eq!(rents.map.owner, forward.map.owner);
         assert!(rents.preview_rays > forward.preview_rays);
-    }
-
-    /// Rent or buy for the whole scene: buying pays once the predicted
-    /// forwards cost as many bytes as the references every worker lacks.
-    #[test]
-    fn buying_pays_when_the_rays_would_cost_more_than_the_geometry() {
-        // Leaves 0, 1 on worker 0 and leaf 2 on worker 1; only the border
-        // between 1 and 2 separates workers.
-        let owner = [0u16, 0, 1];
-        let crossings: HashMap<(u32, u32), u32> = [((0, 1), 1000), ((1, 2), 10)].into();
-        let buy = 3000 * TRIANGLE_BYTES;
-        let refs = buy;
-        // 10 preview crossings per 100 paths: the job forwards samples / 10.
-        let samples_even = buy * 10 / TYPICAL_FORWARD_BYTES + 10;
-        assert!(buying_pays(&crossings, &owner, 2, refs, samples_even, 100));
-        assert!(!buying_pays(
-            &crossings,
-            &owner,
-            2,
-            refs,
-            samples_even / 2,
-            100
-        ));
-        // More workers lack more.
-        assert!(!buying_pays(&crossings, &owner, 3, refs, samples_even, 100));
-        // No preview: no prediction, rent.
-        assert!(!buying_pays(&crossings, &owner, 2, refs, u64::MAX, 0));
-        // Crossings inside one worker's region cost nothing.
-        let inside: HashMap<(u32, u32), u32> = [((0, 1), 1_000_000)].into();
-        assert!(!buying_pays(&inside, &owner, 2, refs, samples_even, 100));
     }
 
     /// The predicted shares a report gives are those the partition
