@@ -27,17 +27,17 @@
 //! so every hit is the scalar test's, to the bit, and processors with and
 //! without AVX2 render one image.
 
-use crate::geometry::{TriHit, WatertightRay};
+use crate::geometry::{SLIVER, TriHit, WatertightRay};
 use glam::Vec3;
-
-/// Lanes of one wide test.
-#[cfg(target_arch = "x86_64")]
-const LANES: usize = 8;
 
 /// Groups of at most this many triangles are tested one at a time (see
 /// the module's doc).
 #[cfg(target_arch = "x86_64")]
 const SCALAR_UP_TO: u32 = 2;
+
+/// Lanes of one wide test.
+#[cfg(target_arch = "x86_64")]
+const LANES: usize = 8;
 
 /// A primitive group: the primitives `base + i` for each bit `i` of
 /// `mask`.
@@ -190,12 +190,10 @@ impl LeafTest for Wide {
                     return false;
                 }
             }
-            // Lanes whose edge functions cancelled exactly: the scalar
-            // test decides them in f64.
-            let mut exact = r.zero & lanes;
-            while exact != 0 {
-                let k = exact.trailing_zeros();
-                exact &= exact - 1;
+            let mut left = r.scalar & lanes;
+            while left != 0 {
+                let k = left.trailing_zeros();
+                left &= left - 1;
                 let p = first + k;
                 if let Some(h) = w.intersect(&tris[p as usize], t0, t1)
                     && !found(p, h)
@@ -209,11 +207,14 @@ impl LeafTest for Wide {
 }
 
 /// What eight lanes found: the lanes hit, their distances and
-/// barycentrics, and the lanes left to the scalar test.
+/// barycentrics, and the lanes left to the scalar test: those whose edge
+/// functions cancelled exactly (it decides their signs in f64) and the
+/// slivers the ray's line crosses (it refines their distances in f64; see
+/// `geometry::refined_hit`).
 #[cfg(target_arch = "x86_64")]
 struct Lanes {
     hit: u32,
-    zero: u32,
+    scalar: u32,
     t: [f32; LANES],
     b1: [f32; LANES],
     b2: [f32; LANES],
@@ -317,28 +318,54 @@ unsafe fn test8(
             ),
         );
         let det = _mm256_add_ps(_mm256_add_ps(u, v), ww);
+        let (az, bz, cz) = (
+            _mm256_mul_ps(sz, a_z),
+            _mm256_mul_ps(sz, b_z),
+            _mm256_mul_ps(sz, c_z),
+        );
         let tt = _mm256_add_ps(
-            _mm256_add_ps(
-                _mm256_mul_ps(u, _mm256_mul_ps(sz, a_z)),
-                _mm256_mul_ps(v, _mm256_mul_ps(sz, b_z)),
-            ),
-            _mm256_mul_ps(ww, _mm256_mul_ps(sz, c_z)),
+            _mm256_add_ps(_mm256_mul_ps(u, az), _mm256_mul_ps(v, bz)),
+            _mm256_mul_ps(ww, cz),
         );
         let inv = _mm256_div_ps(_mm256_set1_ps(1.0), det);
         let t = _mm256_mul_ps(tt, inv);
-        let ok = _mm256_andnot_ps(
-            _mm256_or_ps(is_zero, _mm256_and_ps(any_neg, any_pos)),
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_NEQ_OQ>(det, zero),
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(t, _mm256_set1_ps(t0)),
-                    _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t1)),
+        // Slivers as `WatertightRay::intersect_axes` finds them, operation
+        // for operation: their distances are the scalar test's to refine.
+        let sign = _mm256_set1_ps(-0.0);
+        macro_rules! mag {
+            ($p:expr, $q:expr) => {
+                _mm256_andnot_ps(sign, _mm256_mul_ps($p, $q))
+            };
+        }
+        let e = _mm256_add_ps(
+            _mm256_add_ps(
+                _mm256_add_ps(
+                    _mm256_add_ps(_mm256_add_ps(mag!(cx, by), mag!(cy, bx)), mag!(ax, cy)),
+                    mag!(ay, cx),
                 ),
+                mag!(bx, ay),
+            ),
+            mag!(by, ax),
+        );
+        let plain = _mm256_cmp_ps::<_CMP_LE_OQ>(
+            e,
+            _mm256_mul_ps(_mm256_set1_ps(SLIVER), _mm256_andnot_ps(sign, det)),
+        );
+        let agree = _mm256_andnot_ps(
+            _mm256_or_ps(is_zero, _mm256_and_ps(any_neg, any_pos)),
+            _mm256_cmp_ps::<_CMP_NEQ_OQ>(det, zero),
+        );
+        let ok = _mm256_and_ps(
+            _mm256_and_ps(agree, plain),
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(t, _mm256_set1_ps(t0)),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(t, _mm256_set1_ps(t1)),
             ),
         );
         let mut g = Lanes {
             hit: _mm256_movemask_ps(ok) as u32,
-            zero: _mm256_movemask_ps(is_zero) as u32,
+            scalar: _mm256_movemask_ps(_mm256_or_ps(is_zero, _mm256_andnot_ps(plain, agree)))
+                as u32,
             t: [0.0; LANES],
             b1: [0.0; LANES],
             b2: [0.0; LANES],
@@ -369,9 +396,11 @@ mod tests {
                 let r = |d: u32| (k.get1d(d) * 8.0).floor() - 4.0;
                 let a = Vec3::new(r(0), r(1), r(2));
                 let b = Vec3::new(r(3), r(4), r(5));
-                let c = match i % 5 {
+                let c = match i % 6 {
                     0 => a,
                     1 => a + (b - a) * 0.5,
+                    // A sliver, whose distance the scalar test refines.
+                    2 => a + (b - a) * 0.5 + Vec3::new(1e-3, 2e-3, -1e-3),
                     _ => Vec3::new(r(6), r(7), r(8)),
                 };
                 [a, b, c]
@@ -404,7 +433,7 @@ mod tests {
                 base += n;
             }
             let tris = &verts[..];
-            let (mut hits, mut exact) = (0u64, 0u64);
+            let (mut hits, mut exact, mut slivers) = (0u64, 0u64, 0u64);
             for i in 0..3000u64 {
                 let k = SampleKey::independent(i, 1, 21);
                 let o = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 12.0 - 6.0;
@@ -451,15 +480,24 @@ mod tests {
                 assert_eq!(a, b, "ray {i}, any");
                 assert_eq!(a, !scalar.is_empty());
                 hits += scalar.len() as u64;
-                // The lanes the scalar test decided: count them, so that
-                // the test is seen to reach its f64 branch.
-                Wide::loads(tris, &w, g, t0, t1, |r, _, lanes| {
-                    exact += (r.zero & lanes).count_ones() as u64;
+                // The lanes the scalar test decided (edge functions that
+                // cancelled exactly, and slivers): count them, so that the
+                // test is seen to reach its f64 branches.
+                Wide::loads(tris, &w, g, t0, t1, |r, first, lanes| {
+                    let left = r.scalar & lanes;
+                    exact += left.count_ones() as u64;
+                    slivers += (0..8)
+                        .filter(|k| left >> k & 1 == 1 && (first + k) % 6 == 2)
+                        .count() as u64;
                     true
                 });
             }
             assert!(hits > 500, "{hits} hits");
-            assert!(exact > 50, "{exact} lanes decided exactly");
+            assert!(exact > 50, "{exact} lanes decided by the scalar test");
+            assert!(
+                slivers > 20,
+                "{slivers} sliver lanes decided by the scalar test"
+            );
         }
     }
 }

@@ -1,0 +1,245 @@
+#!/usr/bin/env python3
+"""A locus scene from a pbrt-v4 scene of world-space meshes, for benchmarks.
+
+It covers what the public scenes in ../shared/scenes use: a `Transform`
+followed by a perspective `Camera` (`fov` on the image's shorter side),
+`Film` resolution, `Integrator` maxdepth, `MakeNamedMaterial` and
+`Material`, `NamedMaterial`, `Shape "plymesh"` and `Shape "trianglemesh"`
+in world space, `AttributeBegin`/`AttributeEnd`, and `AreaLightSource
+"diffuse"` with `rgb L`. locus models Lambertian surfaces only. Each pbrt
+material becomes an albedo:
+  - `diffuse`, `coateddiffuse` and `diffusetransmission`: their `rgb
+    reflectance`, or 0.5 grey where it is a texture;
+  - `conductor`: 0.6 grey;
+  - `dielectric`: the shapes are left out, since a glass pane rendered as a
+    diffuse wall would shut out the light behind it.
+Every choice is printed. Any other directive inside the world block, such
+as a transform or a texture used for alpha, stops the script rather than
+give a different scene.
+
+    python3 crates/locus/src/bench/pbrt_scene.py ../shared/scenes/kitchen/scene-v4.pbrt \\
+        scenes/generated/kitchen.toml [--spp 16] [--scale-resolution 0.25]
+
+The TOML names the PLY files by absolute path. Each `trianglemesh` is
+written as an OBJ file beside the TOML.
+"""
+
+import argparse
+import os
+import re
+import sys
+
+TOKEN = re.compile(r'"[^"]*"|\[|\]|[^\s\[\]"]+')
+
+
+def tokens(text):
+    for line in text.splitlines():
+        line = line.split("#", 1)[0]
+        yield from TOKEN.findall(line)
+
+
+def directives(text):
+    """(name, positional strings, {param: values}) for each directive."""
+    out, cur = [], None
+    toks = list(tokens(text))
+    i = 0
+    while i < len(toks):
+        t = toks[i]
+        if t[0].isalpha():
+            cur = [t, [], {}]
+            out.append(cur)
+            i += 1
+            continue
+        if t.startswith('"') and " " in t.strip('"') and cur is not None:
+            key = t.strip('"')
+            i += 1
+            vals = []
+            if i < len(toks) and toks[i] == "[":
+                i += 1
+                while toks[i] != "]":
+                    vals.append(toks[i].strip('"'))
+                    i += 1
+                i += 1
+            else:
+                vals.append(toks[i].strip('"'))
+                i += 1
+            cur[2][key] = vals
+            continue
+        if t == "[" and cur is not None:
+            # Transform [ 16 numbers ]
+            i += 1
+            while toks[i] != "]":
+                cur[1].append(toks[i])
+                i += 1
+            i += 1
+            continue
+        if cur is not None:
+            cur[1].append(t.strip('"'))
+        i += 1
+    return out
+
+
+def param(params, name):
+    for key, vals in params.items():
+        if key.split()[-1] == name:
+            return key.split()[0], vals
+    return None, None
+
+
+def albedo(params, name):
+    kind = param(params, "type")[1][0] if "string type" in params else name
+    if kind == "dielectric":
+        return None, "dielectric: left out"
+    if kind == "conductor":
+        return [0.6, 0.6, 0.6], "conductor: grey 0.6"
+    t, v = param(params, "reflectance")
+    if t == "rgb":
+        return [float(x) for x in v], f"{kind}: its reflectance"
+    if t == "texture":
+        return [0.5, 0.5, 0.5], f"{kind}: texture {v[0]}, grey 0.5"
+    return [0.5, 0.5, 0.5], f"{kind}: no reflectance, grey 0.5"
+
+
+def inverse_affine(m):
+    """Inverse of a 4x4 affine matrix given as rows."""
+    a = [row[:3] for row in m[:3]]
+    t = [m[0][3], m[1][3], m[2][3]]
+    det = (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+           - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+           + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+    inv = [[0.0] * 3 for _ in range(3)]
+    for r in range(3):
+        for c in range(3):
+            rr = [x for x in range(3) if x != c]
+            cc = [x for x in range(3) if x != r]
+            minor = a[rr[0]][cc[0]] * a[rr[1]][cc[1]] - a[rr[0]][cc[1]] * a[rr[1]][cc[0]]
+            inv[r][c] = (-1) ** (r + c) * minor / det
+    ti = [-sum(inv[r][c] * t[c] for c in range(3)) for r in range(3)]
+    return inv, ti, det
+
+
+def apply(inv, ti, p, w=1.0):
+    return [sum(inv[r][c] * p[c] for c in range(3)) + w * ti[r] for r in range(3)]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("pbrt")
+    ap.add_argument("out")
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--scale-resolution", type=float, default=1.0)
+    a = ap.parse_args()
+    base = os.path.dirname(os.path.abspath(a.pbrt))
+    outdir = os.path.dirname(os.path.abspath(a.out))
+    stem = os.path.splitext(os.path.basename(a.out))[0]
+    ds = directives(open(a.pbrt).read())
+
+    ctm, cam, res, depth = None, None, [640, 480], 8
+    materials, named, current = {}, {}, None
+    stack, meshes, lights, notes = [], [], [], []
+    light_l = None
+    in_world = False
+    for name, pos, params in ds:
+        if name == "WorldBegin":
+            in_world = True
+        elif name == "Transform" and not in_world:
+            v = [float(x) for x in pos]
+            ctm = [[v[c * 4 + r] for c in range(4)] for r in range(4)]  # columns in the file
+        elif name == "Camera":
+            cam = float(param(params, "fov")[1][0])
+        elif name == "Film":
+            res = [int(param(params, "xresolution")[1][0]), int(param(params, "yresolution")[1][0])]
+        elif name == "Integrator":
+            t, v = param(params, "maxdepth")
+            depth = int(v[0]) if v else depth
+        elif name in ("Sampler", "PixelFilter", "Texture"):
+            pass
+        elif name == "MakeNamedMaterial":
+            named[pos[0]] = params
+        elif name == "NamedMaterial":
+            current = ("named", pos[0])
+        elif name == "Material":
+            current = ("inline", len(stack), dict(params, **{"string type": [pos[0]]}))
+        elif name == "AttributeBegin":
+            stack.append((current, light_l))
+        elif name == "AttributeEnd":
+            current, light_l = stack.pop()
+        elif name == "AreaLightSource":
+            t, v = param(params, "L")
+            if t != "rgb":
+                sys.exit(f"{a.pbrt}: AreaLightSource with {t} L is not covered")
+            light_l = [float(x) for x in v]
+        elif name == "Shape" and pos[0] in ("plymesh", "trianglemesh"):
+            if light_l is not None:
+                if pos[0] != "trianglemesh":
+                    sys.exit(f"{a.pbrt}: an emitting plymesh is not covered")
+                p = [float(x) for x in param(params, "P")[1]]
+                idx = [int(x) for x in param(params, "indices")[1]]
+                _, n = param(params, "N")
+                lights.append((p, idx, [float(x) for x in n] if n else None, light_l))
+                continue
+            if current is None:
+                mat = "default"
+            elif current[0] == "named":
+                mat = current[1]
+                if mat not in materials:
+                    materials[mat] = albedo(named[mat], mat)
+            else:
+                mat = f"inline{len(materials)}"
+                materials[mat] = albedo(current[2], mat)
+            if materials.get(mat, ([0.5] * 3, ""))[0] is None:
+                continue
+            if pos[0] == "plymesh":
+                meshes.append((os.path.join(base, param(params, "filename")[1][0]), mat))
+            else:
+                p = [float(x) for x in param(params, "P")[1]]
+                idx = [int(x) for x in param(params, "indices")[1]]
+                path = os.path.join(outdir, f"{stem}-mesh{len(meshes)}.obj")
+                with open(path, "w") as f:
+                    for k in range(0, len(p), 3):
+                        f.write("v %r %r %r\n" % tuple(p[k:k + 3]))
+                    for k in range(0, len(idx), 3):
+                        f.write("f %d %d %d\n" % tuple(i + 1 for i in idx[k:k + 3]))
+                meshes.append((path, mat))
+        elif in_world:
+            sys.exit(f"{a.pbrt}: directive {name} {pos[:1]} is not covered")
+
+    if ctm is None or cam is None:
+        sys.exit(f"{a.pbrt}: no Transform and Camera")
+    inv, ti, det = inverse_affine(ctm)
+    eye = apply(inv, ti, [0, 0, 0])
+    look = apply(inv, ti, [0, 0, 1])
+    up = apply(inv, ti, [0, 1, 0], 0.0)
+    w, h = (max(1, round(r * a.scale_resolution)) for r in res)
+    # pbrt's fov is along the shorter side; locus's along the height.
+    import math
+    fov_y = cam if h <= w else math.degrees(2 * math.atan(math.tan(math.radians(cam) / 2) * h / w))
+    out = [f"# Made by pbrt_scene.py from {os.path.abspath(a.pbrt)}",
+           "[camera]", f"position = {eye}", f"look_at = {look}", f"up = {up}",
+           f"fov_y = {fov_y}", f"resolution = [{w}, {h}]", "",
+           "[render]", f"spp = {a.spp}", f"max_depth = {depth}", "seed = 1", ""]
+    for mat, (alb, why) in sorted(materials.items()):
+        notes.append(f"material {mat}: {why}")
+        if alb is not None:
+            out += [f'[materials."{mat}"]', f"albedo = {alb}", ""]
+    for p, idx, n, le in lights:
+        if len(p) != 12 or idx not in ([0, 1, 2, 0, 2, 3], [0, 2, 1, 0, 3, 2]):
+            sys.exit(f"{a.pbrt}: an emitter that is not one quad is not covered")
+        v = [p[k:k + 3] for k in range(0, 12, 3)]
+        ea = [v[1][i] - v[0][i] for i in range(3)]
+        eb = [v[3][i] - v[0][i] for i in range(3)]
+        cr = [ea[1] * eb[2] - ea[2] * eb[1], ea[2] * eb[0] - ea[0] * eb[2], ea[0] * eb[1] - ea[1] * eb[0]]
+        if n and sum(cr[i] * n[i] for i in range(3)) < 0:
+            ea, eb = eb, ea
+        out += ["[[light]]", f"corner = {v[0]}", f"edge_a = {ea}", f"edge_b = {eb}", f"emission = {le}", ""]
+    for path, mat in meshes:
+        out += ["[[mesh]]", f'file = "{path}"', f'material = "{mat}"', ""]
+    with open(a.out, "w") as f:
+        f.write("\n".join(out))
+    for line in notes:
+        print(line)
+    print(f"{len(meshes)} meshes, {len(lights)} lights, {w}x{h}, camera transform determinant {det:.3f}")
+
+
+if __name__ == "__main__":
+    main()
