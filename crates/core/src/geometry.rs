@@ -169,6 +169,38 @@ impl TriangleSet {
     pub fn normals_of(&self, i: usize) -> [Vec3; 3] {
         self.normals.get(i).copied().unwrap_or(FLAT)
     }
+
+    /// Two sets whose ids ascend, as one whose ids ascend; a triangle in
+    /// both (a triangle of two octree leaves shipped with each) is kept
+    /// once, from `self`.
+    pub fn merge(self, other: TriangleSet) -> TriangleSet {
+        let mut out = TriangleSet::with_capacity(self.len() + other.len());
+        let (mut i, mut j) = (0, 0);
+        while i < self.len() || j < other.len() {
+            let take_self = j == other.len() || (i < self.len() && self.ids[i] <= other.ids[j]);
+            if take_self {
+                if j < other.len() && other.ids[j] == self.ids[i] {
+                    j += 1;
+                }
+                out.push(
+                    self.ids[i],
+                    self.verts[i],
+                    self.material[i],
+                    self.normals_of(i),
+                );
+                i += 1;
+            } else {
+                out.push(
+                    other.ids[j],
+                    other.verts[j],
+                    other.material[j],
+                    other.normals_of(j),
+                );
+                j += 1;
+            }
+        }
+        out
+    }
     /// Whether the lists agree in length.
     pub fn is_consistent(&self) -> bool {
         self.ids.len() == self.verts.len()
@@ -533,6 +565,34 @@ pub fn intersect_f64(ray: &Ray, v: &[Vec3; 3]) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Merging keeps the ids ascending, each triangle once with its own
+    /// vertices, material and normals, whichever set holds it.
+    #[test]
+    fn merged_sets_ascend_with_each_triangle_once() {
+        let set = |ids: &[u32], normals: bool| {
+            let mut s = TriangleSet::with_capacity(ids.len());
+            for &id in ids {
+                let v = Vec3::splat(id as f32);
+                let n = if normals { [Vec3::Z; 3] } else { FLAT };
+                s.push(id, [v, v + Vec3::X, v + Vec3::Y], id % 3, n);
+            }
+            s
+        };
+        let m = set(&[1, 4, 5, 9], false).merge(set(&[0, 4, 7, 9, 12], true));
+        assert_eq!(m.ids, vec![0, 1, 4, 5, 7, 9, 12]);
+        assert!(m.is_consistent());
+        for (k, &id) in m.ids.iter().enumerate() {
+            assert_eq!(m.verts[k][0], Vec3::splat(id as f32));
+            assert_eq!(m.material[k], id % 3);
+        }
+        // Normals where the set that kept the triangle had them.
+        assert_eq!(m.normals_of(0), [Vec3::Z; 3]);
+        assert_eq!(m.normals_of(1), FLAT);
+        assert_eq!(m.normals_of(2), FLAT);
+        assert_eq!(m.normals_of(4), [Vec3::Z; 3]);
+        assert_eq!(set(&[], false).merge(set(&[2], false)).ids, vec![2]);
+    }
 
     #[test]
     fn hits_and_misses_simple_triangle() {

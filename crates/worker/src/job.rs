@@ -33,6 +33,9 @@ pub struct Building {
     /// goes to the control loop when the region is in.
     pub levels: Option<(flume::Sender<LevelChunk>, flume::Receiver<LevelChunk>)>,
     pub parts: Vec<Arc<Part>>,
+    /// Parts received and not built yet: a worker without a memory budget
+    /// builds one BVH over its whole region (see [`Building::add_part`]).
+    pending: Option<(Vec<u32>, TriangleSet)>,
     pub received: u64,
     pub bvh_s: f64,
     /// Process CPU seconds when the job started (a daemon's own process).
@@ -61,6 +64,7 @@ impl Building {
             setup,
             levels,
             parts: Vec::new(),
+            pending: None,
             received: 0,
             bvh_s: 0.0,
             cpu0: if dedicated { sys::process_cpu_s() } else { 0.0 },
@@ -68,8 +72,22 @@ impl Building {
         })
     }
 
-    /// Checks one part of the region and builds its BVH off the runtime.
-    pub async fn add_part(&mut self, leaves: Vec<u32>, chunk: TriangleSet) -> anyhow::Result<()> {
+    /// Checks one part of the region and builds its BVH off the runtime;
+    /// `last` says whether it is the region's last.
+    ///
+    /// A region ships in parts of a frame each (48 MiB at most), and a
+    /// worker with a memory budget builds a BVH per part, as its plan
+    /// sizes them. A worker without one keeps the parts until the last and
+    /// builds one BVH over them all: every ray then descends one BVH, not
+    /// one per part. On the country kitchen (1,443,486 triangles, three
+    /// parts) `fetch` on 2 workers rendered at 0.69 of one machine's speed
+    /// with three parts a worker.
+    pub async fn add_part(
+        &mut self,
+        leaves: Vec<u32>,
+        chunk: TriangleSet,
+        last: bool,
+    ) -> anyhow::Result<()> {
         let s = &self.setup;
         if !chunk.is_consistent() {
             bail!("a region part's lists differ in length");
@@ -103,6 +121,26 @@ impl Building {
                 .is_some_and(|&l| l as usize >= s.map.owner.len())
         {
             bail!("a region part names leaves that are not ascending or not in the octree");
+        }
+        let (leaves, chunk) = match self.pending.take() {
+            Some((mut held, set)) => {
+                if leaves
+                    .first()
+                    .is_some_and(|&l| held.last().is_some_and(|&h| l <= h))
+                {
+                    bail!("the region's parts name leaves out of order");
+                }
+                held.extend(leaves);
+                let t = Instant::now();
+                let merged = tokio::task::spawn_blocking(move || set.merge(chunk)).await?;
+                self.bvh_s += t.elapsed().as_secs_f64();
+                (held, merged)
+            }
+            None => (leaves, chunk),
+        };
+        if !last && s.plan.budget == 0 {
+            self.pending = Some((leaves, chunk));
+            return Ok(());
         }
         let (mag, t) = (s.magnitude, Instant::now());
         let pool = self.pool.clone();
@@ -204,6 +242,8 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         cpu0,
         received,
         pool: _,
+        // Built with the last part.
+        pending: _,
     } = b;
     if received != setup.region_triangles {
         bail!(
@@ -396,5 +436,130 @@ pub async fn link_peers(
 fn add_traffic(stats: &mut WorkerStats, t: &Traffic) {
     for (p, c) in stats.peers.iter_mut().zip(t.snapshot()) {
         *p = c;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+    use locus_core::geometry::FLAT;
+    use locus_core::light::LightSet;
+    use locus_core::octree::{Octree, OctreeParams};
+    use locus_core::region::ProcessorMap;
+    use locus_core::scene::{Camera, Material, RenderSettings, Scene};
+    use locus_protocol::control::{MemoryPlan, Tuning};
+    use locus_protocol::submit::FetchPolicy;
+
+    /// A one-worker job over `tris`, whose region ships as `shipped`
+    /// triangles, with a memory budget of `budget` bytes.
+    fn setup(tris: &[[Vec3; 3]], shipped: u64, budget: u64) -> Box<JobSetup> {
+        let tree = Octree::build(
+            tris,
+            OctreeParams {
+                max_leaf_tris: 4,
+                max_depth: 5,
+            },
+        );
+        let camera = Camera {
+            position: Vec3::new(0.0, 1.0, 5.0),
+            look_at: Vec3::ZERO,
+            up: Vec3::Y,
+            fov_y: 40.0,
+            width: 8,
+            height: 6,
+        };
+        let scene = Scene::from_triangles(
+            "parts".into(),
+            camera.clone(),
+            RenderSettings::default(),
+            vec![Material {
+                name: "e".into(),
+                albedo: Vec3::splat(0.5),
+                emission: Vec3::ONE,
+            }],
+            tris.iter().map(|&x| (x, 0)).collect(),
+        );
+        Box::new(JobSetup {
+            job: 7,
+            me: 0,
+            peers: vec!["127.0.0.1:4000".into()],
+            camera,
+            spp: 1,
+            max_depth: 3,
+            seed: 1,
+            sampler: locus_core::sampler::Sampler::Sobol,
+            materials: scene.materials.clone(),
+            lights: LightSet::build(&scene),
+            own_leaves: tree
+                .leaves
+                .iter()
+                .enumerate()
+                .map(|(l, lf)| (l as u32, lf.tris.clone()))
+                .collect(),
+            leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
+            map: ProcessorMap::new(&tree, vec![0; tree.leaves.len()]),
+            magnitude: 11.0,
+            tuning: Tuning::default(),
+            cache: None,
+            irradiance: None,
+            fetch: FetchPolicy::Forward,
+            plan: MemoryPlan {
+                budget,
+                part_triangles: 1 << 20,
+                fetch_bytes: 1 << 20,
+                cache_nodes: 0,
+            },
+            region_triangles: shipped,
+            normals: false,
+        })
+    }
+
+    /// Without a budget the parts of a region are kept until the last and
+    /// built as one BVH, a triangle shipped in two parts held once; with
+    /// one, each part is built as it comes, as the plan sized it.
+    #[tokio::test]
+    async fn an_unbudgeted_region_is_one_bvh_however_it_ships() {
+        let tris: Vec<[Vec3; 3]> = (0..30)
+            .map(|i| {
+                let p = Vec3::new(i as f32 * 0.3 - 4.5, (i % 5) as f32, (i % 7) as f32 * 0.5);
+                [p, p + Vec3::X, p + Vec3::Y]
+            })
+            .collect();
+        // Three parts over leaves 0, 1 and 2 (as far as the octree has
+        // them), triangles 10 to 14 in the first two.
+        let part = |ids: std::ops::Range<u32>| {
+            let mut s = TriangleSet::with_capacity(ids.len());
+            for id in ids {
+                s.push(id, tris[id as usize], 0, FLAT);
+            }
+            s
+        };
+        let shipped = [part(0..15), part(10..20), part(20..30)];
+        let n: u64 = shipped.iter().map(|s| s.len() as u64).sum();
+        for budget in [0u64, 1 << 30] {
+            let mut b = Building::new(setup(&tris, n, budget), false, None).unwrap();
+            for (k, s) in shipped.iter().enumerate() {
+                b.add_part(vec![k as u32], s.clone(), k == 2).await.unwrap();
+            }
+            if budget == 0 {
+                assert_eq!(b.parts.len(), 1);
+                assert_eq!(b.parts[0].accel.len(), 30);
+                assert_eq!(b.parts[0].leaves, vec![0, 1, 2]);
+                for id in 0..30 {
+                    assert!(b.parts[0].accel.find(id).is_some(), "triangle {id}");
+                }
+            } else {
+                assert_eq!(b.parts.len(), 3);
+                assert_eq!(b.parts[1].accel.len(), 10);
+            }
+        }
+        // Parts whose leaves go back are refused.
+        let mut b = Building::new(setup(&tris, n, 0), false, None).unwrap();
+        b.add_part(vec![1], shipped[0].clone(), false)
+            .await
+            .unwrap();
+        let e = b.add_part(vec![0], shipped[1].clone(), true).await;
+        assert!(e.unwrap_err().to_string().contains("out of order"));
     }
 }

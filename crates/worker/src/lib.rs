@@ -295,7 +295,7 @@ impl Session<'_> {
                     }
                     return;
                 };
-                if let Err(e) = b.add_part(leaves, chunk).await {
+                if let Err(e) = b.add_part(leaves, chunk, last).await {
                     jobs.building = None;
                     fail(ctl_tx, job, e).await;
                     return;
