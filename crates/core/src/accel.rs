@@ -10,6 +10,12 @@
 //! answer does not depend on BVH layout, and therefore not on which worker
 //! traced the ray. [`crate::accel_set::AccelSet`] traces several such BVHs
 //! as one, which is how a worker bounds the memory a build needs.
+//!
+//! obvhs builds the binary tree (PLOC, then reinsertion); `convert`
+//! collapses it into the eight-wide BVH as obvhs would, node for node, in
+//! less time. `cwnode` and `leaf` are the traversal's node and triangle
+//! tests, `walk` the traversal, `split` the pre-splits and `pages` the
+//! huge-page arrays.
 
 use crate::geometry::{Bounds, FLAT, Ray, TriHit, TriangleSet, WatertightRay};
 use crate::octree::Octree;
