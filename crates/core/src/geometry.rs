@@ -377,8 +377,8 @@ impl WatertightRay {
 /// A triangle whose edge functions' products add up to more than this
 /// times their sum is a sliver as the ray sees it: its f32 distance can be
 /// off by more than the BVH's box padding, and [`refined_hit`] gives it.
-/// Below, the distance is within about 2^-18 of its size (see
-/// [`t_error_bound`]), as it always was.
+/// Below it, [`t_error_bound`] keeps the f32 distance within about 2^-18
+/// of the hit's depth, well inside the padding, as it always was.
 pub const SLIVER: f32 = 4.0;
 
 /// Twice the unit roundoff of the f32 test's steps, with room for the
@@ -398,7 +398,7 @@ const T_BOUND_EPS: f32 = 1.0 / (1u32 << 21) as f32;
 /// reach the sliver found it, so one machine and a farm worker gave
 /// different answers. Infinite where the rounding could swamp `det`.
 #[inline(always)]
-pub fn t_error_bound(e: f32, z: [f32; 3], det: f32, t: f32) -> f32 {
+fn t_error_bound(e: f32, z: [f32; 3], det: f32, t: f32) -> f32 {
     let zm = z[0].abs().max(z[1].abs()).max(z[2].abs());
     let room = det.abs() - T_BOUND_EPS * e;
     if room <= 0.0 {
@@ -415,7 +415,7 @@ pub fn t_error_bound(e: f32, z: [f32; 3], det: f32, t: f32) -> f32 {
 /// triangles: a hit point is then within rounding of the triangle, so
 /// inside its padded box, and no BVH can cull it while another finds it.
 #[inline(never)]
-pub fn refined_hit(sheared: &[f32; 6], z: [f32; 3]) -> TriHit {
+fn refined_hit(sheared: &[f32; 6], z: [f32; 3]) -> TriHit {
     let [ax, ay, bx, by, cx, cy] = sheared.map(f64::from);
     let [az, bz, cz] = z.map(f64::from);
     let u = cx * by - cy * bx;

@@ -30,14 +30,14 @@
 use crate::geometry::{SLIVER, TriHit, WatertightRay};
 use glam::Vec3;
 
+/// Lanes of one wide test.
+#[cfg(target_arch = "x86_64")]
+const LANES: usize = 8;
+
 /// Groups of at most this many triangles are tested one at a time (see
 /// the module's doc).
 #[cfg(target_arch = "x86_64")]
 const SCALAR_UP_TO: u32 = 2;
-
-/// Lanes of one wide test.
-#[cfg(target_arch = "x86_64")]
-const LANES: usize = 8;
 
 /// A primitive group: the primitives `base + i` for each bit `i` of
 /// `mask`.

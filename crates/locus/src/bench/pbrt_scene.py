@@ -25,6 +25,7 @@ written as an OBJ file beside the TOML.
 """
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -33,20 +34,24 @@ TOKEN = re.compile(r'"[^"]*"|\[|\]|[^\s\[\]"]+')
 
 
 def tokens(text):
-    for line in text.splitlines():
+    """(line number, token) for each token, comments dropped."""
+    for n, line in enumerate(text.splitlines(), 1):
         line = line.split("#", 1)[0]
-        yield from TOKEN.findall(line)
+        for t in TOKEN.findall(line):
+            yield n, t
 
 
-def directives(text):
-    """(name, positional strings, {param: values}) for each directive."""
+def directives(path, text):
+    """(name, positional strings, {param: values}, line) for each directive."""
     out, cur = [], None
-    toks = list(tokens(text))
+    numbered = list(tokens(text))
+    toks = [t for _, t in numbered]
+    toks.append("]")  # a list left open ends at the end of the file
     i = 0
-    while i < len(toks):
+    while i < len(numbered):
         t = toks[i]
         if t[0].isalpha():
-            cur = [t, [], {}]
+            cur = [t, [], {}, numbered[i][0]]
             out.append(cur)
             i += 1
             continue
@@ -73,8 +78,9 @@ def directives(text):
                 i += 1
             i += 1
             continue
-        if cur is not None:
-            cur[1].append(t.strip('"'))
+        if cur is None:
+            sys.exit(f"{path}:{numbered[i][0]}: {t} before any directive")
+        cur[1].append(t.strip('"'))
         i += 1
     return out
 
@@ -132,14 +138,15 @@ def main():
     base = os.path.dirname(os.path.abspath(a.pbrt))
     outdir = os.path.dirname(os.path.abspath(a.out))
     stem = os.path.splitext(os.path.basename(a.out))[0]
-    ds = directives(open(a.pbrt).read())
+    ds = directives(a.pbrt, open(a.pbrt).read())
 
     ctm, cam, res, depth = None, None, [640, 480], 8
     materials, named, current = {}, {}, None
     stack, meshes, lights, notes = [], [], [], []
     light_l = None
     in_world = False
-    for name, pos, params in ds:
+    for name, pos, params, line in ds:
+        where = f"{a.pbrt}:{line}"
         if name == "WorldBegin":
             in_world = True
         elif name == "Transform" and not in_world:
@@ -159,7 +166,7 @@ def main():
         elif name == "NamedMaterial":
             current = ("named", pos[0])
         elif name == "Material":
-            current = ("inline", len(stack), dict(params, **{"string type": [pos[0]]}))
+            current = ("inline", dict(params, **{"string type": [pos[0]]}))
         elif name == "AttributeBegin":
             stack.append((current, light_l))
         elif name == "AttributeEnd":
@@ -167,16 +174,16 @@ def main():
         elif name == "AreaLightSource":
             t, v = param(params, "L")
             if t != "rgb":
-                sys.exit(f"{a.pbrt}: AreaLightSource with {t} L is not covered")
+                sys.exit(f"{where}: AreaLightSource with {t} L is not covered (rgb L is)")
             light_l = [float(x) for x in v]
         elif name == "Shape" and pos[0] in ("plymesh", "trianglemesh"):
             if light_l is not None:
                 if pos[0] != "trianglemesh":
-                    sys.exit(f"{a.pbrt}: an emitting plymesh is not covered")
+                    sys.exit(f"{where}: an emitting plymesh is not covered (a trianglemesh quad is)")
                 p = [float(x) for x in param(params, "P")[1]]
                 idx = [int(x) for x in param(params, "indices")[1]]
                 _, n = param(params, "N")
-                lights.append((p, idx, [float(x) for x in n] if n else None, light_l))
+                lights.append((p, idx, [float(x) for x in n] if n else None, light_l, where))
                 continue
             if current is None:
                 mat = "default"
@@ -186,7 +193,7 @@ def main():
                     materials[mat] = albedo(named[mat], mat)
             else:
                 mat = f"inline{len(materials)}"
-                materials[mat] = albedo(current[2], mat)
+                materials[mat] = albedo(current[1], mat)
             if materials.get(mat, ([0.5] * 3, ""))[0] is None:
                 continue
             if pos[0] == "plymesh":
@@ -202,7 +209,8 @@ def main():
                         f.write("f %d %d %d\n" % tuple(i + 1 for i in idx[k:k + 3]))
                 meshes.append((path, mat))
         elif in_world:
-            sys.exit(f"{a.pbrt}: directive {name} {pos[:1]} is not covered")
+            sys.exit(f"{where}: {name} {' '.join(pos[:1])} is not covered inside the world block; "
+                     "remove it or extend pbrt_scene.py")
 
     if ctm is None or cam is None:
         sys.exit(f"{a.pbrt}: no Transform and Camera")
@@ -212,7 +220,6 @@ def main():
     up = apply(inv, ti, [0, 1, 0], 0.0)
     w, h = (max(1, round(r * a.scale_resolution)) for r in res)
     # pbrt's fov is along the shorter side; locus's along the height.
-    import math
     fov_y = cam if h <= w else math.degrees(2 * math.atan(math.tan(math.radians(cam) / 2) * h / w))
     out = [f"# Made by pbrt_scene.py from {os.path.abspath(a.pbrt)}",
            "[camera]", f"position = {eye}", f"look_at = {look}", f"up = {up}",
@@ -222,9 +229,9 @@ def main():
         notes.append(f"material {mat}: {why}")
         if alb is not None:
             out += [f'[materials."{mat}"]', f"albedo = {alb}", ""]
-    for p, idx, n, le in lights:
+    for p, idx, n, le, where in lights:
         if len(p) != 12 or idx not in ([0, 1, 2, 0, 2, 3], [0, 2, 1, 0, 3, 2]):
-            sys.exit(f"{a.pbrt}: an emitter that is not one quad is not covered")
+            sys.exit(f"{where}: an emitter that is not one quad (4 points, 2 triangles) is not covered")
         v = [p[k:k + 3] for k in range(0, 12, 3)]
         ea = [v[1][i] - v[0][i] for i in range(3)]
         eb = [v[3][i] - v[0][i] for i in range(3)]
