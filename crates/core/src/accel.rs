@@ -371,6 +371,21 @@ impl Accel {
             // SAFETY: this processor has AVX2 (`wide_available`).
             return unsafe { self.closest_avx2(ray, t0, t1, stats) };
         }
+        self.closest_narrow(ray, t0, t1, stats)
+    }
+
+    /// [`Self::closest`]'s traversal without AVX2. Kept out of line so that
+    /// the dispatch above stays a few instructions a query: with it inlined
+    /// there, every query through the AVX2 traversal paid for saving and
+    /// restoring the registers and the stack frame the narrow one needs.
+    #[inline(never)]
+    fn closest_narrow(
+        &self,
+        ray: &Ray,
+        t0: f32,
+        t1: f32,
+        stats: &mut TraceStats,
+    ) -> Option<AccelHit> {
         self.closest_with::<cwnode::Narrow, leaf::Scalar>(ray, t0, t1, stats)
     }
 
@@ -400,7 +415,8 @@ impl Accel {
         let mut r = bvh_ray(ray, t1);
         let nr = cwnode::NodeRay::new(&r);
         let mut best: Option<AccelHit> = None;
-        let mut state = walk::Walk::new(self.bvh.nodes.len(), r.direction);
+        let mut room = walk::slots();
+        let mut state = walk::Walk::new(self.bvh.nodes.len(), r.direction, &mut room);
         let mut node;
         let mut nodes = 0u64;
         let mut tests = 0u64;
@@ -464,6 +480,13 @@ impl Accel {
             // SAFETY: this processor has AVX2 (`wide_available`).
             return unsafe { self.occluded_avx2(ray, t0, t1, stats) };
         }
+        self.occluded_narrow(ray, t0, t1, stats)
+    }
+
+    /// [`Self::occluded`]'s traversal without AVX2, out of line (see
+    /// [`Self::closest_narrow`]).
+    #[inline(never)]
+    fn occluded_narrow(&self, ray: &Ray, t0: f32, t1: f32, stats: &mut TraceStats) -> bool {
         self.occluded_with::<cwnode::Narrow, leaf::Scalar>(ray, t0, t1, stats)
     }
 
@@ -485,7 +508,8 @@ impl Accel {
         let w = WatertightRay::new(ray);
         let r = bvh_ray(ray, t1);
         let nr = cwnode::NodeRay::new(&r);
-        let mut state = walk::Walk::new(self.bvh.nodes.len(), r.direction);
+        let mut room = walk::slots();
+        let mut state = walk::Walk::new(self.bvh.nodes.len(), r.direction, &mut room);
         let mut node;
         let mut nodes = 0u64;
         let mut tests = 0u64;
@@ -584,7 +608,7 @@ impl Accel {
 /// has taken that one out of the mask; this takes the rest too, so the
 /// macro finds the group empty and goes on to the next node.
 #[inline(always)]
-fn group(state: &mut walk::Walk) -> Prims {
+fn group(state: &mut walk::Walk<'_>) -> Prims {
     let base = state.primitive_group.x;
     let mask = state.primitive_group.y | (1 << (state.primitive_id - base));
     state.primitive_group.y = 0;
