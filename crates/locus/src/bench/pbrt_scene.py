@@ -33,6 +33,11 @@ import sys
 TOKEN = re.compile(r'"[^"]*"|\[|\]|[^\s\[\]"]+')
 
 
+# How many quoted names a directive takes before its parameters (pbrt-v4's
+# grammar); every other directive that takes any takes one.
+POSITIONAL = {"Texture": 3, "MediumInterface": 2}
+
+
 def tokens(text):
     """(line number, token) for each token, comments dropped."""
     for n, line in enumerate(text.splitlines(), 1):
@@ -43,7 +48,7 @@ def tokens(text):
 
 def directives(path, text):
     """(name, positional strings, {param: values}, line) for each directive."""
-    out, cur = [], None
+    out, cur, names = [], None, 0
     numbered = list(tokens(text))
     toks = [t for _, t in numbered]
     toks.append("]")  # a list left open ends at the end of the file
@@ -53,9 +58,17 @@ def directives(path, text):
         if t[0].isalpha():
             cur = [t, [], {}, numbered[i][0]]
             out.append(cur)
+            names = 0
             i += 1
             continue
-        if t.startswith('"') and " " in t.strip('"') and cur is not None:
+        # A quoted token is one of the directive's names (`Shape "plymesh"`,
+        # `NamedMaterial "Wood floor"`, a name with a space included) while
+        # it has fewer than it takes and no parameter came yet; after that,
+        # a parameter's "type name".
+        named = cur is not None and not cur[2] and names < POSITIONAL.get(cur[0], 1)
+        if t.startswith('"') and cur is not None and not named:
+            if " " not in t.strip('"'):
+                sys.exit(f'{path}:{numbered[i][0]}: {t} where a parameter\'s "type name" belongs')
             key = t.strip('"')
             i += 1
             vals = []
@@ -80,6 +93,7 @@ def directives(path, text):
             continue
         if cur is None:
             sys.exit(f"{path}:{numbered[i][0]}: {t} before any directive")
+        names += t.startswith('"')
         cur[1].append(t.strip('"'))
         i += 1
     return out
