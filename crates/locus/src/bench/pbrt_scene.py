@@ -1,8 +1,11 @@
 #!/usr/bin/env python3
 """A locus scene from a pbrt-v4 scene of world-space meshes, for benchmarks.
 
-It covers what the public scenes in ../shared/scenes use: a `Transform`
-followed by a perspective `Camera` (`fov` on the image's shorter side),
+It covers what the public scenes in ../shared/scenes use, and the usual
+ways of placing a camera: the transform directives before `WorldBegin`
+(`Transform`, `ConcatTransform`, `LookAt`, `Translate`, `Scale`,
+`Rotate`, `Identity`, composed as pbrt composes them) and a perspective
+`Camera` (`fov` on the image's shorter side),
 `Film` resolution, `Integrator` maxdepth, `MakeNamedMaterial` and
 `Material`, `NamedMaterial`, `Shape "plymesh"` and `Shape "trianglemesh"`
 in world space, `AttributeBegin`/`AttributeEnd`, and `AreaLightSource
@@ -138,6 +141,58 @@ def inverse_affine(m):
     return inv, ti, det
 
 
+IDENTITY = [[1.0 if r == c else 0.0 for c in range(4)] for r in range(4)]
+
+
+def matmul(a, b):
+    return [[sum(a[r][k] * b[k][c] for k in range(4)) for c in range(4)] for r in range(4)]
+
+
+def normalize(v):
+    n = math.sqrt(sum(x * x for x in v))
+    return [x / n for x in v]
+
+
+def cross(a, b):
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def transform(name, pos, where):
+    """The matrix (rows) of a transform directive, as pbrt-v4 builds it:
+    `LookAt` gives camera-from-world, `Rotate` is in degrees about an
+    axis."""
+    try:
+        v = [float(x) for x in pos]
+    except ValueError:
+        sys.exit(f"{where}: {name} takes numbers")
+    want = {"Transform": 16, "ConcatTransform": 16, "LookAt": 9, "Translate": 3,
+            "Scale": 3, "Rotate": 4, "Identity": 0}[name]
+    if len(v) != want:
+        sys.exit(f"{where}: {name} takes {want} numbers, not {len(v)}")
+    if name in ("Transform", "ConcatTransform"):
+        return [[v[c * 4 + r] for c in range(4)] for r in range(4)]  # columns in the file
+    if name == "Identity":
+        return IDENTITY
+    if name == "Translate":
+        return [[1, 0, 0, v[0]], [0, 1, 0, v[1]], [0, 0, 1, v[2]], [0, 0, 0, 1]]
+    if name == "Scale":
+        return [[v[0], 0, 0, 0], [0, v[1], 0, 0], [0, 0, v[2], 0], [0, 0, 0, 1]]
+    if name == "Rotate":
+        x, y, z = normalize(v[1:])
+        s, c = math.sin(math.radians(v[0])), math.cos(math.radians(v[0]))
+        return [[x * x + (1 - x * x) * c, x * y * (1 - c) - z * s, x * z * (1 - c) + y * s, 0],
+                [x * y * (1 - c) + z * s, y * y + (1 - y * y) * c, y * z * (1 - c) - x * s, 0],
+                [x * z * (1 - c) - y * s, y * z * (1 - c) + x * s, z * z + (1 - z * z) * c, 0],
+                [0, 0, 0, 1]]
+    eye, look, up = v[0:3], v[3:6], v[6:9]
+    d = normalize([look[i] - eye[i] for i in range(3)])
+    right = normalize(cross(normalize(up), d))
+    new_up = cross(d, right)
+    # camera-from-world: the inverse of the frame (right, up, d) at eye.
+    rows = [right, new_up, d]
+    return [r + [-sum(r[i] * eye[i] for i in range(3))] for r in rows] + [[0, 0, 0, 1]]
+
+
 def apply(inv, ti, p, w=1.0):
     return [sum(inv[r][c] * p[c] for c in range(3)) + w * ti[r] for r in range(3)]
 
@@ -154,7 +209,7 @@ def main():
     stem = os.path.splitext(os.path.basename(a.out))[0]
     ds = directives(a.pbrt, open(a.pbrt).read())
 
-    ctm, cam, res, depth = None, None, [640, 480], 8
+    ctm, cam_ctm, cam, res, depth = IDENTITY, None, None, [640, 480], 8
     materials, named, current = {}, {}, None
     stack, meshes, lights, notes = [], [], [], []
     light_l = None
@@ -163,11 +218,15 @@ def main():
         where = f"{a.pbrt}:{line}"
         if name == "WorldBegin":
             in_world = True
-        elif name == "Transform" and not in_world:
-            v = [float(x) for x in pos]
-            ctm = [[v[c * 4 + r] for c in range(4)] for r in range(4)]  # columns in the file
+        elif name in ("Transform", "Identity") and not in_world:
+            ctm = transform(name, pos, where)
+        elif name in ("ConcatTransform", "LookAt", "Translate", "Scale", "Rotate") and not in_world:
+            ctm = matmul(ctm, transform(name, pos, where))
         elif name == "Camera":
-            cam = float(param(params, "fov")[1][0])
+            if pos[0] != "perspective":
+                sys.exit(f"{where}: a {pos[0]} camera is not covered (a perspective one is)")
+            _, fov = param(params, "fov")
+            cam, cam_ctm = float(fov[0]) if fov else 90.0, ctm
         elif name == "Film":
             res = [int(param(params, "xresolution")[1][0]), int(param(params, "yresolution")[1][0])]
         elif name == "Integrator":
@@ -226,9 +285,9 @@ def main():
             sys.exit(f"{where}: {name} {' '.join(pos[:1])} is not covered inside the world block; "
                      "remove it or extend pbrt_scene.py")
 
-    if ctm is None or cam is None:
-        sys.exit(f"{a.pbrt}: no Transform and Camera")
-    inv, ti, det = inverse_affine(ctm)
+    if cam is None:
+        sys.exit(f"{a.pbrt}: no Camera")
+    inv, ti, det = inverse_affine(cam_ctm)
     eye = apply(inv, ti, [0, 0, 0])
     look = apply(inv, ti, [0, 0, 1])
     up = apply(inv, ti, [0, 1, 0], 0.0)
