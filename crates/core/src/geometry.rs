@@ -178,26 +178,21 @@ impl TriangleSet {
         let (mut i, mut j) = (0, 0);
         while i < self.len() || j < other.len() {
             let take_self = j == other.len() || (i < self.len() && self.ids[i] <= other.ids[j]);
-            if take_self {
-                if j < other.len() && other.ids[j] == self.ids[i] {
-                    j += 1;
-                }
-                out.push(
-                    self.ids[i],
-                    self.verts[i],
-                    self.material[i],
-                    self.normals_of(i),
-                );
-                i += 1;
-            } else {
-                out.push(
-                    other.ids[j],
-                    other.verts[j],
-                    other.material[j],
-                    other.normals_of(j),
-                );
+            if take_self && j < other.len() && other.ids[j] == self.ids[i] {
                 j += 1;
             }
+            let (from, k) = if take_self {
+                (&self, &mut i)
+            } else {
+                (&other, &mut j)
+            };
+            out.push(
+                from.ids[*k],
+                from.verts[*k],
+                from.material[*k],
+                from.normals_of(*k),
+            );
+            *k += 1;
         }
         out
     }

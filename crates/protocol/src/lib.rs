@@ -26,6 +26,8 @@ pub mod rays;
 pub mod report;
 pub mod stream;
 pub mod submit;
+#[cfg(feature = "testing")]
+pub mod testing;
 pub mod tls;
 
 pub use backoff::Backoff;

@@ -5,18 +5,18 @@ use glam::Vec3;
 use locus_core::dircache::CacheParams;
 use locus_core::geometry::Ray;
 use locus_core::integrator::{PathRay, ShadowRay};
-use locus_core::light::LightSet;
 use locus_core::octree::{Octree, OctreeParams};
 use locus_core::radiosity::RadiosityParams;
 use locus_core::radiosity::mesh::Patch;
 use locus_core::region::{ProcessorMap, Resume};
 use locus_core::sampler::SampleKey;
-use locus_core::scene::{Camera, Material, RenderSettings};
+use locus_core::scene::{Material, RenderSettings};
 use locus_protocol::control::*;
 use locus_protocol::radiosity::{Balance, NodeJob, RadiosityJob, ToCoordinator, ToNode};
 use locus_protocol::rays::*;
 use locus_protocol::report::{FarmReport, WorkerStats};
 use locus_protocol::submit::*;
+use locus_protocol::testing::{camera, job_setup};
 use proptest::prelude::*;
 
 fn roundtrip<T: serde::Serialize + serde::de::DeserializeOwned + PartialEq + std::fmt::Debug>(
@@ -83,17 +83,6 @@ fn ray_item() -> impl Strategy<Value = RayItem> {
     ]
 }
 
-fn camera() -> Camera {
-    Camera {
-        position: Vec3::new(0.0, 1.0, 5.0),
-        look_at: Vec3::ZERO,
-        up: Vec3::Y,
-        fov_y: 40.0,
-        width: 8,
-        height: 6,
-    }
-}
-
 fn tris(n: usize, seed: u64) -> Vec<[Vec3; 3]> {
     (0..n as u64)
         .map(|i| {
@@ -105,63 +94,22 @@ fn tris(n: usize, seed: u64) -> Vec<[Vec3; 3]> {
 }
 
 fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
-    let t = tris(n, seed);
-    let tree = Octree::build(
-        &t,
-        OctreeParams {
-            max_leaf_tris: 4,
-            max_depth: 5,
-        },
-    );
-    let owner: Vec<u16> = (0..tree.leaves.len())
-        .map(|l| (l % workers as usize) as u16)
-        .collect();
-    let scene = locus_core::scene::Scene::from_triangles(
-        "x".into(),
-        camera(),
-        RenderSettings::default(),
-        vec![Material {
-            name: "e".into(),
-            albedo: Vec3::splat(0.5),
-            emission: Vec3::ONE,
-        }],
-        t.iter().map(|&x| (x, 0)).collect(),
-    );
+    let base = job_setup(&tris(n, seed), workers);
     JobSetup {
         job: seed,
-        me: 0,
-        peers: (0..workers)
-            .map(|w| format!("127.0.0.1:{}", 4000 + w))
-            .collect(),
-        camera: camera(),
         spp: 4,
         max_depth: 5,
         seed,
-        sampler: locus_core::sampler::Sampler::Sobol,
-        materials: scene.materials.clone(),
-        lights: LightSet::build(&scene),
-        own_leaves: tree
-            .leaves
-            .iter()
-            .enumerate()
-            .filter(|(l, _)| owner[*l] == 0)
-            .map(|(l, lf)| (l as u32, lf.tris.clone()))
-            .collect(),
-        leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
-        map: ProcessorMap::new(&tree, owner),
-        magnitude: 11.0,
-        tuning: Tuning::default(),
         cache: Some(CacheParams::default()),
-        irradiance: None,
         fetch: FetchPolicy::Hybrid,
         plan: MemoryPlan {
             budget: seed,
-            part_triangles: 1 << 20,
-            fetch_bytes: 1 << 20,
             cache_nodes: 1000,
+            ..base.plan
         },
         region_triangles: n as u64,
         normals: seed.is_multiple_of(2),
+        ..base
     }
 }
 

@@ -444,74 +444,20 @@ mod tests {
     use super::*;
     use glam::Vec3;
     use locus_core::geometry::FLAT;
-    use locus_core::light::LightSet;
-    use locus_core::octree::{Octree, OctreeParams};
-    use locus_core::region::ProcessorMap;
-    use locus_core::scene::{Camera, Material, RenderSettings, Scene};
-    use locus_protocol::control::{MemoryPlan, Tuning};
-    use locus_protocol::submit::FetchPolicy;
+    use locus_protocol::control::MemoryPlan;
 
     /// A one-worker job over `tris`, whose region ships as `shipped`
     /// triangles, with a memory budget of `budget` bytes.
     fn setup(tris: &[[Vec3; 3]], shipped: u64, budget: u64) -> Box<JobSetup> {
-        let tree = Octree::build(
-            tris,
-            OctreeParams {
-                max_leaf_tris: 4,
-                max_depth: 5,
-            },
-        );
-        let camera = Camera {
-            position: Vec3::new(0.0, 1.0, 5.0),
-            look_at: Vec3::ZERO,
-            up: Vec3::Y,
-            fov_y: 40.0,
-            width: 8,
-            height: 6,
-        };
-        let scene = Scene::from_triangles(
-            "parts".into(),
-            camera.clone(),
-            RenderSettings::default(),
-            vec![Material {
-                name: "e".into(),
-                albedo: Vec3::splat(0.5),
-                emission: Vec3::ONE,
-            }],
-            tris.iter().map(|&x| (x, 0)).collect(),
-        );
+        let base = locus_protocol::testing::job_setup(tris, 1);
         Box::new(JobSetup {
             job: 7,
-            me: 0,
-            peers: vec!["127.0.0.1:4000".into()],
-            camera,
-            spp: 1,
-            max_depth: 3,
-            seed: 1,
-            sampler: locus_core::sampler::Sampler::Sobol,
-            materials: scene.materials.clone(),
-            lights: LightSet::build(&scene),
-            own_leaves: tree
-                .leaves
-                .iter()
-                .enumerate()
-                .map(|(l, lf)| (l as u32, lf.tris.clone()))
-                .collect(),
-            leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
-            map: ProcessorMap::new(&tree, vec![0; tree.leaves.len()]),
-            magnitude: 11.0,
-            tuning: Tuning::default(),
-            cache: None,
-            irradiance: None,
-            fetch: FetchPolicy::Forward,
             plan: MemoryPlan {
                 budget,
-                part_triangles: 1 << 20,
-                fetch_bytes: 1 << 20,
-                cache_nodes: 0,
+                ..base.plan
             },
             region_triangles: shipped,
-            normals: false,
+            ..base
         })
     }
 
