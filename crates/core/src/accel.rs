@@ -36,7 +36,7 @@ mod walk;
 
 use leaf::{LeafTest, Prims};
 
-use split::split_boxes;
+use split::{split_boxes, unsplit_boxes};
 
 /// A closest hit: global triangle id plus distance and barycentrics.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -167,7 +167,7 @@ fn build_params() -> BvhBuildParams {
 /// obvhs's `build_cwbvh` (PLOC, then reinsertion, then the collapse to
 /// the wide BVH) with the collapse done by [`convert`]: the same BVH in
 /// about four fifths of the collapse's time.
-fn build_cwbvh(boxes: &[obvhs::aabb::Aabb]) -> CwBvh {
+fn build_cwbvh(boxes: &[obvhs::aabb::Aabb], quality: BuildQuality) -> CwBvh {
     let p = build_params();
     let mut bvh2 = PlocBuilder::with_capacity(boxes.len()).build(
         p.ploc_search_distance,
@@ -176,8 +176,23 @@ fn build_cwbvh(boxes: &[obvhs::aabb::Aabb]) -> CwBvh {
         p.sort_precision,
         p.search_depth_threshold,
     );
-    ReinsertionOptimizer::default().run(&mut bvh2, p.reinsertion_batch_ratio, None);
+    if quality == BuildQuality::Full {
+        ReinsertionOptimizer::default().run(&mut bvh2, p.reinsertion_batch_ratio, None);
+    }
     convert::bvh2_to_cwbvh(&bvh2, p.max_prims_per_leaf)
+}
+
+/// How much a build spends on the BVH's quality.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BuildQuality {
+    /// Spatial pre-splits and reinsertion: the fewest steps a query takes.
+    Full,
+    /// Neither: a BVH with the same hits (they are exact, and ties go to
+    /// the smaller id, whatever the tree) built with less work, for
+    /// queries whose answer is the hits and not the steps taken to them
+    /// (`adaptive`'s decision, which counts crossings between octree
+    /// leaves).
+    Quick,
 }
 
 /// Bytes a build holds per triangle at its peak beyond the result
@@ -215,10 +230,18 @@ impl Accel {
 
     /// Builds over a triangle set, which it keeps (in BVH order).
     pub fn from_set(set: TriangleSet, magnitude: f32) -> Self {
+        Self::from_set_with(set, magnitude, BuildQuality::Full)
+    }
+
+    /// [`Self::from_set`] at the quality asked for.
+    pub fn from_set_with(set: TriangleSet, magnitude: f32, quality: BuildQuality) -> Self {
         assert!(set.is_consistent(), "one vertex triple and material per id");
         let pad = Vec3A::splat(magnitude * crate::geometry::SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
         let mut bounds = Bounds::EMPTY;
-        let (mut boxes, of_box) = split_boxes(&set.verts);
+        let (mut boxes, of_box) = match quality {
+            BuildQuality::Full => split_boxes(&set.verts),
+            BuildQuality::Quick => unsplit_boxes(&set.verts),
+        };
         // Padded after the split: the clipped corners are rounded in f32,
         // and the pad covers that as it covers a grazing ray's box test.
         for b in &mut boxes {
@@ -230,7 +253,7 @@ impl Accel {
         let mut bvh = if boxes.is_empty() {
             CwBvh::default()
         } else {
-            build_cwbvh(&boxes)
+            build_cwbvh(&boxes, quality)
         };
         drop(boxes);
         // Traversal reports positions in the primitive order, and the

@@ -14,7 +14,7 @@
 //! ties go to the smaller global id across parts as within one, so the
 //! answer is the one a single BVH over the union would give.
 
-use crate::accel::{Accel, AccelHit, BUILD_BYTES_PER_TRIANGLE, Surface, closer};
+use crate::accel::{Accel, AccelHit, BUILD_BYTES_PER_TRIANGLE, BuildQuality, Surface, closer};
 use crate::geometry::{Bounds, Ray, TriangleSet};
 use crate::stats::TraceStats;
 use glam::Vec3;
@@ -244,6 +244,7 @@ pub fn build_parts(
     leaves: &[(u32, &[u32])],
     max_part: usize,
     magnitude: f32,
+    quality: BuildQuality,
     triangle: &(dyn Fn(u32) -> ([Vec3; 3], u32, [Vec3; 3]) + Sync),
 ) -> Vec<Arc<Part>> {
     use rayon::prelude::*;
@@ -265,16 +266,14 @@ pub fn build_parts(
         (PARALLEL_BUILD_BYTES / max_part.max(1).saturating_mul(BUILD_BYTES_PER_TRIANGLE)).max(1);
     let build = |&(a, b): &(usize, usize)| {
         let run = &leaves[a..b];
-        let mut ids: Vec<u32> = run.iter().flat_map(|(_, t)| t.iter().copied()).collect();
-        ids.sort_unstable();
-        ids.dedup();
+        let ids = crate::octree::distinct_triangles(run.iter().map(|(_, t)| *t));
         let mut set = TriangleSet::with_capacity(ids.len());
         for &id in &ids {
             let (v, m, n) = triangle(id);
             set.push(id, v, m, n);
         }
         drop(ids);
-        let accel = Accel::from_set(set, magnitude);
+        let accel = Accel::from_set_with(set, magnitude, quality);
         Arc::new(Part::new(accel, run.iter().map(|&(l, _)| l).collect()))
     };
     let mut parts = Vec::with_capacity(runs.len());
@@ -329,8 +328,9 @@ mod tests {
             .collect();
         let tri = |id: u32| (tris[id as usize], 0, crate::geometry::FLAT);
         let mut st = TraceStats::default();
-        for max_part in [40usize, 300, 1000, 1 << 20] {
-            let set = AccelSet::from_parts(build_parts(&leaves, max_part, 12.0, &tri));
+        let sizes = [40usize, 300, 1000, 1 << 20].map(|m| (m, BuildQuality::Full));
+        for (max_part, quality) in sizes.into_iter().chain([(300, BuildQuality::Quick)]) {
+            let set = AccelSet::from_parts(build_parts(&leaves, max_part, 12.0, quality, &tri));
             assert!(max_part < 1 << 20 || set.parts().len() == 1);
             assert!(max_part > 40 || set.parts().len() > 50);
             // Built several at once, the parts still come in leaf order,
@@ -346,7 +346,7 @@ mod tests {
                 let t1 = if i % 4 == 0 { 3.0 } else { f32::INFINITY };
                 let a = one.intersect(&r, 0.0, t1, &mut st);
                 let b = set.closest(&r, 0.0, t1, &mut st).map(|h| h.hit.hit);
-                assert_eq!(a, b, "part size {max_part}, ray {i}");
+                assert_eq!(a, b, "part size {max_part}, {quality:?}, ray {i}");
                 assert_eq!(
                     one.occluded(&r, 0.0, t1, &mut st),
                     set.occluded(&r, 0.0, t1, &mut st)

@@ -119,9 +119,13 @@ impl Bounds {
 /// a flat triangle) is empty when no triangle of the set has any.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TriangleSet {
+    #[serde(with = "crate::bulk")]
     pub ids: Vec<u32>,
+    #[serde(with = "crate::bulk")]
     pub verts: Vec<[Vec3; 3]>,
+    #[serde(with = "crate::bulk")]
     pub material: Vec<u32>,
+    #[serde(with = "crate::bulk")]
     pub normals: Vec<[Vec3; 3]>,
 }
 
@@ -163,6 +167,31 @@ impl TriangleSet {
         self.ids.push(id);
         self.verts.push(verts);
         self.material.push(material);
+    }
+    /// The triangles `ids` of a scene's lists (`normals` empty when the
+    /// scene has none), as [`Self::push`] one by one would leave them, in
+    /// a copy per list rather than a check per triangle.
+    pub fn gather(
+        ids: Vec<u32>,
+        verts: &[[Vec3; 3]],
+        material: &[u32],
+        normals: &[[Vec3; 3]],
+    ) -> Self {
+        let pick = |list: &[[Vec3; 3]]| ids.iter().map(|&i| list[i as usize]).collect();
+        let mut set = Self {
+            verts: pick(verts),
+            material: ids.iter().map(|&i| material[i as usize]).collect(),
+            normals: if normals.is_empty() {
+                Vec::new()
+            } else {
+                pick(normals)
+            },
+            ids,
+        };
+        if set.normals.iter().all(|n| *n == FLAT) {
+            set.normals = Vec::new();
+        }
+        set
     }
     /// The shading normals of triangle `i` ([`FLAT`] when it has none).
     #[inline]
@@ -211,6 +240,30 @@ impl TriangleSet {
 #[cfg(test)]
 mod triangle_set_tests {
     use super::*;
+
+    /// Gathered at once, a set is what pushing its triangles one by one
+    /// leaves, with and without shading normals in the scene and in the
+    /// chosen triangles.
+    #[test]
+    fn a_gathered_set_is_the_pushed_one() {
+        let verts: Vec<[Vec3; 3]> = (0..20)
+            .map(|i| [Vec3::splat(i as f32), Vec3::X * i as f32, Vec3::Y])
+            .collect();
+        let material: Vec<u32> = (0..20).map(|i| i % 3).collect();
+        let mut normals = vec![FLAT; 20];
+        normals[7] = [Vec3::Z; 3];
+        for scene_normals in [Vec::new(), normals.clone()] {
+            for ids in [vec![0u32, 3, 7, 19], vec![1, 2, 3], vec![], vec![7]] {
+                let mut pushed = TriangleSet::default();
+                for &i in &ids {
+                    let n = scene_normals.get(i as usize).copied().unwrap_or(FLAT);
+                    pushed.push(i, verts[i as usize], material[i as usize], n);
+                }
+                let gathered = TriangleSet::gather(ids.clone(), &verts, &material, &scene_normals);
+                assert_eq!(gathered, pushed, "{ids:?}, normals {}", scene_normals.len());
+            }
+        }
+    }
 
     #[test]
     fn normals_are_kept_from_the_first_shaded_triangle_on() {

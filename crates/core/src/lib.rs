@@ -20,7 +20,8 @@
 //! kernel over tiles on a rayon pool, each pixel's samples in the progressive
 //! [`passes`] the farm renders too, and counts work in [`stats`]. Images
 //! leave through [`image_io`], are compared with [`metrics`], and reports
-//! are written by [`report`]. [`dircache`] is Jansen and Reinhard's directional
+//! are written by [`report`]; [`bulk`] is the wire form of the long lists
+//! (triangles, ids, materials) a job ships. [`dircache`] is Jansen and Reinhard's directional
 //! cache: per octree leaf, the radiance arriving from beyond a locality
 //! radius, by direction. [`irradiance`] is Ward's irradiance cache for the
 //! first vertex's diffuse interreflection, filled by an overture before
@@ -31,6 +32,7 @@
 
 pub mod accel;
 pub mod accel_set;
+pub mod bulk;
 pub mod dircache;
 pub mod error;
 pub mod generate;

@@ -5,7 +5,7 @@
 
 mod common;
 use glam::Vec3;
-use locus_core::accel::{Accel, Hit};
+use locus_core::accel::{Accel, BuildQuality, Hit};
 use locus_core::geometry::{Ray, WatertightRay, intersect_f64};
 use locus_core::octree::{Octree, OctreeParams};
 use locus_core::sampler::SampleKey;
@@ -322,7 +322,8 @@ fn processor_vector_chains_match_one_bvh() {
                     route
                 })
                 .collect();
-            // Odd workers hold their region as parts of at most 60 triangles.
+            // Odd workers hold their region as parts of at most 60
+            // triangles, every other one of them built quick (the same hits).
             let accels: Vec<AccelSet> = (0..workers)
                 .map(|w| {
                     if w % 2 == 1 {
@@ -330,7 +331,11 @@ fn processor_vector_chains_match_one_bvh() {
                             .filter(|&l| owner[l] == w)
                             .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
                             .collect();
-                        return AccelSet::from_parts(build_parts(&leaves, 60, 12.0, &tri));
+                        let quality = match w % 4 {
+                            3 => BuildQuality::Quick,
+                            _ => BuildQuality::Full,
+                        };
+                        return AccelSet::from_parts(build_parts(&leaves, 60, 12.0, quality, &tri));
                     }
                     let ids = ProcessorMap::region_triangles(&oct, &owner, w);
                     let verts: Vec<[Vec3; 3]> = ids.iter().map(|&i| tris[i as usize]).collect();

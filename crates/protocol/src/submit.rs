@@ -118,10 +118,13 @@ impl Default for JobOptions {
 /// in order: each triangle's corners and material.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrianglePart {
+    #[serde(with = "locus_core::bulk")]
     pub tris: Vec<[Vec3; 3]>,
+    #[serde(with = "locus_core::bulk")]
     pub material: Vec<u32>,
     /// Each triangle's shading normals, when the request has them (every
     /// part then carries them).
+    #[serde(with = "locus_core::bulk")]
     pub normals: Vec<[Vec3; 3]>,
 }
 
@@ -137,10 +140,13 @@ pub struct JobRequest {
     pub camera: Camera,
     pub settings: RenderSettings,
     pub materials: Vec<Material>,
+    #[serde(with = "locus_core::bulk")]
     pub tris: Vec<[Vec3; 3]>,
+    #[serde(with = "locus_core::bulk")]
     pub tri_material: Vec<u32>,
     /// Shading normals at each triangle's vertices (all zero for a flat
     /// one); empty when no triangle has any.
+    #[serde(with = "locus_core::bulk")]
     pub tri_normals: Vec<[Vec3; 3]>,
     pub options: JobOptions,
     /// Seconds the client took to read the scene, for the report.

@@ -23,7 +23,7 @@
 //! for `adaptive`, the smaller [`DECISION_PREVIEW`] first, whose crossings
 //! decide by [`buying_pays`] whether every worker gets the whole scene.
 
-use locus_core::accel::{Accel, Hit};
+use locus_core::accel::{Accel, BuildQuality, Hit};
 use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
 use locus_core::geometry::{FLAT, Ray};
 use locus_core::integrator::{DIM_PIXEL, PathRay, interpolate_normal, shade};
@@ -192,6 +192,7 @@ pub fn sampled_paths(
 pub struct PreviewSize {
     pub part: usize,
     pub paths: u32,
+    pub quality: BuildQuality,
 }
 
 /// The preview regions are drawn from: one part up to 512k triangles
@@ -200,6 +201,7 @@ pub struct PreviewSize {
 pub const FULL_PREVIEW: PreviewSize = PreviewSize {
     part: 512 << 10,
     paths: 8192,
+    quality: BuildQuality::Full,
 };
 
 /// The preview `adaptive` decides with whether to buy the whole scene.
@@ -213,9 +215,17 @@ pub const FULL_PREVIEW: PreviewSize = PreviewSize {
 /// count BVH steps, do move with the cut (the room's regions drawn from
 /// parts of 64k forwarded 0.302 queries a ray against 0.274), which is why
 /// regions that carry rays are drawn from [`FULL_PREVIEW`].
+///
+/// For the same reason its parts are built [`BuildQuality::Quick`] (no spatial
+/// pre-splits, no reinsertion): the crossings, paths and rays are the full
+/// build's to the count (`a_quick_decision_preview_counts_what_a_full_one_does`),
+/// and on the room it spares 279 M instructions (callgrind, the whole
+/// embedded farm's job: most of the reinsertion and pre-splits of the
+/// preview's parts).
 pub const DECISION_PREVIEW: PreviewSize = PreviewSize {
     part: 32 << 10,
     paths: 2048,
+    quality: BuildQuality::Quick,
 };
 
 /// The sampled preview (see [`sampled`]) of the size given.
@@ -240,6 +250,7 @@ pub fn sampled_in_parts(
         &leaves,
         size.part.max(scene.tris.len().div_ceil(MAX_PARTS)),
         scene.magnitude(),
+        size.quality,
         &tri,
     ));
     sampled_paths(scene, tree, &accel, lights, size.paths)
@@ -526,6 +537,59 @@ mod tests {
         fn occluded(&self, ray: &Ray, t0: f32, t1: f32, _: &mut TraceStats) -> bool {
             self.0.occluded(ray, t0, t1, &mut TraceStats::default())
         }
+    }
+
+    /// The decision preview's quick build finds the hits a full build
+    /// finds, so it counts the same crossings, paths and rays, in a scene
+    /// large enough to split triangles and to be cut into several parts.
+    #[test]
+    fn a_quick_decision_preview_counts_what_a_full_one_does() {
+        use locus_core::generate::{RoomParams, conference_room, room_materials};
+        let params = RoomParams {
+            chairs_per_side: 3,
+            detail: 6,
+            leg_segments: 8,
+            ..Default::default()
+        };
+        let scene = Scene::from_triangles(
+            "room".into(),
+            locus_core::scene::Camera {
+                position: glam::Vec3::new(0.6, 1.6, 0.6),
+                look_at: glam::Vec3::new(8.0, 0.7, 5.0),
+                up: glam::Vec3::Y,
+                fov_y: 60.0,
+                width: 48,
+                height: 32,
+            },
+            locus_core::scene::RenderSettings {
+                max_depth: 5,
+                seed: 7,
+                ..Default::default()
+            },
+            room_materials(),
+            conference_room(&params).tagged_triangles(),
+        );
+        let tree = crate::job::octree_for(&scene, 4);
+        let lights = LightSet::build(&scene);
+        let size = |quality| PreviewSize {
+            part: 2048,
+            paths: 512,
+            quality,
+        };
+        let full = sampled_in_parts(&scene, &tree, &lights, size(BuildQuality::Full));
+        let quick = sampled_in_parts(&scene, &tree, &lights, size(BuildQuality::Quick));
+        assert!(
+            scene.tris.len() > 3 * 2048,
+            "{} triangles",
+            scene.tris.len()
+        );
+        assert!(
+            full.crossings.len() > 20,
+            "{} crossings",
+            full.crossings.len()
+        );
+        assert_eq!(quick.crossings, full.crossings);
+        assert_eq!((quick.paths, quick.rays), (full.paths, full.rays));
     }
 
     /// `steps` is the BVH work the preview charged, and only that: the

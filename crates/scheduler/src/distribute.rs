@@ -6,7 +6,7 @@
 
 use crate::job::Prepared;
 use crate::overture::{Overture, send_levels};
-use locus_core::geometry::FLAT;
+use locus_core::octree::distinct_triangles;
 use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
 use locus_protocol::overture::IrradianceSetup;
 use locus_protocol::submit::JobRequest;
@@ -30,13 +30,8 @@ pub fn ship(
         let runs: Vec<(Vec<u32>, Vec<u32>)> = prep.parts[w]
             .iter()
             .map(|leaves| {
-                let mut ids: Vec<u32> = leaves
-                    .iter()
-                    .flat_map(|&l| prep.leaf_ids[l as usize].iter().copied())
-                    .collect();
-                ids.sort_unstable();
-                ids.dedup();
-                (leaves.clone(), ids)
+                let lists = leaves.iter().map(|&l| prep.leaf_ids[l as usize].as_slice());
+                (leaves.clone(), distinct_triangles(lists))
             })
             .collect();
         let setup = JobSetup {
@@ -93,12 +88,8 @@ pub fn ship(
                 return send_levels(&tx, id, 0, &known, &sent).await;
             }
             for (k, (leaves, ids)) in runs.into_iter().enumerate() {
-                let mut chunk = TriangleSet::with_capacity(ids.len());
-                for id in ids {
-                    let i = id as usize;
-                    let n = scene.tri_normals.get(i).copied().unwrap_or(FLAT);
-                    chunk.push(id, scene.tris[i], scene.tri_material[i], n);
-                }
+                let chunk =
+                    TriangleSet::gather(ids, &scene.tris, &scene.tri_material, &scene.tri_normals);
                 tx.send(SchedulerToWorker::Geometry {
                     job: id,
                     leaves,

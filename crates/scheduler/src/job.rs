@@ -543,10 +543,7 @@ fn cut_parts(own: &[(u32, Vec<u32>)], max: u64) -> (Vec<Vec<u32>>, u64) {
 
 /// The distinct triangles (ascending) of a run of leaves.
 pub fn part_triangles(run: &[(u32, Vec<u32>)]) -> Vec<u32> {
-    let mut ids: Vec<u32> = run.iter().flat_map(|(_, t)| t.iter().copied()).collect();
-    ids.sort_unstable();
-    ids.dedup();
-    ids
+    locus_core::octree::distinct_triangles(run.iter().map(|(_, t)| t.as_slice()))
 }
 
 #[cfg(test)]

@@ -236,6 +236,7 @@ pub fn cut_run(run: &[LeafSource], max_part: usize, magnitude: f32) -> (Vec<Arc<
 mod tests {
     use super::*;
     use glam::Vec3;
+    use locus_core::accel::BuildQuality;
     use locus_core::octree::OctreeParams;
     use locus_core::sampler::SampleKey;
     use locus_core::stats::TraceStats;
@@ -283,7 +284,8 @@ mod tests {
             .map(|l| (l, oct.leaves[l as usize].tris.as_slice()))
             .collect();
         let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
-        let mut parts = locus_core::accel_set::build_parts(&own, 150, 12.0, &tri);
+        let mut parts =
+            locus_core::accel_set::build_parts(&own, 150, 12.0, BuildQuality::Full, &tri);
         let first = parts.len();
         // Fetch the rest in two rounds.
         for round in [1u32, 2] {
@@ -362,7 +364,7 @@ mod tests {
             .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
             .collect();
         let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
-        let parts = locus_core::accel_set::build_parts(&own, 1000, 20.0, &tri);
+        let parts = locus_core::accel_set::build_parts(&own, 1000, 20.0, BuildQuality::Full, &tri);
         for per_leaf in [false, true] {
             let r = Reach::new(
                 &oct,

@@ -16,6 +16,19 @@ const MAX_SPLIT_GROWTH: usize = 20;
 /// (twice), a superset, so the preset decides alone which are split.
 const CANDIDATE_AREA: f32 = 2.0;
 
+/// A triangle's tight box.
+fn tight(v: &[Vec3; 3]) -> Aabb {
+    Aabb::from_points(&[v[0].into(), v[1].into(), v[2].into()])
+}
+
+/// Each triangle's tight box, none split, in [`split_boxes`]'s form.
+pub(super) fn unsplit_boxes(verts: &[[Vec3; 3]]) -> (Vec<Aabb>, Vec<u32>) {
+    (
+        verts.iter().map(tight).collect(),
+        (0..verts.len() as u32).collect(),
+    )
+}
+
 /// Tight boxes of `verts`, a large triangle's replaced by several boxes of
 /// its clipped pieces (obvhs's preset, which splits conservatively enough
 /// not to slow traversal on scenes without large triangles), with the
@@ -33,7 +46,6 @@ const CANDIDATE_AREA: f32 = 2.0;
 /// candidates alone (a copy of every box and triangle held 116 bytes a
 /// triangle during the build's preparation).
 pub(super) fn split_boxes(verts: &[[Vec3; 3]]) -> (Vec<Aabb>, Vec<u32>) {
-    let tight = |v: &[Vec3; 3]| Aabb::from_points(&[v[0].into(), v[1].into(), v[2].into()]);
     let n = verts.len();
     let mut boxes: Vec<Aabb> = verts.iter().map(tight).collect();
     let mut of_box: Vec<u32> = (0..n as u32).collect();

@@ -363,8 +363,65 @@ fn child_bounds(b: &Bounds, i: usize) -> Bounds {
     Bounds::new(lo, hi)
 }
 
+/// The distinct triangle ids (ascending) of several leaves' lists: the
+/// triangles a region or a part holds, each once. Marked in a bitmap over
+/// the lists' range rather than gathered and sorted: for a job of two
+/// workers that both hold the room (325,000 triangles in 932 leaves),
+/// sorting cost the scheduler 296 M instructions, marking 72 M.
+pub fn distinct_triangles<'a>(lists: impl IntoIterator<Item = &'a [u32]>) -> Vec<u32> {
+    let lists: Vec<&[u32]> = lists.into_iter().filter(|l| !l.is_empty()).collect();
+    let (Some(lo), Some(hi)) = (
+        lists.iter().filter_map(|l| l.iter().min()).min(),
+        lists.iter().filter_map(|l| l.iter().max()).max(),
+    ) else {
+        return Vec::new();
+    };
+    let mut bits = vec![0u64; ((hi - lo) as usize >> 6) + 1];
+    let mut count = 0usize;
+    for &id in lists.iter().flat_map(|l| l.iter()) {
+        let k = (id - lo) as usize;
+        let (w, b) = (k >> 6, 1u64 << (k & 63));
+        count += (bits[w] & b == 0) as usize;
+        bits[w] |= b;
+    }
+    let mut out = Vec::with_capacity(count);
+    for (w, &word) in bits.iter().enumerate() {
+        let mut m = word;
+        while m != 0 {
+            out.push(lo + (w as u32) * 64 + m.trailing_zeros());
+            m &= m - 1;
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
+
+    /// The distinct ids are what gathering, sorting and deduplicating
+    /// give, for lists that overlap, repeat, sit far apart or are empty.
+    #[test]
+    fn distinct_triangles_are_the_sorted_union() {
+        use crate::sampler::SampleKey;
+        for case in 0..40u64 {
+            let k = SampleKey::independent(case, 0, 3);
+            let lists: Vec<Vec<u32>> = (0..(k.get1d(0) * 6.0) as u32)
+                .map(|l| {
+                    let base = (k.get1d(1 + l) * 1e6) as u32 * (case as u32 % 3);
+                    let mut v: Vec<u32> = (0..(k.get1d(10 + l) * 300.0) as u32)
+                        .map(|i| base + (i * 7 + l) % 500)
+                        .collect();
+                    v.sort_unstable();
+                    v
+                })
+                .collect();
+            let mut want: Vec<u32> = lists.iter().flatten().copied().collect();
+            want.sort_unstable();
+            want.dedup();
+            let got = distinct_triangles(lists.iter().map(|l| l.as_slice()));
+            assert_eq!(got, want, "case {case}");
+        }
+    }
     use super::*;
 
     /// The octree of `grid_tris(n)` with these limits.
