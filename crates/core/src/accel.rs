@@ -169,8 +169,12 @@ fn build_params() -> BvhBuildParams {
 /// about four fifths of the collapse's time.
 fn build_cwbvh(boxes: &[obvhs::aabb::Aabb], quality: BuildQuality) -> CwBvh {
     let p = build_params();
+    let search = match quality {
+        BuildQuality::Full => p.ploc_search_distance,
+        BuildQuality::Quick => obvhs::ploc::PlocSearchDistance::Minimum,
+    };
     let mut bvh2 = PlocBuilder::with_capacity(boxes.len()).build(
-        p.ploc_search_distance,
+        search,
         boxes,
         (0..boxes.len() as u32).collect(),
         p.sort_precision,
@@ -185,13 +189,14 @@ fn build_cwbvh(boxes: &[obvhs::aabb::Aabb], quality: BuildQuality) -> CwBvh {
 /// How much a build spends on the BVH's quality.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BuildQuality {
-    /// Spatial pre-splits and reinsertion: the fewest steps a query takes.
+    /// Spatial pre-splits, PLOC searching 6 neighbours at every level
+    /// ([`build_params`]) and reinsertion: the fewest steps a query takes.
     Full,
-    /// Neither: a BVH with the same hits (they are exact, and ties go to
-    /// the smaller id, whatever the tree) built with less work, for
-    /// queries whose answer is the hits and not the steps taken to them
-    /// (`adaptive`'s decision, which counts crossings between octree
-    /// leaves).
+    /// No pre-splits, PLOC searching one neighbour, no reinsertion: a BVH
+    /// with the same hits (they are exact, and ties go to the smaller id,
+    /// whatever the tree) built with less work, for queries whose answer
+    /// is the hits and not the steps taken to them (`adaptive`'s
+    /// decision, which counts crossings between octree leaves).
     Quick,
 }
 
