@@ -14,19 +14,18 @@
 //! obvhs builds the binary tree (PLOC, then reinsertion); `convert`
 //! collapses it into the eight-wide BVH as obvhs would, node for node, in
 //! less time. `cwnode` and `leaf` are the traversal's node and triangle
-//! tests, `walk` the traversal, `split` the pre-splits and `pages` the
-//! huge-page arrays.
+//! tests, `walk` the traversal, `build` the build's steps and how much
+//! each [`BuildQuality`] spends on them, `split` the pre-splits and
+//! `pages` the huge-page arrays.
 
 use crate::geometry::{Bounds, FLAT, Ray, TriHit, TriangleSet, WatertightRay};
 use crate::octree::Octree;
 use crate::stats::TraceStats;
 use glam::{UVec2, Vec3, Vec3A};
-use obvhs::BvhBuildParams;
-use obvhs::bvh2::reinsertion::ReinsertionOptimizer;
 use obvhs::cwbvh::CwBvh;
-use obvhs::ploc::PlocBuilder;
 use std::ops::ControlFlow;
 
+mod build;
 mod convert;
 mod cwnode;
 mod leaf;
@@ -36,7 +35,7 @@ mod walk;
 
 use leaf::{LeafTest, Prims};
 
-use split::{split_boxes, unsplit_boxes};
+pub use build::{BUILD_BYTES_PER_TRIANGLE, BuildQuality};
 
 /// A closest hit: global triangle id plus distance and barycentrics.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -146,67 +145,6 @@ fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
     }
 }
 
-/// obvhs's `medium_build` with a PLOC search distance of 6 (`Low`) at
-/// every level, where the preset searches 14 neighbours but only one in
-/// the first three levels. Counted on the same paths (`locus render
-/// SCENE --spp 1`, the report's `bvh_nodes` per `bvh_queries`), it
-/// visits fewer nodes in about the same build time: the room 9.50 to
-/// 8.31 per query, the conference room 6.17 to 6.10, the Cornell box
-/// 2.11 to 1.37, the 4-million-triangle room 9.98 to 9.03; on the
-/// room 5.9% fewer instructions per render. Larger searches and more
-/// reinsertion cost build time for less than that. Which BVH is built
-/// changes no answer: hits are exact, ties resolve by triangle id.
-fn build_params() -> BvhBuildParams {
-    BvhBuildParams {
-        ploc_search_distance: obvhs::ploc::PlocSearchDistance::Low,
-        search_depth_threshold: 0,
-        ..BvhBuildParams::medium_build()
-    }
-}
-
-/// obvhs's `build_cwbvh` (PLOC, then reinsertion, then the collapse to
-/// the wide BVH) with the collapse done by [`convert`]: the same BVH in
-/// about four fifths of the collapse's time.
-fn build_cwbvh(boxes: &[obvhs::aabb::Aabb], quality: BuildQuality) -> CwBvh {
-    let p = build_params();
-    let search = match quality {
-        BuildQuality::Full => p.ploc_search_distance,
-        BuildQuality::Quick => obvhs::ploc::PlocSearchDistance::Minimum,
-    };
-    let mut bvh2 = PlocBuilder::with_capacity(boxes.len()).build(
-        search,
-        boxes,
-        (0..boxes.len() as u32).collect(),
-        p.sort_precision,
-        p.search_depth_threshold,
-    );
-    if quality == BuildQuality::Full {
-        ReinsertionOptimizer::default().run(&mut bvh2, p.reinsertion_batch_ratio, None);
-    }
-    convert::bvh2_to_cwbvh(&bvh2, p.max_prims_per_leaf)
-}
-
-/// How much a build spends on the BVH's quality.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BuildQuality {
-    /// Spatial pre-splits, PLOC searching 6 neighbours at every level
-    /// ([`build_params`]) and reinsertion: the fewest steps a query takes.
-    Full,
-    /// No pre-splits, PLOC searching one neighbour, no reinsertion: a BVH
-    /// with the same hits (they are exact, and ties go to the smaller id,
-    /// whatever the tree) built with less work, for queries whose answer
-    /// is the hits and not the steps taken to them (`adaptive`'s
-    /// decision, which counts crossings between octree leaves).
-    Quick,
-}
-
-/// Bytes a build holds per triangle at its peak beyond the result
-/// (measured: obvhs's PLOC build with its boxes, Morton keys and BVH2, at
-/// every preset, about 235 bytes plus 32 for the input boxes; the same,
-/// within 1%, when obvhs builds in parallel). Memory budgets size chunked
-/// builds with it.
-pub const BUILD_BYTES_PER_TRIANGLE: usize = 280;
-
 impl Accel {
     /// Builds over the triangles `ids` of `all` (material 0 for every one).
     /// Each triangle's box is padded by 2^-18 of `magnitude` (the largest
@@ -243,10 +181,7 @@ impl Accel {
         assert!(set.is_consistent(), "one vertex triple and material per id");
         let pad = Vec3A::splat(magnitude * crate::geometry::SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
         let mut bounds = Bounds::EMPTY;
-        let (mut boxes, of_box) = match quality {
-            BuildQuality::Full => split_boxes(&set.verts),
-            BuildQuality::Quick => unsplit_boxes(&set.verts),
-        };
+        let (mut boxes, of_box) = build::boxes(&set.verts, quality);
         // Padded after the split: the clipped corners are rounded in f32,
         // and the pad covers that as it covers a grazing ray's box test.
         for b in &mut boxes {
@@ -258,7 +193,7 @@ impl Accel {
         let mut bvh = if boxes.is_empty() {
             CwBvh::default()
         } else {
-            build_cwbvh(&boxes, quality)
+            build::cwbvh(&boxes, quality)
         };
         drop(boxes);
         // Traversal reports positions in the primitive order, and the

@@ -397,6 +397,7 @@ pub fn distinct_triangles<'a>(lists: impl IntoIterator<Item = &'a [u32]>) -> Vec
 
 #[cfg(test)]
 pub(crate) mod tests {
+    use super::*;
 
     /// The distinct ids are what gathering, sorting and deduplicating
     /// give, for lists that overlap, repeat, sit far apart or are empty.
@@ -422,7 +423,6 @@ pub(crate) mod tests {
             assert_eq!(got, want, "case {case}");
         }
     }
-    use super::*;
 
     /// The octree of `grid_tris(n)` with these limits.
     pub(crate) fn grid_octree(n: usize, max_leaf_tris: usize, max_depth: u32) -> Octree {
