@@ -7,15 +7,24 @@
 
 use crate::error::ProtocolError;
 use crate::stream::{ReadSide, Stream, WriteSide};
-use bytes::BytesMut;
+use bytes::{Buf, BytesMut};
 use futures_util::{SinkExt, StreamExt};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use std::net::SocketAddr;
+use tokio::io::{AsyncWrite, AsyncWriteExt};
 use tokio_util::codec::{Framed, FramedParts, FramedWrite, LengthDelimitedCodec};
 
 /// Bytes a frame occupies on the wire besides its payload.
 pub const FRAME_HEADER_LEN: usize = 4;
+
+/// A frame at least this long is written straight to the socket from its
+/// own bytes instead of being copied into the codec's write buffer, which
+/// would otherwise keep the largest frame's allocation for the
+/// connection's life: a region part ships in up to 48 MiB, on one link per
+/// worker of the scheduler. (The codec's read buffer does not keep one: a
+/// frame is split off it whole.)
+pub const LARGE_FRAME: usize = 256 << 10;
 
 pub struct Connection {
     framed: Framed<Stream, LengthDelimitedCodec>,
@@ -102,6 +111,41 @@ fn encode<T: Serialize>(
     Ok(bytes::Bytes::from(bytes))
 }
 
+/// A framed sink whose socket can also be written directly.
+trait FrameSink: futures_util::Sink<bytes::Bytes, Error = std::io::Error> + Unpin {
+    type Io: AsyncWrite + Unpin;
+    fn io(&mut self) -> &mut Self::Io;
+}
+
+impl FrameSink for Framed<Stream, LengthDelimitedCodec> {
+    type Io = Stream;
+    fn io(&mut self) -> &mut Stream {
+        self.get_mut()
+    }
+}
+
+impl FrameSink for FramedWrite<WriteSide, LengthDelimitedCodec> {
+    type Io = WriteSide;
+    fn io(&mut self) -> &mut WriteSide {
+        self.get_mut()
+    }
+}
+
+/// Queues one encoded frame: a small one in the codec's buffer, a
+/// [`LARGE_FRAME`] after what is buffered, written from its own bytes
+/// (the codec's header, a big-endian u32 length, then the payload).
+async fn put<S: FrameSink>(sink: &mut S, b: bytes::Bytes) -> std::io::Result<()> {
+    if b.len() < LARGE_FRAME {
+        return sink.feed(b).await;
+    }
+    SinkExt::<bytes::Bytes>::flush(sink).await?;
+    let len = u32::try_from(b.len()).map_err(|_| std::io::ErrorKind::InvalidInput)?;
+    let header = len.to_be_bytes();
+    sink.io()
+        .write_all_buf(&mut header.as_slice().chain(b))
+        .await
+}
+
 /// Encodes `msg` and sends it as one frame on either a whole connection or
 /// a writer half; returns the bytes it took on the wire.
 async fn send<T, S>(
@@ -112,13 +156,13 @@ async fn send<T, S>(
 ) -> Result<usize, ProtocolError>
 where
     T: Serialize,
-    S: futures_util::Sink<bytes::Bytes, Error = std::io::Error> + Unpin,
+    S: FrameSink,
 {
     let b = encode(msg, peer, max)?;
     let n = b.len() + FRAME_HEADER_LEN;
-    sink.send(b)
-        .await
-        .map_err(|e| ProtocolError::Io { peer, source: e })?;
+    let io = |e| ProtocolError::Io { peer, source: e };
+    put(sink, b).await.map_err(io)?;
+    SinkExt::<bytes::Bytes>::flush(sink).await.map_err(io)?;
     Ok(n)
 }
 
@@ -237,15 +281,90 @@ impl ConnWriter {
             b
         };
         let b = feed(encode(first, self.peer, self.max_frame)?);
-        self.framed.feed(b).await.map_err(io)?;
+        put(&mut self.framed, b).await.map_err(io)?;
         for _ in 1..most {
             let Some(m) = next() else { break };
             let b = feed(encode(&m, self.peer, self.max_frame)?);
-            self.framed.feed(b).await.map_err(io)?;
+            put(&mut self.framed, b).await.map_err(io)?;
         }
         SinkExt::<bytes::Bytes>::flush(&mut self.framed)
             .await
             .map_err(io)?;
         Ok(n)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::net::{TcpListener, TcpStream};
+
+    /// A large frame crosses whole between small ones, in order, from a
+    /// whole connection and in a burst from a writer half; afterwards
+    /// neither side's buffer keeps its size.
+    #[tokio::test]
+    async fn a_large_frame_leaves_no_large_buffer_behind() {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let max = 64 << 20;
+        let big: Vec<u32> = (0..3_000_000u32)
+            .map(|i| i.wrapping_mul(2_654_435_761))
+            .collect();
+        let expect = big.clone();
+        let reader = tokio::spawn(async move {
+            let (s, _) = listener.accept().await.unwrap();
+            let (mut r, _w) = Connection::new(s, max).unwrap().into_split();
+            let mut got = Vec::new();
+            for _ in 0..6 {
+                let (m, n) = r.read_msg::<Vec<u32>>("test").await.unwrap().unwrap();
+                got.push((m, n));
+            }
+            (got, keeps_a_megabyte(r.framed.read_buffer_mut()))
+        });
+        let mut conn = Connection::new(TcpStream::connect(addr).await.unwrap(), max).unwrap();
+        let sizes = [
+            conn.write_msg(&vec![1u32, 2]).await.unwrap(),
+            conn.write_msg(&big).await.unwrap(),
+        ];
+        let whole_buffer = keeps_a_megabyte(conn.framed.write_buffer_mut());
+        let (_r, mut w) = conn.into_split();
+        let mut rest = vec![big.clone(), vec![3u32], vec![]].into_iter();
+        let burst = w
+            .write_burst(&vec![7u32; 10], || rest.next(), 8)
+            .await
+            .unwrap();
+        let half_buffer = keeps_a_megabyte(w.framed.write_buffer_mut());
+        let (got, read_buffer) = reader.await.unwrap();
+        let msgs: Vec<&Vec<u32>> = got.iter().map(|(m, _)| m).collect();
+        let want: Vec<Vec<u32>> = vec![
+            vec![1, 2],
+            expect.clone(),
+            vec![7; 10],
+            expect,
+            vec![3],
+            vec![],
+        ];
+        assert!(
+            msgs.iter().zip(&want).all(|(a, b)| *a == b),
+            "frames differ"
+        );
+        assert_eq!(got[0].1, sizes[0]);
+        assert_eq!(got[1].1, sizes[1]);
+        assert_eq!(got[2..].iter().map(|(_, n)| n).sum::<usize>(), burst);
+        assert!(sizes[1] > 4 * 3_000_000, "{sizes:?}");
+        for (what, keeps) in [
+            ("a connection's write buffer", whole_buffer),
+            ("a writer half's buffer", half_buffer),
+            ("the read buffer", read_buffer),
+        ] {
+            assert!(!keeps, "{what} kept the large frame's allocation");
+        }
+    }
+
+    /// Whether a buffer holds an allocation with room for a megabyte (the
+    /// big frame takes 12 MB), reachable without allocating anew:
+    /// `capacity` alone shows only what lies beyond the buffer's start.
+    fn keeps_a_megabyte(b: &mut BytesMut) -> bool {
+        b.try_reclaim(1 << 20)
     }
 }

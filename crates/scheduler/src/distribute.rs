@@ -4,12 +4,12 @@
 //! neither side ever holds a second copy of a whole region. The irradiance
 //! cache's known overture levels follow the region.
 
-use crate::job::Prepared;
+use crate::job::{PartRun, Prepared};
 use crate::overture::{Overture, send_levels};
-use locus_core::octree::distinct_triangles;
 use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
 use locus_protocol::overture::IrradianceSetup;
 use locus_protocol::submit::JobRequest;
+use std::sync::Arc;
 use tokio::sync::mpsc;
 
 /// Starts one task per worker (a slow link does not hold the others)
@@ -27,13 +27,7 @@ pub fn ship(
     for (w, (_, tx)) in txs.into_iter().enumerate() {
         let own = std::mem::take(&mut own_leaves[w]);
         // Each part: its leaves, and their triangles once each.
-        let runs: Vec<(Vec<u32>, Vec<u32>)> = prep.parts[w]
-            .iter()
-            .map(|leaves| {
-                let lists = leaves.iter().map(|&l| prep.leaf_ids[l as usize].as_slice());
-                (leaves.clone(), distinct_triangles(lists))
-            })
-            .collect();
+        let runs = std::mem::take(&mut prep.parts[w]);
         let setup = JobSetup {
             job: id,
             me: w as u16,
@@ -87,9 +81,16 @@ pub fn ship(
                 tx.send(last).await?;
                 return send_levels(&tx, id, 0, &known, &sent).await;
             }
-            for (k, (leaves, ids)) in runs.into_iter().enumerate() {
-                let chunk =
-                    TriangleSet::gather(ids, &scene.tris, &scene.tri_material, &scene.tri_normals);
+            for (k, PartRun { leaves, ids }) in runs.into_iter().enumerate() {
+                // A part is up to 48 MiB of copying: off the runtime. A
+                // panic there is a bug, and stays one.
+                let scene = scene.clone();
+                let chunk = tokio::task::spawn_blocking(move || {
+                    let ids = Arc::unwrap_or_clone(ids);
+                    TriangleSet::gather(ids, &scene.tris, &scene.tri_material, &scene.tri_normals)
+                })
+                .await
+                .unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
                 tx.send(SchedulerToWorker::Geometry {
                     job: id,
                     leaves,

@@ -350,6 +350,7 @@ pub fn run(
     let threads = pool_n + usize::from(engine_traces);
     let mut e = Engine::new(&job, parts, &events_tx, links, threads);
     drop(events_tx);
+    tracing::debug!(me = job.setup.me, "engine started");
     e.prefetch()?;
     e.top_up_tiles()?;
     let result = match pool {
