@@ -104,7 +104,8 @@ pub fn run_measuring_peak(cmd: &mut std::process::Command) -> std::io::Result<(b
 }
 
 /// Makes the allocator give freed memory back, for a worker process that
-/// keeps to a memory budget. glibc's defaults do not: a freed large block
+/// keeps to a memory budget and for the scheduler daemon, which lives on
+/// between jobs. glibc's defaults do not: a freed large block
 /// raises the threshold above which blocks are mapped on their own, so the
 /// next builds' scratch lands in the heap and stays resident once freed,
 /// and every thread that allocates may open an arena of its own. Fixed at
