@@ -28,8 +28,9 @@ pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
     };
     // A scheduler lives on between jobs, and each job's preparation
     // (the scene, its octree, the preview's BVHs) frees a few hundred
-    // megabytes: with glibc's moving threshold most of it stayed resident
-    // (150-190 MiB after jobs on the room, 18-25 MiB with this).
+    // megabytes: with glibc's moving threshold much of it stayed resident
+    // (84-120 MiB after jobs on the room at 160x120, 17-23 MiB with this;
+    // see the README).
     locus_worker::sys::tune_allocator();
     runtime()?.block_on(async {
         let s = Scheduler::bind(SchedulerConfig {
