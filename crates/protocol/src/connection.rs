@@ -362,7 +362,7 @@ mod tests {
     }
 
     /// Whether a buffer holds an allocation with room for a megabyte (the
-    /// big frame takes 12 MB), reachable without allocating anew:
+    /// big frame takes 15 MB), reachable without allocating anew:
     /// `capacity` alone shows only what lies beyond the buffer's start.
     fn keeps_a_megabyte(b: &mut BytesMut) -> bool {
         b.try_reclaim(1 << 20)
