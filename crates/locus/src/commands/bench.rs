@@ -172,6 +172,8 @@ pub(crate) fn cmd_bench(a: BenchArgs) -> Result<()> {
 }
 
 pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
+    // One machine renders in this process, as `locus render` does.
+    locus_worker::sys::reuse_freed_memory();
     let mut scenes = if a.large_only {
         Vec::new()
     } else if a.scenes.is_empty() {

@@ -74,6 +74,9 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if a.workers > 0 {
         return cmd_render_farm(a);
     }
+    // One machine, no memory budget: its BVH build reuses the blocks its
+    // scratch frees (see the README's "Build scratch kept for reuse").
+    locus_worker::sys::reuse_freed_memory();
     super::limit_threads(a.threads);
     let t = Instant::now();
     let scene = Scene::load(&a.scene)?;
@@ -120,6 +123,8 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     // Read the reference before rendering so a bad path fails fast.
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     let prep = Prepared::new(scene);
+    // What the build freed goes back to the system for the render.
+    locus_worker::sys::trim_heap();
     tracing::info!(bvh_s = prep.timings.bvh_s, "acceleration built");
     let (w, h) = (prep.scene.camera.width, prep.scene.camera.height);
     let ntiles = locus_core::render::tiles(w, h, opts.tile_size, opts.tile_order).len();
