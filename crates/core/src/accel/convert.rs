@@ -14,8 +14,13 @@
 //! entry and its subtree a contiguous range; the costs are then filled
 //! from the last entry back to the first, every child before its parent,
 //! and the wide nodes emitted by the same recursion as obvhs's, on the
-//! copy. The arithmetic, its order and every tie are obvhs's, so the
-//! result is the same BVH (a test compares the two over many trees):
+//! copy. Both passes share their work out on the rayon pool they run in
+//! (the two subtrees of a large entry are decided at once, and a large
+//! wide node's internal children emitted at once into buffers of their
+//! own, appended in order), so a build of several threads does not wait
+//! on one for the collapse. The arithmetic, its order and every tie are
+//! obvhs's, so the result is the same BVH on any number of threads (a
+//! test compares the two over many trees, shared out and not):
 //! which BVH is built changes no hit, but the preview's BVH steps, and so
 //! the regions drawn from them, would move with it.
 
@@ -25,6 +30,7 @@ use obvhs::aabb::Aabb;
 use obvhs::bvh2::Bvh2;
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::{BRANCHING, CwBvh};
+use rayon::prelude::*;
 
 /// obvhs's SAH weight of a primitive against a node.
 const PRIM_COST: f32 = 0.3;
@@ -180,33 +186,79 @@ fn pack(d: &Decision) -> u8 {
 }
 
 /// Every entry's seven decisions, children before parents (obvhs's
-/// `calculate_cost`).
-fn decide(t: &Tree, max_prims_per_leaf: u32) -> Decisions {
+/// `calculate_cost`): each depends on its own subtree only, so the two
+/// subtrees of a large one are decided at once ([`Split::decide_below`]).
+fn decide(t: &Tree, max_prims_per_leaf: u32, split: &Split) -> Decisions {
     let n = t.nodes.len();
     let mut d = Decisions {
         cost: vec![[0.0; 7]; n],
         how: vec![[0; 7]; n],
     };
-    for i in (0..n).rev() {
-        let half_area = t.nodes[i].aabb().half_area();
-        let right = t.nodes[i].right;
-        if right == u32::MAX {
-            let leaf = Decision {
-                cost: half_area * 1.0 * PRIM_COST,
-                kind: Kind::Leaf,
-                left: 0,
-                right: 0,
-            };
-            d.cost[i] = [leaf.cost; 7];
-            d.how[i] = [pack(&leaf); 7];
-            continue;
-        }
-        let (l, r) = (d.cost[i + 1], d.cost[right as usize]);
-        let out = decisions_of(&l, &r, t.count[i], max_prims_per_leaf, half_area);
-        d.cost[i] = out.map(|o| o.cost);
-        d.how[i] = out.map(|o| pack(&o));
-    }
+    decide_subtree(t, max_prims_per_leaf, split, 0, &mut d.cost, &mut d.how);
     d
+}
+
+/// The decisions of the subtree of entry `root`, whose entries are
+/// `root..root + cost.len()` (`cost` and `how` hold just those).
+fn decide_subtree(
+    t: &Tree,
+    max_prims_per_leaf: u32,
+    split: &Split,
+    root: usize,
+    cost: &mut [[f32; 7]],
+    how: &mut [[u8; 7]],
+) {
+    let right = t.nodes[root].right;
+    if right == u32::MAX || cost.len() < split.decide_below {
+        // Children before parents: the subtree's entries from its last.
+        for i in (0..cost.len()).rev() {
+            let e = root + i;
+            let r = t.nodes[e].right;
+            let children = (r != u32::MAX).then(|| (cost[i + 1], cost[r as usize - root]));
+            (cost[i], how[i]) = decide_entry(t, e, children, max_prims_per_leaf);
+        }
+        return;
+    }
+    let left_len = right as usize - root - 1;
+    let (own_cost, below_cost) = cost.split_at_mut(1);
+    let (own_how, below_how) = how.split_at_mut(1);
+    let (lc, rc) = below_cost.split_at_mut(left_len);
+    let (lh, rh) = below_how.split_at_mut(left_len);
+    rayon::join(
+        || decide_subtree(t, max_prims_per_leaf, split, root + 1, lc, lh),
+        || decide_subtree(t, max_prims_per_leaf, split, right as usize, rc, rh),
+    );
+    (own_cost[0], own_how[0]) = decide_entry(t, root, Some((lc[0], rc[0])), max_prims_per_leaf);
+}
+
+/// Entry `i`'s seven costs and how each is taken, from its children's
+/// costs (None for a leaf).
+#[inline(always)]
+fn decide_entry(
+    t: &Tree,
+    i: usize,
+    children: Option<([f32; 7], [f32; 7])>,
+    max_prims_per_leaf: u32,
+) -> ([f32; 7], [u8; 7]) {
+    let half_area = t.nodes[i].aabb().half_area();
+    let Some((l, r)) = children else {
+        let leaf = Decision {
+            cost: half_area * 1.0 * PRIM_COST,
+            kind: Kind::Leaf,
+            left: 0,
+            right: 0,
+        };
+        return ([leaf.cost; 7], [pack(&leaf); 7]);
+    };
+    let out = decisions_of(&l, &r, t.count[i], max_prims_per_leaf, half_area);
+    // A loop, inlined: as two `map`s in a function of its own, the room's
+    // collapse ran 43 M more instructions.
+    let (mut cost, mut how) = ([0.0; 7], [0; 7]);
+    for (k, o) in out.iter().enumerate() {
+        cost[k] = o.cost;
+        how[k] = pack(o);
+    }
+    (cost, how)
 }
 
 /// An internal node's seven decisions from its children's costs `l` and
@@ -268,6 +320,33 @@ fn decisions_of(
     out
 }
 
+/// Where the collapse's work is shared out on the rayon pool it runs in.
+struct Split {
+    /// A subtree of at least this many entries has its two halves decided
+    /// at once.
+    decide_below: usize,
+    /// A wide node with at least this many primitives below it has its
+    /// internal children's subtrees emitted at once, each into buffers of
+    /// its own, appended in order afterwards...
+    emit_below: u32,
+    /// ...down to this many wide levels.
+    emit_depth: u32,
+}
+
+/// Below these sizes a task costs more to hand out than it saves.
+const SPLIT: Split = Split {
+    decide_below: 1 << 15,
+    emit_below: 1 << 14,
+    emit_depth: 3,
+};
+
+/// Nothing shared out: a pool of one thread.
+const SERIAL: Split = Split {
+    decide_below: usize::MAX,
+    emit_below: u32::MAX,
+    emit_depth: 0,
+};
+
 /// The wide nodes, emitted as obvhs's `convert_to_cwbvh` emits them.
 struct Emit<'a> {
     t: &'a Tree,
@@ -277,8 +356,68 @@ struct Emit<'a> {
     directions: [Vec3A; 8],
 }
 
-impl Emit<'_> {
+impl<'a> Emit<'a> {
+    /// An emission whose first wide node, at index 0, is still to come.
+    fn new(t: &'a Tree, d: &'a Decisions, directions: [Vec3A; 8], prims: usize) -> Self {
+        let mut nodes = Vec::with_capacity(prims.max(1));
+        nodes.push(CwBvhNode::default());
+        Self {
+            t,
+            d,
+            nodes,
+            primitive_indices: Vec::with_capacity(prims),
+            directions,
+        }
+    }
+
+    /// Wide node `at8` from entry `at2`, and the wide nodes below it, in
+    /// obvhs's order: the node's children in one block, then each
+    /// internal child's subtree in slot order.
     fn node(&mut self, at8: usize, at2: usize) {
+        let (base, inner, n) = self.head(at8, at2);
+        for (k, &c) in inner[..n].iter().enumerate() {
+            self.node(base + k, c as usize);
+        }
+    }
+
+    /// [`Self::node`], with the subtrees of a large node's internal
+    /// children emitted at once, each as an emission of its own, and then
+    /// appended in slot order with their indices moved to where they land:
+    /// node for node what [`Self::node`] emits.
+    fn node_par(&mut self, at8: usize, at2: usize, split: &Split, depth: u32) {
+        if depth == 0 || self.t.count[at2] < split.emit_below {
+            return self.node(at8, at2);
+        }
+        let (base, inner, n) = self.head(at8, at2);
+        let (t, d, directions) = (self.t, self.d, self.directions);
+        let parts: Vec<Emit> = inner[..n]
+            .par_iter()
+            .map(|&c| {
+                let mut e = Emit::new(t, d, directions, t.count[c as usize] as usize);
+                e.node_par(0, c as usize, split, depth - 1);
+                e
+            })
+            .collect();
+        for (k, e) in parts.into_iter().enumerate() {
+            // Node j > 0 of the part lands at `nodes.len() + j - 1`.
+            let shift = self.nodes.len() as u32 - 1;
+            let prims = self.primitive_indices.len() as u32;
+            let moved = |mut x: CwBvhNode| {
+                x.child_base_idx += shift;
+                x.primitive_base_idx += prims;
+                x
+            };
+            self.nodes[base + k] = moved(e.nodes[0]);
+            self.nodes.extend(e.nodes[1..].iter().map(|&x| moved(x)));
+            self.primitive_indices
+                .extend_from_slice(&e.primitive_indices);
+        }
+    }
+
+    /// Writes wide node `at8` from entry `at2`, its leaf children's
+    /// primitives and room for its internal children; returns where that
+    /// room starts and the internal children's entries, in slot order.
+    fn head(&mut self, at8: usize, at2: usize) -> (usize, [u32; 8], usize) {
         let mut node = self.nodes[at8];
         let aabb = self.t.nodes[at2].aabb();
         let p = aabb.min;
@@ -338,13 +477,14 @@ impl Emit<'_> {
         self.nodes
             .resize(self.nodes.len() + internal, CwBvhNode::default());
         self.nodes[at8] = node;
-        let mut offset = 0;
+        let (mut inner, mut n) = ([u32::MAX; 8], 0);
         for (i, &c) in children.iter().enumerate() {
             if c != u32::MAX && node.imask & (1 << i) != 0 {
-                self.node((node.child_base_idx + offset) as usize, c as usize);
-                offset += 1;
+                inner[n] = c;
+                n += 1;
             }
         }
+        (node.child_base_idx as usize, inner, n)
     }
 
     /// Appends the primitives below `i`, left to right, and counts them.
@@ -423,11 +563,22 @@ impl Emit<'_> {
 /// `max_prims_per_leaf` (1 to 3) primitives: obvhs's
 /// `bvh2_to_cwbvh(bvh2, max_prims_per_leaf, true, false)`.
 pub fn bvh2_to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
+    // On one thread the shared-out emission's buffers and copies are all
+    // cost (4% on the room's build, a worker of one thread's).
+    let split = if rayon::current_num_threads() > 1 {
+        &SPLIT
+    } else {
+        &SERIAL
+    };
+    bvh2_to_cwbvh_split(bvh2, max_prims_per_leaf, split)
+}
+
+fn bvh2_to_cwbvh_split(bvh2: &Bvh2, max_prims_per_leaf: u32, split: &Split) -> CwBvh {
     if bvh2.nodes.is_empty() {
         return CwBvh::default();
     }
     let t = Tree::from_bvh2(bvh2);
-    let d = decide(&t, max_prims_per_leaf.clamp(1, 3));
+    let d = decide(&t, max_prims_per_leaf.clamp(1, 3), split);
     let directions = std::array::from_fn(|s| {
         vec3a(
             if s & 0b100 != 0 { -1.0 } else { 1.0 },
@@ -435,15 +586,8 @@ pub fn bvh2_to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
             if s & 0b001 != 0 { -1.0 } else { 1.0 },
         )
     });
-    let mut e = Emit {
-        t: &t,
-        d: &d,
-        nodes: Vec::with_capacity(bvh2.primitive_indices.len()),
-        primitive_indices: Vec::with_capacity(bvh2.primitive_indices.len()),
-        directions,
-    };
-    e.nodes.push(CwBvhNode::default());
-    e.node(0, 0);
+    let mut e = Emit::new(&t, &d, directions, bvh2.primitive_indices.len());
+    e.node_par(0, 0, split, split.emit_depth);
     CwBvh {
         nodes: e.nodes,
         primitive_indices: e.primitive_indices,
@@ -502,6 +646,10 @@ mod tests {
 
     #[test]
     fn matches_obvhs_node_for_node() {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
         for (n, seed) in [
             (1, 1),
             (2, 2),
@@ -528,6 +676,23 @@ mod tests {
                     let theirs =
                         obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh(&bvh2, leaf, true, false);
                     same(&ours, &theirs);
+                    // Shared out down to the smallest subtrees, on a pool
+                    // of three threads: still obvhs's BVH, node for node.
+                    for split in [
+                        Split {
+                            decide_below: 2,
+                            emit_below: 2,
+                            emit_depth: u32::MAX,
+                        },
+                        Split {
+                            decide_below: 64,
+                            emit_below: 40,
+                            emit_depth: 2,
+                        },
+                    ] {
+                        let shared = pool.install(|| bvh2_to_cwbvh_split(&bvh2, leaf, &split));
+                        same(&shared, &theirs);
+                    }
                 }
             }
         }
