@@ -24,18 +24,16 @@
 //! which BVH is built changes no hit, but the preview's BVH steps, and so
 //! the regions drawn from them, would move with it.
 
-use glam::{UVec3, Vec3, Vec3A, vec3a};
-use obvhs::PerComponent;
+use glam::{Vec3, vec3a};
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::Bvh2;
-use obvhs::cwbvh::node::CwBvhNode;
-use obvhs::cwbvh::{BRANCHING, CwBvh};
-use rayon::prelude::*;
+use obvhs::cwbvh::CwBvh;
+
+mod emit;
+use emit::Emit;
 
 /// obvhs's SAH weight of a primitive against a node.
 const PRIM_COST: f32 = 0.3;
-/// 1 / 255: a child plane is quantised to 8 bits of its node's extent.
-const DENOM: f32 = 1.0 / 255.0;
 /// A slot's decision: a leaf of primitives, an internal wide node, or
 /// its children's slots shared between its two binary children.
 #[derive(Clone, Copy, PartialEq, Eq, Default)]
@@ -347,218 +345,6 @@ const SERIAL: Split = Split {
     emit_depth: 0,
 };
 
-/// The wide nodes, emitted as obvhs's `convert_to_cwbvh` emits them.
-struct Emit<'a> {
-    t: &'a Tree,
-    d: &'a Decisions,
-    nodes: Vec<CwBvhNode>,
-    primitive_indices: Vec<u32>,
-    directions: [Vec3A; 8],
-}
-
-impl<'a> Emit<'a> {
-    /// An emission whose first wide node, at index 0, is still to come.
-    fn new(t: &'a Tree, d: &'a Decisions, directions: [Vec3A; 8], prims: usize) -> Self {
-        let mut nodes = Vec::with_capacity(prims.max(1));
-        nodes.push(CwBvhNode::default());
-        Self {
-            t,
-            d,
-            nodes,
-            primitive_indices: Vec::with_capacity(prims),
-            directions,
-        }
-    }
-
-    /// Wide node `at8` from entry `at2`, and the wide nodes below it, in
-    /// obvhs's order: the node's children in one block, then each
-    /// internal child's subtree in slot order.
-    fn node(&mut self, at8: usize, at2: usize) {
-        let (base, inner, n) = self.head(at8, at2);
-        for (k, &c) in inner[..n].iter().enumerate() {
-            self.node(base + k, c as usize);
-        }
-    }
-
-    /// [`Self::node`], with the subtrees of a large node's internal
-    /// children emitted at once, each as an emission of its own, and then
-    /// appended in slot order with their indices moved to where they land:
-    /// node for node what [`Self::node`] emits.
-    fn node_par(&mut self, at8: usize, at2: usize, split: &Split, depth: u32) {
-        if depth == 0 || self.t.count[at2] < split.emit_below {
-            return self.node(at8, at2);
-        }
-        let (base, inner, n) = self.head(at8, at2);
-        let (t, d, directions) = (self.t, self.d, self.directions);
-        let parts: Vec<Emit> = inner[..n]
-            .par_iter()
-            .map(|&c| {
-                let mut e = Emit::new(t, d, directions, t.count[c as usize] as usize);
-                e.node_par(0, c as usize, split, depth - 1);
-                e
-            })
-            .collect();
-        for (k, e) in parts.into_iter().enumerate() {
-            // Node j > 0 of the part lands at `nodes.len() + j - 1`.
-            let shift = self.nodes.len() as u32 - 1;
-            let prims = self.primitive_indices.len() as u32;
-            let moved = |mut x: CwBvhNode| {
-                x.child_base_idx += shift;
-                x.primitive_base_idx += prims;
-                x
-            };
-            self.nodes[base + k] = moved(e.nodes[0]);
-            self.nodes.extend(e.nodes[1..].iter().map(|&x| moved(x)));
-            self.primitive_indices
-                .extend_from_slice(&e.primitive_indices);
-        }
-    }
-
-    /// Writes wide node `at8` from entry `at2`, its leaf children's
-    /// primitives and room for its internal children; returns where that
-    /// room starts and the internal children's entries, in slot order.
-    fn head(&mut self, at8: usize, at2: usize) -> (usize, [u32; 8], usize) {
-        let mut node = self.nodes[at8];
-        let aabb = self.t.nodes[at2].aabb();
-        let p = aabb.min;
-        node.p = p.into();
-        let e = ((aabb.max - aabb.min).max(Vec3A::splat(1e-20)) * DENOM)
-            .log2()
-            .ceil()
-            .exp2();
-        let rcp_e = 1.0 / e;
-        let e: UVec3 = e.per_comp(|c: f32| c.to_bits() >> 23);
-        node.e = [e.x as u8, e.y as u8, e.z as u8];
-        let mut children = [u32::MAX; 8];
-        let mut count = 0;
-        self.children(at2, &mut children, &mut count, 0);
-        self.order(at2, &mut children, count);
-        node.imask = 0;
-        node.primitive_base_idx = self.primitive_indices.len() as u32;
-        node.child_base_idx = self.nodes.len() as u32;
-        let (mut internal, mut prims) = (0usize, 0u32);
-        for (i, &c) in children.iter().enumerate() {
-            if c == u32::MAX {
-                continue;
-            }
-            let b = self.t.nodes[c as usize].aabb();
-            let lo = ((b.min - p - 0.0) * rcp_e)
-                .floor()
-                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-            let hi = ((b.max - p + 0.0) * rcp_e)
-                .ceil()
-                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-            node.child_min_x[i] = lo.x as u8;
-            node.child_min_y[i] = lo.y as u8;
-            node.child_min_z[i] = lo.z as u8;
-            node.child_max_x[i] = hi.x as u8;
-            node.child_max_y[i] = hi.y as u8;
-            node.child_max_z[i] = hi.z as u8;
-            match self.d.kind(c as usize, 0) {
-                Kind::Leaf => {
-                    let n = self.leaf_prims(c as usize);
-                    node.child_meta[i] = prims as u8
-                        | match n {
-                            1 => 0b0010_0000,
-                            2 => 0b0110_0000,
-                            3 => 0b1110_0000,
-                            _ => panic!("a wide leaf of {n} primitives"),
-                        };
-                    prims += n;
-                }
-                Kind::Internal => {
-                    node.imask |= 1u8 << i;
-                    node.child_meta[i] = (24 + i as u8) | 0b0010_0000;
-                    internal += 1;
-                }
-                Kind::Distribute => unreachable!("a child slot that distributes"),
-            }
-        }
-        self.nodes
-            .resize(self.nodes.len() + internal, CwBvhNode::default());
-        self.nodes[at8] = node;
-        let (mut inner, mut n) = ([u32::MAX; 8], 0);
-        for (i, &c) in children.iter().enumerate() {
-            if c != u32::MAX && node.imask & (1 << i) != 0 {
-                inner[n] = c;
-                n += 1;
-            }
-        }
-        (node.child_base_idx as usize, inner, n)
-    }
-
-    /// Appends the primitives below `i`, left to right, and counts them.
-    fn leaf_prims(&mut self, i: usize) -> u32 {
-        let end = self.t.end(i);
-        let before = self.primitive_indices.len();
-        self.primitive_indices.extend(
-            self.t.prims[i..end]
-                .iter()
-                .copied()
-                .filter(|&p| p != u32::MAX),
-        );
-        (self.primitive_indices.len() - before) as u32
-    }
-
-    /// The wide node's children under `i` with decision `slot`.
-    fn children(&self, i: usize, out: &mut [u32; 8], count: &mut usize, slot: usize) {
-        if self.t.is_leaf(i) {
-            out[*count] = i as u32;
-            *count += 1;
-            return;
-        }
-        let dec = self.d.get(i, slot);
-        for (child, s) in [
-            (i + 1, dec.left),
-            (self.t.nodes[i].right as usize, dec.right),
-        ] {
-            if self.d.kind(child, s as usize) == Kind::Distribute {
-                self.children(child, out, count, s as usize);
-            } else {
-                out[*count] = child as u32;
-                *count += 1;
-            }
-        }
-    }
-
-    /// obvhs's greedy assignment of children to the eight slots, by their
-    /// centres along each octant's diagonal, so that a ray's octant gives
-    /// its traversal order.
-    fn order(&self, i: usize, children: &mut [u32; 8], count: usize) {
-        let p = self.t.nodes[i].aabb().center();
-        let mut cost = [[f32::MAX; 8]; BRANCHING];
-        for (s, d) in self.directions.iter().enumerate() {
-            for c in 0..count {
-                let v = self.t.nodes[children[c] as usize].aabb().center() - p;
-                cost[c][s] = d.dot(v);
-            }
-        }
-        let mut assignment = [usize::MAX; BRANCHING];
-        let mut filled = [false; 8];
-        loop {
-            let (mut min, mut slot, mut index) = (f32::MAX, usize::MAX, usize::MAX);
-            for c in 0..count {
-                if assignment[c] == usize::MAX {
-                    for (s, &f) in filled.iter().enumerate() {
-                        if !f && cost[c][s] < min {
-                            (min, slot, index) = (cost[c][s], s, c);
-                        }
-                    }
-                }
-            }
-            if slot == usize::MAX {
-                break;
-            }
-            filled[slot] = true;
-            assignment[index] = slot;
-        }
-        let original = std::mem::replace(children, [u32::MAX; 8]);
-        for c in 0..count {
-            children[assignment[c]] = original[c];
-        }
-    }
-}
-
 /// `bvh2` as a compressed wide BVH whose leaves hold at most
 /// `max_prims_per_leaf` (1 to 3) primitives: obvhs's
 /// `bvh2_to_cwbvh(bvh2, max_prims_per_leaf, true, false)`.
@@ -600,7 +386,9 @@ fn bvh2_to_cwbvh_split(bvh2: &Bvh2, max_prims_per_leaf: u32, split: &Split) -> C
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::Vec3A;
     use obvhs::bvh2::reinsertion::ReinsertionOptimizer;
+    use obvhs::cwbvh::node::CwBvhNode;
     use obvhs::ploc::{PlocBuilder, PlocSearchDistance, SortPrecision};
 
     /// Boxes of `n` triangles of mixed sizes from a fixed-seed generator,
