@@ -63,7 +63,7 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     let c = &req.camera;
     if c.width == 0 || c.height == 0 || c.width > 1 << 15 || c.height > 1 << 15 {
         return Err(format!(
-            "image size {}x{} is out of range",
+            "image size {}x{} is out of range: each side must be 1 to 32768 pixels",
             c.width, c.height
         ));
     }

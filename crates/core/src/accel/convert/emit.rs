@@ -1,14 +1,15 @@
 //! The collapse's second pass: the wide nodes emitted from the decisions,
 //! in obvhs's order (a node's children in one block, then each internal
-//! child's subtree in slot order), serially or with a large node's
-//! subtrees emitted at once and appended in order.
+//! child's subtree in slot order). It runs on one thread: emitting
+//! subtrees at once into buffers of their own and appending them took
+//! a build 32 bytes a triangle more at its peak, beyond what the memory
+//! plans charge (see the README).
 
-use super::{Decisions, Kind, Split, Tree};
+use super::{Decisions, Kind, Tree};
 use glam::{UVec3, Vec3A};
 use obvhs::PerComponent;
 use obvhs::cwbvh::BRANCHING;
 use obvhs::cwbvh::node::CwBvhNode;
-use rayon::prelude::*;
 
 /// 1 / 255: a child plane is quantised to 8 bits of its node's extent.
 const DENOM: f32 = 1.0 / 255.0;
@@ -39,44 +40,10 @@ impl<'a> Emit<'a> {
     /// Wide node `at8` from entry `at2`, and the wide nodes below it, in
     /// obvhs's order: the node's children in one block, then each
     /// internal child's subtree in slot order.
-    fn node(&mut self, at8: usize, at2: usize) {
+    pub(super) fn node(&mut self, at8: usize, at2: usize) {
         let (base, inner, n) = self.head(at8, at2);
         for (k, &c) in inner[..n].iter().enumerate() {
             self.node(base + k, c as usize);
-        }
-    }
-
-    /// [`Self::node`], with the subtrees of a large node's internal
-    /// children emitted at once, each as an emission of its own, and then
-    /// appended in slot order with their indices moved to where they land:
-    /// node for node what [`Self::node`] emits.
-    pub(super) fn node_par(&mut self, at8: usize, at2: usize, split: &Split, depth: u32) {
-        if depth == 0 || self.t.count[at2] < split.emit_below {
-            return self.node(at8, at2);
-        }
-        let (base, inner, n) = self.head(at8, at2);
-        let (t, d, directions) = (self.t, self.d, self.directions);
-        let parts: Vec<Emit> = inner[..n]
-            .par_iter()
-            .map(|&c| {
-                let mut e = Emit::new(t, d, directions, t.count[c as usize] as usize);
-                e.node_par(0, c as usize, split, depth - 1);
-                e
-            })
-            .collect();
-        for (k, e) in parts.into_iter().enumerate() {
-            // Node j > 0 of the part lands at `nodes.len() + j - 1`.
-            let shift = self.nodes.len() as u32 - 1;
-            let prims = self.primitive_indices.len() as u32;
-            let moved = |mut x: CwBvhNode| {
-                x.child_base_idx += shift;
-                x.primitive_base_idx += prims;
-                x
-            };
-            self.nodes[base + k] = moved(e.nodes[0]);
-            self.nodes.extend(e.nodes[1..].iter().map(|&x| moved(x)));
-            self.primitive_indices
-                .extend_from_slice(&e.primitive_indices);
         }
     }
 

@@ -14,13 +14,12 @@
 //! entry and its subtree a contiguous range; the costs are then filled
 //! from the last entry back to the first, every child before its parent,
 //! and the wide nodes emitted by the same recursion as obvhs's, on the
-//! copy. Both passes share their work out on the rayon pool they run in
-//! (the two subtrees of a large entry are decided at once, and a large
-//! wide node's internal children emitted at once into buffers of their
-//! own, appended in order), so a build of several threads does not wait
-//! on one for the collapse. The arithmetic, its order and every tie are
-//! obvhs's, so the result is the same BVH on any number of threads (a
-//! test compares the two over many trees, shared out and not):
+//! copy. The costs are decided on the rayon pool the collapse runs in,
+//! the two subtrees of a large entry at once (each entry depends on its
+//! own subtree only, and a subtree is a contiguous range of the copy).
+//! The arithmetic, its order and every tie are obvhs's, so the result is
+//! the same BVH on any number of threads (a test compares the two over
+//! many trees, shared out and not):
 //! which BVH is built changes no hit, but the preview's BVH steps, and so
 //! the regions drawn from them, would move with it.
 
@@ -185,14 +184,21 @@ fn pack(d: &Decision) -> u8 {
 
 /// Every entry's seven decisions, children before parents (obvhs's
 /// `calculate_cost`): each depends on its own subtree only, so the two
-/// subtrees of a large one are decided at once ([`Split::decide_below`]).
-fn decide(t: &Tree, max_prims_per_leaf: u32, split: &Split) -> Decisions {
+/// subtrees of a large one are decided at once ([`SHARE_BELOW`]).
+fn decide(t: &Tree, max_prims_per_leaf: u32, share_below: usize) -> Decisions {
     let n = t.nodes.len();
     let mut d = Decisions {
         cost: vec![[0.0; 7]; n],
         how: vec![[0; 7]; n],
     };
-    decide_subtree(t, max_prims_per_leaf, split, 0, &mut d.cost, &mut d.how);
+    decide_subtree(
+        t,
+        max_prims_per_leaf,
+        share_below,
+        0,
+        &mut d.cost,
+        &mut d.how,
+    );
     d
 }
 
@@ -201,13 +207,13 @@ fn decide(t: &Tree, max_prims_per_leaf: u32, split: &Split) -> Decisions {
 fn decide_subtree(
     t: &Tree,
     max_prims_per_leaf: u32,
-    split: &Split,
+    share_below: usize,
     root: usize,
     cost: &mut [[f32; 7]],
     how: &mut [[u8; 7]],
 ) {
     let right = t.nodes[root].right;
-    if right == u32::MAX || cost.len() < split.decide_below {
+    if right == u32::MAX || cost.len() < share_below {
         // Children before parents: the subtree's entries from its last.
         for i in (0..cost.len()).rev() {
             let e = root + i;
@@ -223,8 +229,8 @@ fn decide_subtree(
     let (lc, rc) = below_cost.split_at_mut(left_len);
     let (lh, rh) = below_how.split_at_mut(left_len);
     rayon::join(
-        || decide_subtree(t, max_prims_per_leaf, split, root + 1, lc, lh),
-        || decide_subtree(t, max_prims_per_leaf, split, right as usize, rc, rh),
+        || decide_subtree(t, max_prims_per_leaf, share_below, root + 1, lc, lh),
+        || decide_subtree(t, max_prims_per_leaf, share_below, right as usize, rc, rh),
     );
     (own_cost[0], own_how[0]) = decide_entry(t, root, Some((lc[0], rc[0])), max_prims_per_leaf);
 }
@@ -318,53 +324,24 @@ fn decisions_of(
     out
 }
 
-/// Where the collapse's work is shared out on the rayon pool it runs in.
-struct Split {
-    /// A subtree of at least this many entries has its two halves decided
-    /// at once.
-    decide_below: usize,
-    /// A wide node with at least this many primitives below it has its
-    /// internal children's subtrees emitted at once, each into buffers of
-    /// its own, appended in order afterwards...
-    emit_below: u32,
-    /// ...down to this many wide levels.
-    emit_depth: u32,
-}
-
-/// Below these sizes a task costs more to hand out than it saves.
-const SPLIT: Split = Split {
-    decide_below: 1 << 15,
-    emit_below: 1 << 14,
-    emit_depth: 3,
-};
-
-/// Nothing shared out: a pool of one thread.
-const SERIAL: Split = Split {
-    decide_below: usize::MAX,
-    emit_below: u32::MAX,
-    emit_depth: 0,
-};
+/// A subtree of at least this many entries has its two halves decided at
+/// once on the rayon pool the collapse runs in; below it a task costs
+/// more to hand out than it saves.
+const SHARE_BELOW: usize = 1 << 15;
 
 /// `bvh2` as a compressed wide BVH whose leaves hold at most
 /// `max_prims_per_leaf` (1 to 3) primitives: obvhs's
 /// `bvh2_to_cwbvh(bvh2, max_prims_per_leaf, true, false)`.
 pub fn bvh2_to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
-    // On one thread the shared-out emission's buffers and copies are all
-    // cost (4% on the room's build, a worker of one thread's).
-    let split = if rayon::current_num_threads() > 1 {
-        &SPLIT
-    } else {
-        &SERIAL
-    };
-    bvh2_to_cwbvh_split(bvh2, max_prims_per_leaf, split)
+    bvh2_to_cwbvh_sharing(bvh2, max_prims_per_leaf, SHARE_BELOW)
 }
 
-fn bvh2_to_cwbvh_split(bvh2: &Bvh2, max_prims_per_leaf: u32, split: &Split) -> CwBvh {
+fn bvh2_to_cwbvh_sharing(bvh2: &Bvh2, max_prims_per_leaf: u32, share_below: usize) -> CwBvh {
     if bvh2.nodes.is_empty() {
         return CwBvh::default();
     }
     let t = Tree::from_bvh2(bvh2);
-    let d = decide(&t, max_prims_per_leaf.clamp(1, 3), split);
+    let d = decide(&t, max_prims_per_leaf.clamp(1, 3), share_below);
     let directions = std::array::from_fn(|s| {
         vec3a(
             if s & 0b100 != 0 { -1.0 } else { 1.0 },
@@ -373,7 +350,7 @@ fn bvh2_to_cwbvh_split(bvh2: &Bvh2, max_prims_per_leaf: u32, split: &Split) -> C
         )
     });
     let mut e = Emit::new(&t, &d, directions, bvh2.primitive_indices.len());
-    e.node_par(0, 0, split, split.emit_depth);
+    e.node(0, 0);
     CwBvh {
         nodes: e.nodes,
         primitive_indices: e.primitive_indices,
@@ -464,21 +441,12 @@ mod tests {
                     let theirs =
                         obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh(&bvh2, leaf, true, false);
                     same(&ours, &theirs);
-                    // Shared out down to the smallest subtrees, on a pool
-                    // of three threads: still obvhs's BVH, node for node.
-                    for split in [
-                        Split {
-                            decide_below: 2,
-                            emit_below: 2,
-                            emit_depth: u32::MAX,
-                        },
-                        Split {
-                            decide_below: 64,
-                            emit_below: 40,
-                            emit_depth: 2,
-                        },
-                    ] {
-                        let shared = pool.install(|| bvh2_to_cwbvh_split(&bvh2, leaf, &split));
+                    // Shared out down to the smallest subtrees, and at a
+                    // middling size, on a pool of three threads: still
+                    // obvhs's BVH, node for node.
+                    for share_below in [2, 64] {
+                        let shared =
+                            pool.install(|| bvh2_to_cwbvh_sharing(&bvh2, leaf, share_below));
                         same(&shared, &theirs);
                     }
                 }
