@@ -27,7 +27,7 @@
 
 use crate::accel_set::{AccelSet, SetHit};
 use crate::geometry::{Bounds, Ray};
-use crate::octree::Octree;
+use crate::octree::{Octree, WalkTable};
 use crate::stats::TraceStats;
 use serde::{Deserialize, Serialize};
 use std::ops::ControlFlow;
@@ -41,7 +41,8 @@ pub type WorkerId = u16;
 /// The octree collapsed over a label per leaf.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Route<L> {
-    tree: Octree,
+    /// The collapsed tree, laid out for walking.
+    tree: WalkTable,
     labels: Vec<L>,
     /// Per route node, a box around it that leaves of its own locality
     /// cover entirely (see [`Route::grow_local_boxes`]); its own bounds
@@ -70,7 +71,7 @@ impl<L: Copy + PartialEq> Route<L> {
     fn from_collapsed((tree, labels): (Octree, Vec<L>)) -> Self {
         let boxes = tree.leaves.iter().map(|l| l.bounds).collect();
         Self {
-            tree,
+            tree: WalkTable::new(tree),
             labels,
             boxes,
             largest: None,
@@ -84,9 +85,10 @@ impl<L: Copy + PartialEq> Route<L> {
     /// piece inside such a box crosses local leaves only, however many, so
     /// [`trace_local`] need not walk it.
     pub fn grow_local_boxes(&mut self, local: impl Fn(L) -> bool) {
-        let root = self.tree.bounds;
+        let root = self.tree.tree().bounds;
         let finest = self
             .tree
+            .tree()
             .leaves
             .iter()
             .map(|l| l.bounds.extent().min_element())
@@ -97,7 +99,7 @@ impl<L: Copy + PartialEq> Route<L> {
             if !local(self.labels[i]) {
                 continue;
             }
-            let mut b = self.tree.leaves[i].bounds;
+            let mut b = self.tree.tree().leaves[i].bounds;
             for _round in 0..3 {
                 let mut grew = false;
                 for dir in 0..6 {
@@ -115,7 +117,7 @@ impl<L: Copy + PartialEq> Route<L> {
                         if slab.max[a] <= slab.min[a] {
                             break;
                         }
-                        if self.tree.all_overlapping(&slab, &ok) {
+                        if self.tree.tree().all_overlapping(&slab, &ok) {
                             if up {
                                 b.max[a] = slab.max[a];
                             } else {
@@ -140,7 +142,7 @@ impl<L: Copy + PartialEq> Route<L> {
         self.boxes = boxes;
         let foreign = (0..self.labels.len())
             .filter(|&i| !local(self.labels[i]))
-            .map(|i| self.tree.leaves[i].bounds)
+            .map(|i| self.tree.tree().leaves[i].bounds)
             .collect();
         self.hull = Hull::new(foreign, &root);
     }
@@ -154,7 +156,7 @@ impl<L: Copy + PartialEq> Route<L> {
     /// that its locality covers (its bounds unless grown).
     #[inline]
     pub fn containing(&self, p: glam::Vec3) -> Option<(L, &Bounds)> {
-        let l = self.tree.leaf_at(p)? as usize;
+        let l = self.tree.tree().leaf_at(p)? as usize;
         Some((self.labels[l], &self.boxes[l]))
     }
 

@@ -24,6 +24,7 @@ mod split;
 mod walk;
 pub use split::tri_box_overlap;
 use split::{separates, split_refs};
+pub use walk::WalkTable;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct OctreeParams {

@@ -208,7 +208,7 @@ mod tests {
                 let Some((ray, length)) = random_piece(&tree, i) else {
                     continue;
                 };
-                let along = route.tree.leaves_along(&ray, 0.0, f32::INFINITY);
+                let along = route.tree.tree().leaves_along(&ray, 0.0, f32::INFINITY);
                 let (mut ts, mut te) = (0.0, length);
                 // A forwarded ray resumes where a foreign node ends; a
                 // piece may end where one starts.
