@@ -12,7 +12,8 @@
 //! is made of.
 //!
 //! This module builds the tree and answers point and neighbour queries;
-//! `walk` walks it along rays, `group` merges and groups its subtrees by
+//! `walk` walks it along rays (and lays it out as a [`WalkTable`] for
+//! walking many), `group` merges and groups its subtrees by
 //! labels and weights, and `split` holds the triangle-box tests the build
 //! splits by.
 
