@@ -24,9 +24,10 @@ const MAX_SWALLOWED: f64 = 0.25;
 pub struct Hull {
     /// Per group of four boxes, per axis, the lower and upper faces (the
     /// last group's unused lanes repeat its first box, which changes no
-    /// answer).
-    lo: Vec<[Vec4; 3]>,
-    hi: Vec<[Vec4; 3]>,
+    /// answer). The largest boxes come first: a piece that crosses the
+    /// hull most often meets one of them, and the test stops at the first
+    /// group it meets.
+    groups: Vec<[[Vec4; 3]; 2]>,
     /// Rays starting in here are near enough to the boxes for the margin
     /// to cover the test's rounding.
     near: Bounds,
@@ -106,7 +107,9 @@ impl Hull {
         if swallowed > MAX_SWALLOWED * (root.volume() - foreign_volume) {
             return None;
         }
-        let (mut lo, mut hi) = (Vec::new(), Vec::new());
+        let mut boxes = boxes;
+        boxes.sort_by(|a, b| b.volume().total_cmp(&a.volume()));
+        let mut groups = Vec::new();
         for group in boxes.chunks(4) {
             let lane = |i: usize| group.get(i).unwrap_or(&group[0]);
             let face = |f: fn(&Bounds) -> Vec3, d: f32| -> [Vec4; 3] {
@@ -114,13 +117,11 @@ impl Hull {
                     Vec4::from_array(std::array::from_fn(|i| f(lane(i))[a] + d))
                 })
             };
-            lo.push(face(|b| b.min, -margin));
-            hi.push(face(|b| b.max, margin));
+            groups.push([face(|b| b.min, -margin), face(|b| b.max, margin)]);
         }
         let near = Bounds::new(root.min - root.extent(), root.max + root.extent());
         Some(Self {
-            lo,
-            hi,
+            groups,
             near,
             exact: exact && !halved,
         })
@@ -145,8 +146,7 @@ impl Hull {
         let o = ray.origin.to_array().map(Vec4::splat);
         let inv = inv.to_array().map(Vec4::splat);
         let (ts, te) = (Vec4::splat(ts), Vec4::splat(te));
-        let mut hit = false;
-        for (lo, hi) in self.lo.iter().zip(&self.hi) {
+        for [lo, hi] in &self.groups {
             let (mut near, mut far) = (ts, te);
             for a in 0..3 {
                 let t1 = (lo[a] - o[a]) * inv[a];
@@ -154,9 +154,11 @@ impl Hull {
                 near = near.max(t1.min(t2));
                 far = far.min(t1.max(t2));
             }
-            hit |= near.cmple(far).any();
+            if near.cmple(far).any() {
+                return false;
+            }
         }
-        !hit
+        true
     }
 }
 
