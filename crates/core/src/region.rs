@@ -42,7 +42,7 @@ pub type WorkerId = u16;
 #[derive(Clone, Debug, PartialEq)]
 pub struct Route<L> {
     /// The collapsed tree, laid out for walking.
-    tree: WalkTable,
+    table: WalkTable,
     labels: Vec<L>,
     /// Per route node, a box around it that leaves of its own locality
     /// cover entirely (see [`Route::grow_local_boxes`]); its own bounds
@@ -71,7 +71,7 @@ impl<L: Copy + PartialEq> Route<L> {
     fn from_collapsed((tree, labels): (Octree, Vec<L>)) -> Self {
         let boxes = tree.leaves.iter().map(|l| l.bounds).collect();
         Self {
-            tree: WalkTable::new(tree),
+            table: WalkTable::new(tree),
             labels,
             boxes,
             largest: None,
@@ -85,9 +85,9 @@ impl<L: Copy + PartialEq> Route<L> {
     /// piece inside such a box crosses local leaves only, however many, so
     /// [`trace_local`] need not walk it.
     pub fn grow_local_boxes(&mut self, local: impl Fn(L) -> bool) {
-        let root = self.tree.tree().bounds;
+        let root = self.table.tree().bounds;
         let finest = self
-            .tree
+            .table
             .tree()
             .leaves
             .iter()
@@ -99,7 +99,7 @@ impl<L: Copy + PartialEq> Route<L> {
             if !local(self.labels[i]) {
                 continue;
             }
-            let mut b = self.tree.tree().leaves[i].bounds;
+            let mut b = self.table.tree().leaves[i].bounds;
             for _round in 0..3 {
                 let mut grew = false;
                 for dir in 0..6 {
@@ -117,7 +117,7 @@ impl<L: Copy + PartialEq> Route<L> {
                         if slab.max[a] <= slab.min[a] {
                             break;
                         }
-                        if self.tree.tree().all_overlapping(&slab, &ok) {
+                        if self.table.tree().all_overlapping(&slab, &ok) {
                             if up {
                                 b.max[a] = slab.max[a];
                             } else {
@@ -142,7 +142,7 @@ impl<L: Copy + PartialEq> Route<L> {
         self.boxes = boxes;
         let foreign = (0..self.labels.len())
             .filter(|&i| !local(self.labels[i]))
-            .map(|i| self.tree.tree().leaves[i].bounds)
+            .map(|i| self.table.tree().leaves[i].bounds)
             .collect();
         self.hull = Hull::new(foreign, &root);
     }
@@ -156,7 +156,7 @@ impl<L: Copy + PartialEq> Route<L> {
     /// that its locality covers (its bounds unless grown).
     #[inline]
     pub fn containing(&self, p: glam::Vec3) -> Option<(L, &Bounds)> {
-        let l = self.tree.tree().leaf_at(p)? as usize;
+        let l = self.table.tree().leaf_at(p)? as usize;
         Some((self.labels[l], &self.boxes[l]))
     }
 
@@ -167,7 +167,7 @@ impl<L: Copy + PartialEq> Route<L> {
     where
         F: FnMut(L, f32, f32) -> ControlFlow<()>,
     {
-        self.tree.walk_from(ray, t0, t1, resume, |l, a, b| {
+        self.table.walk_from(ray, t0, t1, resume, |l, a, b| {
             f(self.labels[l as usize], a, b)
         })
     }

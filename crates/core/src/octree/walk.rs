@@ -61,46 +61,13 @@ impl Octree {
         match self.nodes[n] {
             Node::Leaf { leaf } => f(leaf, ta.max(resume), tb),
             Node::Interior { first_child } => {
-                let m = self.node_bounds[n].center().to_array();
-                // Plane crossings inside the interval, with their axes. A
-                // ray that does not move along an axis has an infinite
-                // inverse there: its crossing is infinite or NaN, never
-                // inside.
-                let mut cuts = [(tb, 3usize); 3];
-                let mut k = 0;
-                for (a, &c) in m.iter().enumerate() {
-                    let t = ((c as f64 - ray.o[a]) * ray.inv[a]) as f32;
-                    if t > ta && t < tb {
-                        cuts[k] = (t, a);
-                        k += 1;
-                    }
-                }
-                // A sorting network for at most three cuts (unused slots
-                // hold tb and stay last).
-                let swap = |c: &mut [(f32, usize); 3], i: usize, j: usize| {
-                    if c[j].0 < c[i].0 {
-                        c.swap(i, j);
-                    }
-                };
-                swap(&mut cuts, 0, 1);
-                swap(&mut cuts, 1, 2);
-                swap(&mut cuts, 0, 1);
-                // The first piece's octant from its midpoint; each crossing
-                // then moves to the other half along its axis. Pieces are
-                // found from the same cuts in every tree that keeps this
-                // node, so ends agree wherever they are compared.
-                let first_end = if k > 0 { cuts[0].0 } else { tb };
-                let tm = 0.5 * (ta as f64 + first_end as f64);
-                let mut oct = 0usize;
-                for (a, &c) in m.iter().enumerate() {
-                    let upper = ray.o[a] + tm * ray.d[a] >= c as f64;
-                    oct |= (upper as usize) << a;
-                }
+                let (cuts, k, mut oct) = ray.cuts(&self.centre(n), ta, tb);
                 let mut start = ta;
                 for (end, axis) in cuts[..k].iter().copied().chain([(tb, 3)]) {
                     if end > start {
                         if end > resume {
-                            self.walk_node(first_child as usize + oct, ray, start, end, resume, f)?;
+                            let child = first_child as usize + oct as usize;
+                            self.walk_node(child, ray, start, end, resume, f)?;
                         }
                         start = end;
                     }
@@ -111,6 +78,12 @@ impl Octree {
                 ControlFlow::Continue(())
             }
         }
+    }
+
+    /// Interior node `n`'s centre, the planes that split it, widened to
+    /// f64 (exactly) for the crossings.
+    fn centre(&self, n: usize) -> [f64; 3] {
+        self.node_bounds[n].center().to_array().map(f64::from)
     }
 
     /// Leaves along the ray as `(leaf, ta, tb)`.
@@ -171,7 +144,7 @@ impl WalkTable {
                         }
                     }
                     WalkNode::Interior {
-                        centre: tree.node_bounds[n].center().to_array().map(f64::from),
+                        centre: tree.centre(n),
                         first_child,
                     }
                 }
@@ -301,8 +274,10 @@ impl WalkRay {
 
     /// The plane crossings of the node centred at `m` inside `(ta, tb)`,
     /// front to back with their axes (the unused ones hold `tb`), how many,
-    /// and the octant of the first piece: the arithmetic of
-    /// [`Octree::walk_node`], step for step.
+    /// and the octant of the first piece. Both walks (the tree's and the
+    /// table's) cut nodes here, so their interval ends agree to the bit.
+    /// A ray that does not move along an axis has an infinite inverse
+    /// there: its crossing is infinite or NaN, never inside.
     #[inline(always)]
     fn cuts(&self, m: &[f64; 3], ta: f32, tb: f32) -> ([(f32, u32); 3], usize, u32) {
         let mut cuts = [(tb, 3u32); 3];
@@ -314,6 +289,8 @@ impl WalkRay {
                 k += 1;
             }
         }
+        // A sorting network for at most three cuts (unused slots hold tb
+        // and stay last).
         let swap = |c: &mut [(f32, u32); 3], i: usize, j: usize| {
             if c[j].0 < c[i].0 {
                 c.swap(i, j);
@@ -322,6 +299,10 @@ impl WalkRay {
         swap(&mut cuts, 0, 1);
         swap(&mut cuts, 1, 2);
         swap(&mut cuts, 0, 1);
+        // The first piece's octant from its midpoint; each crossing then
+        // moves to the other half along its axis. Pieces are found from
+        // the same cuts in every tree that keeps this node, so ends agree
+        // wherever they are compared.
         let first_end = if k > 0 { cuts[0].0 } else { tb };
         let tm = 0.5 * (ta as f64 + first_end as f64);
         let mut oct = 0u32;

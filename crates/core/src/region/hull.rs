@@ -98,7 +98,7 @@ impl Hull {
         // may lie an ulp or two of the coordinates' magnitude from the
         // plane the walk computes. The margin is several times both.
         let margin = 1e-5 * ext + 1e-6 * root.max_abs();
-        let (boxes, exact) = merge(foreign, HULL_BOXES);
+        let (mut boxes, exact) = merge(foreign, HULL_BOXES);
         // A hull that swallows much of the local space says "not clear"
         // to most pieces, and costs every one of them its test: none is
         // kept then. (Merged boxes may overlap, which only overstates what
@@ -107,7 +107,6 @@ impl Hull {
         if swallowed > MAX_SWALLOWED * (root.volume() - foreign_volume) {
             return None;
         }
-        let mut boxes = boxes;
         boxes.sort_by(|a, b| b.volume().total_cmp(&a.volume()));
         let mut groups = Vec::new();
         for group in boxes.chunks(4) {
@@ -210,7 +209,7 @@ mod tests {
                 let Some((ray, length)) = random_piece(&tree, i) else {
                     continue;
                 };
-                let along = route.tree.tree().leaves_along(&ray, 0.0, f32::INFINITY);
+                let along = route.table.tree().leaves_along(&ray, 0.0, f32::INFINITY);
                 let (mut ts, mut te) = (0.0, length);
                 // A forwarded ray resumes where a foreign node ends; a
                 // piece may end where one starts.
