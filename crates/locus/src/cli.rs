@@ -102,6 +102,11 @@ pub(crate) struct BenchFarmArgs {
     /// Also measure `forward` with random polling for hot regions.
     #[arg(long)]
     pub(crate) random_polling: bool,
+    /// Percents of the scene every worker holds beside its region: each
+    /// is measured under `forward` with region growing, the first under
+    /// everything else.
+    #[arg(long, num_args = 1.., default_values_t = [10u32])]
+    pub(crate) shared_percent: Vec<u32>,
     /// Leave out the Morton baseline's `forward` rows (to compare two
     /// builds of a change in less time).
     #[arg(long)]
@@ -286,6 +291,11 @@ pub(crate) struct FarmArgs {
     /// and traces them, fetching the peer's leaves they cross.
     #[arg(long)]
     pub(crate) random_polling: bool,
+    /// Percent of the scene's triangles every worker holds beside its
+    /// region when rays are forwarded: the leaves rays cross most per
+    /// triangle, into which no ray is then forwarded (0: regions only).
+    #[arg(long, default_value_t = 10)]
+    pub(crate) shared_percent: u32,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy)]
@@ -705,6 +715,7 @@ impl FarmArgs {
                 flush_us: self.flush_us,
                 max_inflight: self.max_inflight.max(1),
                 random_polling: self.random_polling,
+                shared_percent: self.shared_percent,
                 ..Tuning::default()
             },
             cache: None,

@@ -122,6 +122,11 @@ pub(crate) fn write_farm_result(
             "it fit every worker's memory plan"
         };
         println!("  {}: every worker held the whole scene ({why})", f.policy);
+    } else if f.shared_leaves > 0 {
+        println!(
+            "  shared: every worker held {} leaves ({} triangle references; the scene has {} triangles) beside its region",
+            f.shared_leaves, f.shared_refs, f.triangles
+        );
     }
     let t = &f.totals;
     let c = t.trace.cache;

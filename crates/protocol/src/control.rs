@@ -161,6 +161,11 @@ pub struct Tuning {
     /// worker asks a random peer for queued queries and traces them,
     /// fetching the peer's leaves they cross.
     pub random_polling: bool,
+    /// Percent of the scene's triangle references that every worker holds
+    /// beside its region when rays are forwarded: the leaves a preview's
+    /// paths cross most per triangle (see the scheduler's
+    /// `cost::shared_leaves`). A ray is never forwarded into such a leaf.
+    pub shared_percent: u32,
 }
 
 impl Default for Tuning {
@@ -171,6 +176,7 @@ impl Default for Tuning {
             max_inflight: 65536,
             tiles_ahead: 2,
             random_polling: false,
+            shared_percent: 10,
         }
     }
 }

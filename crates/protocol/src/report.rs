@@ -205,6 +205,11 @@ pub struct FarmReport {
     /// Nodes of the processor map's route (the octree collapsed by owner):
     /// how ragged the region borders are.
     pub route_leaves: u32,
+    /// Leaves every worker held beside its region (the camera's and the
+    /// most crossed per triangle: `Tuning::shared_percent`), and their
+    /// triangle references.
+    pub shared_leaves: u32,
+    pub shared_refs: u64,
     pub phases: Phases,
     pub prediction: Prediction,
     pub workers: Vec<WorkerSummary>,

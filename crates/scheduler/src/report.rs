@@ -73,6 +73,12 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         leaves: prep.leaves,
         triangles: prep.scene.tris.len() as u64,
         route_leaves: prep.map.route.leaves() as u32,
+        shared_leaves: prep.shared_leaves.len() as u32,
+        shared_refs: prep
+            .shared_leaves
+            .iter()
+            .map(|&l| prep.leaf_tris[l as usize] as u64)
+            .sum(),
         phases: Phases {
             load_s: j.req.load_s,
             prepare_s: (prepared - a.started).as_secs_f64(),

@@ -22,12 +22,12 @@ use std::collections::VecDeque;
 
 /// The owner of the first leaf along most of a tile's camera rays (its
 /// centre and its four corners; the centre's wins a tie), or None when
-/// most of them miss the scene. The `shared` leaf (the camera's, which
-/// every worker holds: `cost::camera_leaf`) is passed over.
+/// most of them miss the scene. The `shared` leaves (which every worker
+/// holds: `cost::camera_leaf`, `cost::shared_leaves`) are passed over.
 pub fn affinity(
     camera: &Camera,
     map: &ProcessorMap,
-    shared: Option<u32>,
+    shared: &[bool],
     t: &Tile,
 ) -> Option<WorkerId> {
     let (x1, y1) = (t.x1.saturating_sub(1), t.y1.saturating_sub(1));
@@ -44,7 +44,7 @@ pub fn affinity(
             let ray = camera.ray(x, y, [0.5, 0.5]);
             let mut first = None;
             let _ = map.tree.walk(&ray, 0.0, f32::INFINITY, |leaf, _, _| {
-                if Some(leaf) == shared {
+                if shared.get(leaf as usize).copied().unwrap_or(false) {
                     return std::ops::ControlFlow::Continue(());
                 }
                 first = map.owner.get(leaf as usize).copied();
@@ -123,14 +123,24 @@ impl TileQueue {
 
     /// The next tile pass for worker `w`: its own or a shared one,
     /// whichever is of the earlier pass (its own on a tie), so that no
-    /// worker runs passes ahead of the image; None if it is of a pass not
-    /// yet `open` (see [`crate::film::Film::open_passes`]) or none is left.
+    /// worker runs passes ahead of the image; with neither left, one of
+    /// the worker with the most left (the partition balanced the work it
+    /// predicted, but not the shared leaves', which falls to whoever
+    /// holds the rays, nor its own errors: a worker whose tiles ran out
+    /// first would otherwise wait for the others'); None if it is of a
+    /// pass not yet `open` (see [`crate::film::Film::open_passes`]) or
+    /// none is left.
     pub fn next_for(&mut self, w: usize, open: u32) -> Option<Unit> {
         let shared_pass = self.shared.front().map(|u| u.pass);
         let own_pass = self.own.get(w).and_then(|q| q.front()).map(|u| u.pass);
         let q = match (own_pass, shared_pass) {
             (Some(o), Some(s)) if o <= s => &mut self.own[w],
             (Some(_), None) => &mut self.own[w],
+            (None, None) => {
+                let most =
+                    (0..self.own.len()).max_by_key(|&v| (self.own[v].len(), usize::MAX - v))?;
+                &mut self.own[most]
+            }
             _ => &mut self.shared,
         };
         if q.front()?.pass >= open {
@@ -139,9 +149,10 @@ impl TileQueue {
         q.pop_front()
     }
 
-    /// Whether any tile pass is left that worker `w` could be given.
-    pub fn has_for(&self, w: usize) -> bool {
-        !self.shared.is_empty() || self.own.get(w).is_some_and(|q| !q.is_empty())
+    /// Whether any tile pass is left that worker `w` could be given:
+    /// any at all, since a worker with none of its own takes others'.
+    pub fn has_for(&self, _w: usize) -> bool {
+        !self.is_empty()
     }
 
     /// Returns a unit `next_for` gave that could not be handed out (its
@@ -174,7 +185,7 @@ mod tests {
     }
 
     #[test]
-    fn workers_get_their_own_tiles_then_shared_ones_then_none() {
+    fn workers_get_their_own_tiles_then_shared_ones_then_others() {
         let aff = [Some(1), None, Some(0), Some(1), None, Some(7)];
         let order = [5, 4, 3, 2, 1, 0].map(|tile| Unit { tile, pass: 0 });
         let mut q = TileQueue::new(order, &aff, 2);
@@ -187,6 +198,29 @@ mod tests {
         assert_eq!(tiles(&mut q, 0, 9), [(1, 0)]);
         assert_eq!(q.next_for(9, u32::MAX), None);
         assert!(q.is_empty());
+    }
+
+    /// A worker with no tiles of its own and none shared left takes the
+    /// next of the worker with the most left, in pass order, never of a
+    /// pass not yet open.
+    #[test]
+    fn a_worker_out_of_tiles_takes_the_busiest_workers_next() {
+        // Tiles 0-3 worker 0's, tile 4 worker 2's, none worker 1's; two
+        // passes.
+        let aff = [Some(0), Some(0), Some(0), Some(0), Some(2)];
+        let order = (0..2).flat_map(|pass| (0..5).map(move |tile| Unit { tile, pass }));
+        let mut q = TileQueue::new(order, &aff, 3);
+        assert!(q.has_for(1));
+        assert_eq!(tiles(&mut q, 1, 2), [(0, 0), (1, 0)]);
+        // Worker 0 has 6 left, worker 2 has 2: worker 2 gets its own.
+        assert_eq!(tiles(&mut q, 2, 1), [(4, 0)]);
+        // Pass 1 is not open: worker 1 gets worker 0's last of pass 0.
+        assert_eq!(q.next_for(1, 1), Some(Unit { tile: 2, pass: 0 }));
+        assert_eq!(q.next_for(1, 1), Some(Unit { tile: 3, pass: 0 }));
+        assert_eq!(q.next_for(1, 1), None);
+        assert!(q.has_for(1));
+        assert_eq!(tiles(&mut q, 1, 9).len(), 5);
+        assert!(q.is_empty() && !q.has_for(0));
     }
 
     #[test]
@@ -215,8 +249,8 @@ mod tests {
         assert!(q.has_for(0) && q.has_for(1), "held back, not gone");
         assert_eq!(q.len(), 2);
         // Opened: the second pass goes out as the first did.
+        assert_eq!(tiles(&mut q, 0, 1), [(0, 1)]);
         assert_eq!(tiles(&mut q, 1, 9), [(1, 1)]);
-        assert_eq!(tiles(&mut q, 0, 9), [(0, 1)]);
         assert!(!q.has_for(0) && q.is_empty());
     }
 
@@ -275,14 +309,14 @@ mod tests {
             x1: x0 + 8,
             y1: y0 + 8,
         };
-        assert_eq!(affinity(&camera, &map, None, &tile(0, 0)), Some(0));
-        assert_eq!(affinity(&camera, &map, None, &tile(24, 24)), Some(0));
+        assert_eq!(affinity(&camera, &map, &[], &tile(0, 0)), Some(0));
+        assert_eq!(affinity(&camera, &map, &[], &tile(24, 24)), Some(0));
         // Looking away from the scene: no affinity.
         let away = Camera {
             look_at: Vec3::new(-5.0, 40.0, 0.0),
             ..camera
         };
-        assert_eq!(affinity(&away, &map, None, &tile(8, 8)), None);
+        assert_eq!(affinity(&away, &map, &[], &tile(8, 8)), None);
     }
 
     /// A camera inside the scene: its rays all start in its leaf, whose
@@ -328,7 +362,9 @@ mod tests {
             x1: 24,
             y1: 24,
         };
-        assert_eq!(affinity(&camera, &map, None, &tile), Some(0));
-        assert_eq!(affinity(&camera, &map, Some(cam), &tile), Some(1));
+        assert_eq!(affinity(&camera, &map, &[], &tile), Some(0));
+        let mut shared = vec![false; tree.leaves.len()];
+        shared[cam as usize] = true;
+        assert_eq!(affinity(&camera, &map, &shared, &tile), Some(1));
     }
 }

@@ -46,6 +46,10 @@ pub struct Plan {
     pub policies: Vec<FetchPolicy>,
     /// Also `forward` with random polling for hot regions.
     pub random_polling: bool,
+    /// Percents of the scene every worker holds beside its region
+    /// (`Tuning::shared_percent`): `forward` over region growing is
+    /// measured with each, everything else with the first.
+    pub shared_percent: Vec<u32>,
     /// `forward` over the Morton baseline's partition beside region
     /// growing's.
     pub morton: bool,
@@ -192,6 +196,7 @@ struct FarmRun {
     policy: FetchPolicy,
     partitioner: Partitioner,
     random_polling: bool,
+    shared_percent: u32,
 }
 
 /// Runs `run` `repeat` times on fresh processes; keeps the fastest render
@@ -211,6 +216,7 @@ fn farm(scene: &Scene, run: &FarmRun, repeat: u32, want: &[u32]) -> Result<(Farm
             ..JobOptions::default()
         };
         opts.tuning.random_polling = run.random_polling;
+        opts.tuning.shared_percent = run.shared_percent;
         let req = locus_scheduler::client::request(scene, opts);
         let r = rt.block_on(async {
             let farm = LocalFarm::launch(&run.spec).await?;
@@ -252,11 +258,16 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
     Row {
         scene: scene.to_string(),
         config: format!(
-            "{} x {} thr, {}, {:?}{}",
+            "{} x {} thr, {}, {:?}{}{}",
             run.spec.workers,
             run.spec.threads_per_worker,
             run.policy.name(),
             run.partitioner,
+            if run.policy == FetchPolicy::Forward && run.spec.workers > 1 {
+                format!(", {}% shared", run.shared_percent)
+            } else {
+                String::new()
+            },
             if run.random_polling {
                 ", random polling"
             } else {
@@ -362,6 +373,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             identical: true,
         });
         let mut runs = Vec::new();
+        let first = plan.shared_percent.first().copied().unwrap_or(10);
         match large {
             Some(l) => {
                 for policy in [FetchPolicy::Forward, FetchPolicy::Adaptive] {
@@ -370,6 +382,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                         policy,
                         partitioner: Partitioner::RegionGrowing,
                         random_polling: false,
+                        shared_percent: first,
                     });
                 }
                 if plan.random_polling {
@@ -378,18 +391,27 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                         policy: FetchPolicy::Forward,
                         partitioner: Partitioner::RegionGrowing,
                         random_polling: true,
+                        shared_percent: first,
                     });
                 }
             }
             None => {
                 for &w in &plan.workers {
                     for &policy in &plan.policies {
-                        runs.push(FarmRun {
-                            spec: spec(plan, w, 0),
-                            policy,
-                            partitioner: Partitioner::RegionGrowing,
-                            random_polling: false,
-                        });
+                        let each = if policy == FetchPolicy::Forward && w > 1 {
+                            &plan.shared_percent[..]
+                        } else {
+                            &plan.shared_percent[..1]
+                        };
+                        for &shared_percent in each {
+                            runs.push(FarmRun {
+                                spec: spec(plan, w, 0),
+                                policy,
+                                partitioner: Partitioner::RegionGrowing,
+                                random_polling: false,
+                                shared_percent,
+                            });
+                        }
                     }
                     if w > 1 && plan.policies.contains(&FetchPolicy::Forward) {
                         if plan.morton {
@@ -398,6 +420,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                                 policy: FetchPolicy::Forward,
                                 partitioner: Partitioner::Morton,
                                 random_polling: false,
+                                shared_percent: first,
                             });
                         }
                         if plan.random_polling {
@@ -406,6 +429,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
                                 policy: FetchPolicy::Forward,
                                 partitioner: Partitioner::RegionGrowing,
                                 random_polling: true,
+                                shared_percent: first,
                             });
                         }
                     }

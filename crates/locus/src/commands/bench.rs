@@ -216,6 +216,7 @@ pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
         workers: a.workers.clone(),
         policies: a.policies.clone(),
         random_polling: a.random_polling,
+        shared_percent: a.shared_percent.clone(),
         morton: !a.no_morton,
         cores,
         large,

@@ -3,7 +3,7 @@
 //! shares and memory budgets, and planning each worker's BVH parts and
 //! memory ([`crate::memory`]).
 
-use crate::{cost, memory, partition};
+use crate::{cost, memory};
 use locus_core::geometry::Bounds;
 use locus_core::irradiance::overture::{Measured, OvertureStats};
 use locus_core::light::LightSet;
@@ -12,12 +12,13 @@ use locus_core::region::ProcessorMap;
 use locus_core::region::WorkerId;
 use locus_core::scene::{LoadStats, Scene};
 use locus_protocol::control::MemoryPlan;
-use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobRequest, Partitioner};
+use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobRequest};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
+mod regions;
 mod validate;
 pub use validate::{MAX_INFLIGHT, MAX_PACKET_ITEMS, MAX_TILES, validate};
 
@@ -39,9 +40,10 @@ pub struct Prepared {
     /// Per tile, the worker its camera rays meet first ([`crate::tiles`]);
     /// none when the scene is replicated.
     pub tile_affinity: Vec<Option<WorkerId>>,
-    /// The camera's leaf, which every worker holds as its own
-    /// ([`cost::camera_leaf`]; [`Self::map_for`]).
-    pub camera_leaf: Option<u32>,
+    /// The leaves every worker holds as its own, ascending: the camera's
+    /// ([`cost::camera_leaf`]) and those [`cost::shared_leaves`] picks
+    /// ([`Self::map_for`]).
+    pub shared_leaves: Vec<u32>,
     /// Per worker, the camera samples it keeps in flight.
     pub max_inflight: Vec<u32>,
     /// Triangle references per leaf.
@@ -71,19 +73,19 @@ pub struct PartRun {
 }
 
 impl Prepared {
-    /// Worker `w`'s processor map: the job's, with the camera's leaf its
+    /// Worker `w`'s processor map: the job's, with the shared leaves its
     /// own. Every other leaf has one owner on every map, so where any two
     /// workers' maps are compared (a forwarded query's route node) they
     /// agree.
     pub fn map_for(&self, w: WorkerId) -> ProcessorMap {
-        match self.camera_leaf {
-            Some(l) => {
-                let mut owner = self.map.owner.clone();
-                owner[l as usize] = w;
-                ProcessorMap::new(&self.map.tree, owner)
-            }
-            None => self.map.clone(),
+        if self.shared_leaves.is_empty() {
+            return self.map.clone();
         }
+        let mut owner = self.map.owner.clone();
+        for &l in &self.shared_leaves {
+            owner[l as usize] = w;
+        }
+        ProcessorMap::new(&self.map.tree, owner)
     }
 }
 
@@ -209,48 +211,31 @@ pub fn prepare(
     };
     let mut pv = sampled_model.then(|| cost::sampled_in_parts(&scene, &tree, &lights, first));
     let mut preview_s = t_pre.elapsed().as_secs_f64();
-    let lim = partition::Limits {
-        targets: &targets,
-        caps: &caps,
-        refs: &refs,
-    };
     // The camera's leaf is every worker's (below), and so is its work:
     // each worker shades there what its own rays bring. It weighs on no
-    // one region.
-    let shared_leaf = if workers < 2 {
-        None
-    } else {
-        cost::camera_leaf(&tree, &scene.camera)
-    };
-    // The costs the partition balances (and the report's predicted shares
-    // are of): the shared leaf's left out.
-    let unshared = |c: &[f64]| {
-        let mut c = c.to_vec();
-        if let Some(l) = shared_leaf {
-            c[l as usize] = 0.0;
-        }
-        c
-    };
-    let no_crossings = HashMap::new();
-    let draw = |pv: &Option<cost::Preview>| -> Result<Vec<WorkerId>, String> {
-        let chosen = &unshared(match pv {
-            Some(pv) => &pv.cost,
-            None => &analytic,
-        });
-        let crossings = pv.as_ref().map_or(&no_crossings, |pv| &pv.crossings);
-        match options.partitioner {
-            Partitioner::RegionGrowing => {
-                let graph = partition::LeafGraph::new(&tree, crossings);
-                partition::region_growing(&tree, &graph, chosen, &lim)
-            }
-            Partitioner::Morton => partition::morton(chosen, &lim),
-        }
+    // one region. So are the leaves [`cost::shared_leaves`] picks from the
+    // preview's crossings, where they fit every worker's budget.
+    let drawing = regions::Draw {
+        tree: &tree,
+        refs: &refs,
+        all_refs,
+        targets: &targets,
+        caps: &caps,
+        analytic: &analytic,
+        camera: (workers > 1)
+            .then(|| cost::camera_leaf(&tree, &scene.camera))
+            .flatten(),
+        partitioner: options.partitioner,
+        shared_percent: options.tuning.shared_percent,
     };
     let t_part = Instant::now();
-    let mut owner = draw(&pv)?;
+    let (mut shared, mut owner) = drawing.drawn(pv.as_ref())?;
     let mut partition_s = t_part.elapsed().as_secs_f64();
     let samples =
         scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
+    // The rent counts every crossing between two owners' leaves, those
+    // into or out of a shared leaf too (no query is forwarded into one):
+    // it leans towards buying, which on a fast network is the quicker.
     let buys = |pv: &Option<cost::Preview>, owner: &[WorkerId]| {
         pv.as_ref().is_some_and(|pv| {
             let bytes = all_refs * tb.shipped;
@@ -272,7 +257,7 @@ pub fn prepare(
         ));
         preview_s += t.elapsed().as_secs_f64();
         let t = Instant::now();
-        owner = draw(&pv)?;
+        (shared, owner) = drawing.drawn(pv.as_ref())?;
         partition_s += t.elapsed().as_secs_f64();
     }
     let (sampled, preview_rays) = match pv {
@@ -289,13 +274,19 @@ pub fn prepare(
             ids
         })
         .collect();
-    // Every worker holds the camera's leaf (see `cost::camera_leaf`), as
-    // its own: each gets a processor map in which it owns that leaf, so
-    // no ray is ever forwarded into it and any worker starts samples.
-    let camera_leaf = shared_leaf.filter(|_| !replicated);
+    // Every worker holds the shared leaves (the camera's, see
+    // `cost::camera_leaf`, and `cost::shared_leaves`), as its own: each
+    // gets a processor map in which it owns them, so no ray is ever
+    // forwarded into one and any worker starts samples.
+    if replicated {
+        shared.fill(false);
+    }
+    let shared_leaves: Vec<u32> = (0..tree.leaves.len() as u32)
+        .filter(|&l| shared[l as usize])
+        .collect();
     let mut own_leaves = vec![Vec::new(); workers];
     for (i, &o) in owner.iter().enumerate() {
-        if Some(i as u32) == camera_leaf {
+        if shared[i] {
             for own in &mut own_leaves {
                 own.push((i as u32, leaf_ids[i].clone()));
             }
@@ -321,7 +312,7 @@ pub fn prepare(
         use rayon::prelude::*;
         tiles
             .par_iter()
-            .map(|t| crate::tiles::affinity(&scene.camera, &map, camera_leaf, t))
+            .map(|t| crate::tiles::affinity(&scene.camera, &map, &shared, t))
             .collect()
     };
     let mut plans = Vec::with_capacity(workers);
@@ -379,12 +370,12 @@ pub fn prepare(
         }
     });
     Ok(Prepared {
-        camera_leaf,
+        shared_leaves,
         irradiance,
         member_cores: members.iter().map(|m| m.cores).collect(),
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
-        analytic_share: cost::shares(&unshared(&analytic), &map.owner, workers),
-        sampled_share: cost::shares(&unshared(&sampled), &map.owner, workers),
+        analytic_share: cost::shares(&regions::unshared(&analytic, &shared), &map.owner, workers),
+        sampled_share: cost::shares(&regions::unshared(&sampled, &shared), &map.owner, workers),
         preview_rays,
         leaves: tree.leaves.len() as u32,
         max_inflight: crate::tiles::inflight(&tile_affinity, workers, options.tuning.max_inflight)
@@ -610,6 +601,53 @@ mod tests {
         }
     }
 
+    /// Rays forwarded among regions: every worker holds the shared
+    /// leaves as its own (and the camera's among them), and they hold at
+    /// most the share asked for; with none asked, only the camera's leaf
+    /// is shared. (Under budgets, `tests/memory.rs` renders with them.)
+    #[test]
+    fn shared_leaves_are_every_workers_and_fit_its_budget() {
+        let mut scene = crate::cornell_box();
+        scene.camera.position = glam::Vec3::new(278.0, 273.0, 250.0);
+        let scene = Arc::new(scene);
+        let tiles = tiles_of(&scene);
+        let tree = octree_for(&scene, 4);
+        let camera = cost::camera_leaf(&tree, &scene.camera).expect("inside");
+        let all: u64 = tree.leaves.iter().map(|l| l.tris.len() as u64).sum();
+        let refs_of = |ls: &[u32]| -> u64 {
+            ls.iter()
+                .filter(|&&l| l != camera)
+                .map(|&l| tree.leaves[l as usize].tris.len() as u64)
+                .sum()
+        };
+        for percent in [0, 10, 40] {
+            let mut options = JobOptions {
+                fetch: FetchPolicy::Forward,
+                ..JobOptions::default()
+            };
+            options.tuning.shared_percent = percent;
+            let p = prepare(scene.clone(), &options, &[MEMBER; 4], &tiles, &[]).expect("prepared");
+            assert!(p.shared_leaves.contains(&camera));
+            assert!(refs_of(&p.shared_leaves) <= all * percent as u64 / 100);
+            if percent == 0 {
+                assert_eq!(p.shared_leaves, vec![camera]);
+            } else {
+                assert!(
+                    p.shared_leaves.len() > 1,
+                    "{percent}%: {:?}",
+                    p.shared_leaves
+                );
+            }
+            for w in 0..4u16 {
+                let map = p.map_for(w);
+                for &l in &p.shared_leaves {
+                    assert_eq!(map.owner[l as usize], w);
+                    assert!(p.own_leaves[w as usize].iter().any(|(o, _)| *o == l));
+                }
+            }
+        }
+    }
+
     /// The predicted shares a report gives are those the partition
     /// balanced: the camera's leaf is every worker's, so its cost counts
     /// for none of them (counted for its nominal owner, it made a report
@@ -629,10 +667,14 @@ mod tests {
             ..JobOptions::default()
         };
         let p = prepare(scene.clone(), &options, &[MEMBER; 4], &tiles, &[]).expect("prepared");
-        let leaf = p.camera_leaf.expect("the camera is inside the scene") as usize;
-        let mut cost = cost::analytic(&octree_for(&scene, 4));
-        assert!(cost[leaf] > 0.0);
-        cost[leaf] = 0.0;
+        let tree = octree_for(&scene, 4);
+        let leaf = cost::camera_leaf(&tree, &scene.camera).expect("the camera is inside the scene");
+        assert!(p.shared_leaves.contains(&leaf));
+        let mut cost = cost::analytic(&tree);
+        assert!(cost[leaf as usize] > 0.0);
+        for &l in &p.shared_leaves {
+            cost[l as usize] = 0.0;
+        }
         assert_eq!(p.analytic_share, cost::shares(&cost, &p.map.owner, 4));
         let sum: f64 = p.sampled_share.iter().sum();
         assert!((sum - 1.0).abs() < 1e-9, "{:?}", p.sampled_share);

@@ -123,6 +123,12 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
             o.tuning.packet_size
         ));
     }
+    if o.tuning.shared_percent > 100 {
+        return Err(format!(
+            "shared percent {} is above 100",
+            o.tuning.shared_percent
+        ));
+    }
     Ok(())
 }
 
