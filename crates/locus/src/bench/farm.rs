@@ -84,6 +84,9 @@ pub struct Row {
     /// Render-phase CPU seconds, all processes' workers together.
     pub cpu_s: f64,
     pub us_per_forward: Option<f64>,
+    /// The same CPU above one machine's over every ray the farm traced:
+    /// what the farm costs a ray however few are forwarded.
+    pub us_extra_per_ray: Option<f64>,
     pub forwards_per_ray: f64,
     pub bytes_per_sample: f64,
     /// Ray items (forwarded queries and answers) per message between
@@ -284,6 +287,11 @@ fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool
         efficiency_total: one.total_s / total_s.max(1e-9),
         cpu_s: cpu,
         us_per_forward: (fwd > 0).then(|| (cpu - one.cpu_s) / fwd as f64 * 1e6),
+        us_extra_per_ray: {
+            let tr = &t.trace;
+            let rays = tr.camera_rays + tr.shadow_rays + tr.indirect_rays;
+            (rays > 0).then(|| (cpu - one.cpu_s) / rays as f64 * 1e6)
+        },
         forwards_per_ray: f.forwarded_fraction,
         bytes_per_sample: f.bytes_per_sample,
         items_per_message: (messages > 0 && fwd > 0)
@@ -359,6 +367,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             efficiency_total: 1.0,
             cpu_s: one.cpu_s,
             us_per_forward: None,
+            us_extra_per_ray: None,
             forwards_per_ray: 0.0,
             bytes_per_sample: 0.0,
             items_per_message: None,
@@ -492,11 +501,11 @@ pub fn markdown(rows: &[Row]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | forwards / ray | bytes / sample | items / message | imbalance | idle | engine busy | handed | peak MiB per process (budget) | bit-identical |"
+        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | CPU us / ray above one machine | forwards / ray | bytes / sample | items / message | imbalance | idle | engine busy | handed | peak MiB per process (budget) | bit-identical |"
     );
     let _ = writeln!(
         s,
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
     );
     for r in rows {
         let peaks = r
@@ -512,7 +521,7 @@ pub fn markdown(rows: &[Row]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {:.3} | {:.0} | {} | {:.2} | {:.0}% | {} | {} | {}{} | {} |",
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {} | {:.3} | {:.0} | {} | {:.2} | {:.0}% | {} | {} | {}{} | {} |",
             r.scene,
             r.config,
             r.render_s,
@@ -520,6 +529,7 @@ pub fn markdown(rows: &[Row]) -> String {
             r.efficiency_render,
             r.efficiency_total,
             r.us_per_forward.map_or("".into(), |u| format!("{u:.2}")),
+            r.us_extra_per_ray.map_or("".into(), |u| format!("{u:.3}")),
             r.forwards_per_ray,
             r.bytes_per_sample,
             r.items_per_message.map_or("".into(), |m| format!("{m:.0}")),

@@ -24,7 +24,8 @@ valgrind and callgrind_annotate on the PATH.
     python3 crates/locus/src/bench/forward_cost.py [--locus target/release/locus]
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
         [--fetch forward] [--workers 2] [--cost sampled|analytic]
-        [--partitioner region-growing|morton] [--threads 1] [--per-thread] [--out bench-out/forward-cost]
+        [--partitioner region-growing|morton] [--shared-percent 10] [--threads 1] [--per-thread]
+        [--out bench-out/forward-cost]
 
 LOCUS_CALLGRIND_ARGS adds options to every valgrind call (for instance
 `--dump-instr=yes`, to see a function's cost instruction by instruction).
@@ -179,6 +180,8 @@ def main():
                     help="the partition's cost model: `analytic` keeps the partition of a "
                          "build whose tracer counts nodes differently, for comparing two builds")
     ap.add_argument("--partitioner", default="region-growing")
+    ap.add_argument("--shared-percent", type=int, default=10,
+                    help="the scene's share every worker holds beside its region (0: regions only)")
     ap.add_argument("--per-thread", action="store_true",
                     help="print what each worker's engine thread spends by function")
     ap.add_argument("--out", default="bench-out/forward-cost")
@@ -218,6 +221,7 @@ def main():
         subprocess.run([locus, "submit", "--scheduler", f"127.0.0.1:{port}", scene,
                         "--workers", str(a.workers), "--fetch", a.fetch, "--cost", a.cost,
                         "--partitioner", a.partitioner,
+                        "--shared-percent", str(a.shared_percent),
                         "-o", farm_exr] + token,
                        check=True, stdout=log, stderr=log, timeout=1800)
     finally:
@@ -240,7 +244,7 @@ def main():
         rows.append((f"w{i}", engine, runtime - setup, render, stats, pool))
         farm += render
     print(f"scene {a.scene} at {a.width}x{a.height}, {a.spp} spp, {a.workers} workers x {a.threads} threads, "
-          f"{a.fetch}, {a.cost} cost, {a.partitioner}")
+          f"{a.fetch}, {a.cost} cost, {a.partitioner}, {a.shared_percent}% shared")
     print(f"one machine's render: {one / 1e6:.1f} M instructions")
     for name, turns, runtime, render, st, pool in rows:
         t = st.get("trace", {})
@@ -253,6 +257,10 @@ def main():
     print(f"forwarded queries: {forwards}")
     per = (farm - one) / max(forwards, 1)
     print(f"instructions per forwarded query beyond one machine: {per:.0f}")
+    tr = report["totals"]["trace"]
+    rays = tr["camera_rays"] + tr["shadow_rays"] + tr["indirect_rays"]
+    print(f"instructions per ray beyond one machine: {(farm - one) / max(rays, 1):.0f} "
+          f"({rays} rays, {forwards / max(rays, 1):.3f} forwarded per ray)")
     busiest = max(r[3] for r in rows)
     print(f"busiest worker's render phase over the workers' mean: "
           f"{busiest * len(rows) / max(farm, 1):.3f} ({busiest / 1e6:.1f} M)")
@@ -268,6 +276,7 @@ def main():
             for fn in ENGINE_PARTS:
                 print(f"  {parts[fn] / 1e6:8.1f} M  {fn}")
     json.dump({"one": one, "workers": rows, "forwards": forwards, "per_forward": per,
+               "rays": rays,
                "busiest": busiest,
                "identical": same}, open(os.path.join(out, "forward-cost.json"), "w"), indent=1)
     return 0 if same else 1

@@ -198,10 +198,13 @@ impl Actor {
         }
     }
 
-    /// Hands member `w` (registry id `id`) up to `count` tile passes. What
-    /// a closed pass holds back (a noise target's barrier) is owed and
-    /// handed out when the pass opens; a worker with none left at all is
-    /// told so.
+    /// Hands member `w` (registry id `id`) up to `count` tile passes, and
+    /// at most its share of those left (the rest is owed, and handed out
+    /// as tiles come in): a worker asking far ahead would otherwise hold
+    /// tiles not yet started while another, with none, waits (a small
+    /// image's every tile went to the first to ask). What a closed pass
+    /// holds back (a noise target's barrier) is owed too and handed out
+    /// when the pass opens; a worker with none left at all is told so.
     fn hand_tiles(&mut self, id: u32, w: usize, count: u32) {
         let Some(j) = self.job.as_mut() else { return };
         let a = &mut j.attempt;
@@ -211,7 +214,12 @@ impl Actor {
         let tx = &entry.tx;
         let open = j.film.open_passes();
         let count = count.min(MAX_TILE_REQUEST);
+        let share = a.queue.len().div_ceil(a.members.len().max(1)).max(1);
         for given in 0..count {
+            if given as usize >= share {
+                a.owed[w] = (a.owed[w] + count - given).min(MAX_TILE_REQUEST);
+                break;
+            }
             if let Some(u) = a.queue.next_for(w, open) {
                 let t = j.film.assignment(u, a.run);
                 if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
@@ -245,8 +253,8 @@ impl Actor {
         }
     }
 
-    /// Hands out the tiles owed to members while a pass was closed, once
-    /// the film has opened the next.
+    /// Hands out the tiles owed to members (beyond their share, or while a
+    /// pass was closed), as tiles come in or the film opens the next pass.
     fn serve_owed(&mut self) {
         let Some(j) = self.job.as_mut() else { return };
         let a = &mut j.attempt;
@@ -318,7 +326,7 @@ impl Actor {
             a.advance(Phase::Collecting);
             a.t_rendered = Some(Instant::now());
             self.send_ends();
-        } else if j.film.open_passes() > open {
+        } else if j.film.open_passes() > open || j.attempt.owed.iter().any(|&n| n > 0) {
             self.serve_owed();
         }
     }
