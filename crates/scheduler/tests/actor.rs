@@ -337,6 +337,39 @@ async fn ask(
     tiles
 }
 
+/// Worker `id` asks for tiles and renders each as it comes (every pixel
+/// `value`) until `n` are in: a worker is handed at most its share of the
+/// tiles left at a time, and the rest as tiles come in.
+async fn render_tiles(
+    farm: &Farm,
+    w: &mut mpsc::Receiver<SchedulerToWorker>,
+    id: u32,
+    run: u64,
+    n: usize,
+    value: f32,
+) -> Vec<TileAssignment> {
+    farm.from(
+        id,
+        WorkerToScheduler::NeedTiles {
+            job: run,
+            count: 64,
+        },
+    )
+    .await;
+    let mut tiles = Vec::new();
+    while tiles.len() < n {
+        match recv(w).await {
+            SchedulerToWorker::Tile(t) => {
+                assert_eq!(t.job, run, "a tile handed out under another run");
+                farm.from(id, result(&t, value)).await;
+                tiles.push(t);
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    tiles
+}
+
 async fn report(farm: &Farm, id: u32, run: u64, workers: usize) {
     let stats = Box::new(WorkerStats {
         peers: vec![Default::default(); workers],
@@ -473,11 +506,8 @@ async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
     for id in [1, 2] {
         farm.from(id, WorkerToScheduler::Ready { job: run }).await;
     }
-    let tiles = ask(&farm, &mut w1, 1, run, 64).await;
+    let tiles = render_tiles(&farm, &mut w1, 1, run, 4, 0.25).await;
     assert_eq!(tiles.len(), 4);
-    for t in &tiles {
-        farm.from(1, result(t, 0.25)).await;
-    }
     report(&farm, 1, run, 2).await;
     farm.events
         .send(Event::Left {
@@ -503,15 +533,16 @@ async fn a_member_not_yet_ready_is_told_to_end_once_it_is() {
     let farm = start();
     let (mut w1, mut w2, mut client, run) = shipped_pair(&farm).await;
     farm.from(1, WorkerToScheduler::Ready { job: run }).await;
-    let tiles = ask(&farm, &mut w1, 1, run, 64).await;
+    let tiles = render_tiles(&farm, &mut w1, 1, run, 4, 0.25).await;
     assert_eq!(tiles.len(), 4);
-    for t in &tiles {
-        farm.from(1, result(t, 0.25)).await;
+    // Told that no tile is left (it asked for more), then to end.
+    loop {
+        match recv(&mut w1).await {
+            SchedulerToWorker::NoMoreTiles { .. } => {}
+            SchedulerToWorker::EndJob { job } if job == run => break,
+            other => panic!("unexpected {other:?}"),
+        }
     }
-    assert!(matches!(
-        recv(&mut w1).await,
-        SchedulerToWorker::EndJob { job } if job == run
-    ));
     // The status answer comes after every event sent before it.
     assert_eq!(farm.tiles_done().await, 4);
     match w2.try_recv() {

@@ -216,7 +216,9 @@ impl Actor {
         let count = count.min(MAX_TILE_REQUEST);
         let share = a.queue.len().div_ceil(a.members.len().max(1)).max(1);
         for given in 0..count {
-            if given as usize >= share {
+            // Beyond its share, and only while tiles are left (with none,
+            // the worker is told so below).
+            if given as usize >= share && !a.queue.is_empty() {
                 a.owed[w] = (a.owed[w] + count - given).min(MAX_TILE_REQUEST);
                 break;
             }

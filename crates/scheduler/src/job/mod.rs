@@ -1,7 +1,8 @@
 //! Preparing a job on the scheduler: checking the submitted scene
-//! ([`validate`]), building the octree, predicting leaf costs, partitioning within the workers'
-//! shares and memory budgets, and planning each worker's BVH parts and
-//! memory ([`crate::memory`]).
+//! ([`validate`]), building the octree, predicting leaf costs, choosing
+//! the leaves every worker holds and partitioning the rest within the
+//! workers' shares and memory budgets ([`regions`]), and planning each
+//! worker's BVH parts and memory ([`crate::memory`]).
 
 use crate::{cost, memory};
 use locus_core::geometry::Bounds;
