@@ -506,8 +506,40 @@ async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
     for id in [1, 2] {
         farm.from(id, WorkerToScheduler::Ready { job: run }).await;
     }
-    let tiles = render_tiles(&farm, &mut w1, 1, run, 4, 0.25).await;
-    assert_eq!(tiles.len(), 4);
+    // Asking far ahead, it gets its share of the 4 tiles (the other
+    // worker's half stays), and the rest as it renders them.
+    farm.from(
+        1,
+        WorkerToScheduler::NeedTiles {
+            job: run,
+            count: 64,
+        },
+    )
+    .await;
+    // The status answer comes after the request was handled.
+    farm.tiles_done().await;
+    let mut first = Vec::new();
+    while let Ok(m) = w1.try_recv() {
+        match m {
+            SchedulerToWorker::Tile(t) => first.push(t),
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    assert_eq!(first.len(), 2, "a share of two workers");
+    let mut tiles = Vec::new();
+    for t in first {
+        farm.from(1, result(&t, 0.25)).await;
+        tiles.push(t);
+    }
+    while tiles.len() < 4 {
+        match recv(&mut w1).await {
+            SchedulerToWorker::Tile(t) => {
+                farm.from(1, result(&t, 0.25)).await;
+                tiles.push(t);
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
     report(&farm, 1, run, 2).await;
     farm.events
         .send(Event::Left {
