@@ -105,7 +105,7 @@ pub(crate) struct BenchFarmArgs {
     /// Percents of the scene every worker holds beside its region: each
     /// is measured under `forward` with region growing, the first under
     /// everything else.
-    #[arg(long, num_args = 1.., default_values_t = [10u32])]
+    #[arg(long, num_args = 1.., default_values_t = [Tuning::default().shared_percent])]
     pub(crate) shared_percent: Vec<u32>,
     /// Leave out the Morton baseline's `forward` rows (to compare two
     /// builds of a change in less time).
@@ -294,7 +294,7 @@ pub(crate) struct FarmArgs {
     /// Percent of the scene's triangles every worker holds beside its
     /// region when rays are forwarded: the leaves rays cross most per
     /// triangle, into which no ray is then forwarded (0: regions only).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = Tuning::default().shared_percent)]
     pub(crate) shared_percent: u32,
 }
 

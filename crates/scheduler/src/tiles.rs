@@ -149,12 +149,6 @@ impl TileQueue {
         q.pop_front()
     }
 
-    /// Whether any tile pass is left that worker `w` could be given:
-    /// any at all, since a worker with none of its own takes others'.
-    pub fn has_for(&self, _w: usize) -> bool {
-        !self.is_empty()
-    }
-
     /// Returns a unit `next_for` gave that could not be handed out (its
     /// worker's channel was full): it goes first to whichever worker asks
     /// next. It was of the earliest pass waiting, so the shared queue stays
@@ -210,7 +204,7 @@ mod tests {
         let aff = [Some(0), Some(0), Some(0), Some(0), Some(2)];
         let order = (0..2).flat_map(|pass| (0..5).map(move |tile| Unit { tile, pass }));
         let mut q = TileQueue::new(order, &aff, 3);
-        assert!(q.has_for(1));
+        assert!(!q.is_empty());
         assert_eq!(tiles(&mut q, 1, 2), [(0, 0), (1, 0)]);
         // Worker 0 has 6 left, worker 2 has 2: worker 2 gets its own.
         assert_eq!(tiles(&mut q, 2, 1), [(4, 0)]);
@@ -218,9 +212,9 @@ mod tests {
         assert_eq!(q.next_for(1, 1), Some(Unit { tile: 2, pass: 0 }));
         assert_eq!(q.next_for(1, 1), Some(Unit { tile: 3, pass: 0 }));
         assert_eq!(q.next_for(1, 1), None);
-        assert!(q.has_for(1));
+        assert!(!q.is_empty());
         assert_eq!(tiles(&mut q, 1, 9).len(), 5);
-        assert!(q.is_empty() && !q.has_for(0));
+        assert!(q.is_empty());
     }
 
     #[test]
@@ -246,12 +240,12 @@ mod tests {
         assert_eq!(q.next_for(1, 1), Some(Unit { tile: 1, pass: 0 }));
         assert_eq!(q.next_for(0, 1), None);
         assert_eq!(q.next_for(1, 1), None);
-        assert!(q.has_for(0) && q.has_for(1), "held back, not gone");
+        assert!(!q.is_empty(), "held back, not gone");
         assert_eq!(q.len(), 2);
         // Opened: the second pass goes out as the first did.
         assert_eq!(tiles(&mut q, 0, 1), [(0, 1)]);
         assert_eq!(tiles(&mut q, 1, 9), [(1, 1)]);
-        assert!(!q.has_for(0) && q.is_empty());
+        assert!(q.is_empty());
     }
 
     #[test]

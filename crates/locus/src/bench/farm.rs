@@ -382,7 +382,11 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             identical: true,
         });
         let mut runs = Vec::new();
-        let first = plan.shared_percent.first().copied().unwrap_or(10);
+        let first = plan
+            .shared_percent
+            .first()
+            .copied()
+            .unwrap_or(locus_protocol::control::Tuning::default().shared_percent);
         match large {
             Some(l) => {
                 for policy in [FetchPolicy::Forward, FetchPolicy::Adaptive] {

@@ -234,10 +234,12 @@ impl Actor {
                     break;
                 }
                 a.t_first_tile.get_or_insert_with(Instant::now);
-            } else if a.queue.has_for(w) {
-                // The next pass is closed until this one is in: the
-                // worker, which does not ask again while its request is
-                // open, gets the rest when it opens.
+            } else if !a.queue.is_empty() {
+                // Tiles are left (any of them this worker's to take, a
+                // worker out of its own taking others'), but the next pass
+                // is closed until this one is in: the worker, which does
+                // not ask again while its request is open, gets the rest
+                // when it opens.
                 a.owed[w] = (a.owed[w] + count - given).min(MAX_TILE_REQUEST);
                 break;
             } else {

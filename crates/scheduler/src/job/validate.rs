@@ -125,7 +125,8 @@ pub fn validate(req: &JobRequest) -> Result<(), String> {
     }
     if o.tuning.shared_percent > 100 {
         return Err(format!(
-            "shared percent {} is above 100",
+            "--shared-percent {} is above 100: give the percent of the scene every worker \
+             holds beside its region, 0 to 100",
             o.tuning.shared_percent
         ));
     }
@@ -169,6 +170,22 @@ mod tests {
             Ok(()),
             "1500 x 400 pixels a tile"
         );
+    }
+
+    /// A share of the scene above the whole of it is refused, naming the
+    /// option; the whole of it is not.
+    #[test]
+    fn a_shared_percent_above_100_is_refused() {
+        let scene = crate::cornell_box();
+        for (p, ok) in [(0, true), (100, true), (101, false)] {
+            let mut o = JobOptions::default();
+            o.tuning.shared_percent = p;
+            let r = validate(&crate::client::request(&scene, o));
+            assert_eq!(r.is_ok(), ok, "{p}: {r:?}");
+            if let Err(e) = r {
+                assert!(e.contains("--shared-percent 101"), "{e}");
+            }
+        }
     }
 
     /// A client's noise target that is not a positive number is refused

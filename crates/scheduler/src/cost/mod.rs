@@ -22,6 +22,8 @@
 //! ([`sampled_in_parts`]): [`FULL_PREVIEW`] for the regions it draws, and,
 //! for `adaptive`, the smaller [`DECISION_PREVIEW`] first, whose crossings
 //! decide by [`buying_pays`] whether every worker gets the whole scene.
+//! Its crossings also pick the leaves every worker holds beside its
+//! region ([`shared`]).
 
 use locus_core::accel::{Accel, BuildQuality, Hit};
 use locus_core::accel_set::{AccelSet, MAX_PARTS, build_parts};
@@ -36,6 +38,9 @@ use locus_core::stats::TraceStats;
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
 use std::collections::HashMap;
 use std::ops::ControlFlow;
+
+mod shared;
+pub use shared::shared_leaves;
 
 /// What the preview traces through: one BVH, or a set built in parts.
 pub trait Geometry: Sync {
@@ -99,32 +104,6 @@ pub struct Preview {
 
 /// Ends a ray's run of leaves in [`Preview::walks`].
 pub const WALK_END: u32 = u32::MAX;
-
-impl Preview {
-    /// The crossings as the preview would have counted them had the
-    /// `shared` leaves (which every worker holds, so that no query is
-    /// forwarded into them) been passed over like the camera's: a ray
-    /// from leaf `a` through shared leaves into leaf `b` crosses from `a`
-    /// into `b`. With none shared, [`Preview::crossings`] to the count.
-    pub fn crossings_beside(&self, shared: &[bool]) -> HashMap<(u32, u32), u32> {
-        let mut out: HashMap<(u32, u32), u32> = HashMap::new();
-        let mut prev: Option<u32> = None;
-        for &l in &self.walks {
-            if l == WALK_END {
-                prev = None;
-                continue;
-            }
-            if shared.get(l as usize).copied().unwrap_or(false) {
-                continue;
-            }
-            match prev.replace(l) {
-                Some(p) if p != l => *out.entry((p, l)).or_default() += 1,
-                _ => {}
-            }
-        }
-        out
-    }
-}
 
 /// What one thread of the preview counts.
 struct Tally {
@@ -526,46 +505,6 @@ fn leafwise(
     (found, first)
 }
 
-/// Leaves worth giving every worker beside its region (beside those
-/// `shared` already), holding at most `most` triangle references in all:
-/// those the preview's paths cross into or out of most often per
-/// triangle they hold. Paper 000's hybrid scheduling in the partition's
-/// terms: a ray is never forwarded into a leaf every worker holds, so the
-/// few triangles that most rays meet (walls, floors, a room's large
-/// surfaces) are traced by whoever holds the ray, demand-driven, and only
-/// the detailed rest is data-parallel. On the room with 2 workers, a
-/// tenth of the triangles shared cut forwarded queries from 0.274 to
-/// 0.070 a ray, on the conference room from 0.241 to 0.048 (see the
-/// README).
-pub fn shared_leaves(
-    refs: &[u64],
-    crossings: &HashMap<(u32, u32), u32>,
-    shared: &[bool],
-    most: u64,
-) -> Vec<u32> {
-    let mut traffic = vec![0u64; refs.len()];
-    for (&(a, b), &c) in crossings {
-        traffic[a as usize] += c as u64;
-        traffic[b as usize] += c as u64;
-    }
-    let mut order: Vec<u32> = (0..refs.len() as u32)
-        .filter(|&l| !shared[l as usize] && traffic[l as usize] > 0)
-        .collect();
-    let score = |l: u32| traffic[l as usize] as f64 / (refs[l as usize] + 16) as f64;
-    order.sort_by(|&a, &b| score(b).total_cmp(&score(a)).then(a.cmp(&b)));
-    let mut used = 0;
-    let mut out = Vec::new();
-    for l in order {
-        let r = refs[l as usize];
-        if used + r > most {
-            continue;
-        }
-        used += r;
-        out.push(l);
-    }
-    out
-}
-
 /// The leaf holding the camera, if the camera is inside the scene: every
 /// camera ray starts in it, so its owner would start every sample (at 8
 /// workers it did 1.4-1.6 times the mean work). The farm gives it to every
@@ -769,82 +708,6 @@ mod tests {
 
     /// Rent or buy for the whole scene: buying pays once the predicted
     /// forwards cost as many bytes as the references every worker lacks.
-    /// The preview's walks count its crossings again: the same to the
-    /// count with nothing shared, and with a leaf shared, none into or out
-    /// of it, every other crossing kept, and the ones through it joined
-    /// up (as many as went into it and on to another leaf).
-    #[test]
-    fn crossings_beside_shared_leaves_join_what_went_through_them() {
-        let scene = crate::cornell_box();
-        let tree = crate::job::octree_for(&scene, 8);
-        let lights = LightSet::build(&scene);
-        let accel = locus_core::render::whole_scene_accel(&scene);
-        let pv = preview(&scene, &tree, &accel, &lights, 4, 3, 7);
-        let n = tree.leaves.len();
-        assert_eq!(pv.crossings_beside(&vec![false; n]), pv.crossings);
-        // The leaf crossed most.
-        let mut through = vec![0u32; n];
-        for (&(a, b), &c) in &pv.crossings {
-            through[a as usize] += c;
-            through[b as usize] += c;
-        }
-        let s = (0..n).max_by_key(|&l| through[l]).expect("leaves");
-        let mut shared = vec![false; n];
-        shared[s] = true;
-        let beside = pv.crossings_beside(&shared);
-        let s = s as u32;
-        assert!(beside.keys().all(|&(a, b)| a != s && b != s));
-        let mut joined = 0;
-        for (&(a, b), &c) in &beside {
-            let before = pv.crossings.get(&(a, b)).copied().unwrap_or(0);
-            assert!(c >= before, "{a} -> {b}: {c} against {before}");
-            joined += c - before;
-        }
-        assert!(joined > 0, "no crossing went through leaf {s}");
-        let into: u32 = pv
-            .crossings
-            .iter()
-            .filter(|((_, b), _)| *b == s)
-            .map(|(_, c)| c)
-            .sum();
-        assert!(joined <= into);
-    }
-
-    /// Leaves are shared by crossings per triangle, best first, as many
-    /// as fit in `most` references; none already shared is picked again.
-    #[test]
-    fn shared_leaves_are_the_most_crossed_per_triangle_that_fit() {
-        let refs = [10, 1000, 10, 0, 50, 4];
-        let crossings: HashMap<(u32, u32), u32> = [
-            ((0, 1), 100),
-            ((1, 2), 100),
-            ((2, 4), 5),
-            ((0, 2), 50),
-            ((5, 1), 1),
-        ]
-        .into();
-        // Crossings per (triangle + 16): leaf 2 155/26, leaf 0 150/26,
-        // leaf 1 201/1016, leaf 4 5/66, leaf 5 1/20; leaf 3 is crossed by none.
-        let none = [false; 6];
-        assert_eq!(shared_leaves(&refs, &crossings, &none, 20), vec![2, 0]);
-        // Leaves 1 and 4 do not fit beside leaves 2 and 0; leaf 5, smaller
-        // and crossed less, still does.
-        assert_eq!(shared_leaves(&refs, &crossings, &none, 25), vec![2, 0, 5]);
-        assert_eq!(shared_leaves(&refs, &crossings, &none, 15), vec![2, 5]);
-        assert_eq!(shared_leaves(&refs, &crossings, &none, 9), vec![5]);
-        assert_eq!(
-            shared_leaves(&refs, &crossings, &none, 3),
-            Vec::<u32>::new()
-        );
-        let mut shared = none;
-        shared[2] = true;
-        assert_eq!(shared_leaves(&refs, &crossings, &shared, 15), vec![0, 5]);
-        assert_eq!(
-            shared_leaves(&refs, &crossings, &none, 2000),
-            vec![2, 0, 1, 4, 5]
-        );
-    }
-
     #[test]
     fn buying_pays_when_the_rays_would_cost_more_than_the_geometry() {
         // Leaves 0, 1 on worker 0 and leaf 2 on worker 1; only the border
