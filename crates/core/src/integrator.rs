@@ -39,8 +39,8 @@ pub const DIMS_PER_VERTEX: u32 = 5;
 /// Russian roulette starts at the fifth surface vertex (Mitsuba 3's
 /// `rr_depth`): ending paths earlier, at the third, threw away most of the
 /// light that bounces around a white room (1.27 times the variance a
-/// sample leaves in the Cornell box; see the README's error-per-second
-/// table), while the short paths it saves are cheap.
+/// sample leaves in the Cornell box; see `docs/benchmarks/quality.md`,
+/// its roulette table), while the short paths it saves are cheap.
 pub const RR_START_VERTEX: u32 = 5;
 /// The continuation probability is the throughput's largest channel
 /// (survivors carry throughput 1), capped so that bright paths still end.

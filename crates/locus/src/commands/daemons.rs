@@ -30,7 +30,7 @@ pub(crate) fn cmd_scheduler(a: SchedulerArgs) -> Result<()> {
     // (the scene, its octree, the preview's BVHs) frees a few hundred
     // megabytes: with glibc's moving threshold much of it stayed resident
     // (84-120 MiB after jobs on the room at 160x120, 17-23 MiB with this;
-    // see the README).
+    // see `docs/benchmarks/farm-history.md`, stop 56).
     locus_worker::sys::tune_allocator();
     runtime()?.block_on(async {
         let s = Scheduler::bind(SchedulerConfig {

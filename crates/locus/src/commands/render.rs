@@ -75,7 +75,8 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         return cmd_render_farm(a);
     }
     // One machine, no memory budget: its BVH build reuses the blocks its
-    // scratch frees (see the README's "Build scratch kept for reuse").
+    // scratch frees (see "Build scratch kept for reuse" in
+    // `docs/benchmarks/loading.md`).
     locus_worker::sys::reuse_freed_memory();
     super::limit_threads(a.threads);
     let t = Instant::now();

@@ -3,7 +3,7 @@
 //! child's subtree in slot order). It runs on one thread: emitting
 //! subtrees at once into buffers of their own and appending them took
 //! a build 32 bytes a triangle more at its peak, beyond what the memory
-//! plans charge (see the README).
+//! plans charge (see `docs/benchmarks/loading.md`).
 
 use super::{Decisions, Kind, Tree};
 use glam::{UVec3, Vec3A};
