@@ -347,7 +347,7 @@ async fn render_tiles(
     run: u64,
     n: usize,
     value: f32,
-) -> Vec<TileAssignment> {
+) {
     farm.from(
         id,
         WorkerToScheduler::NeedTiles {
@@ -356,18 +356,30 @@ async fn render_tiles(
         },
     )
     .await;
-    let mut tiles = Vec::new();
-    while tiles.len() < n {
+    render_handed(farm, w, id, run, 0, n, value).await
+}
+
+/// Worker `id`, with `done` tiles rendered already, renders each tile it
+/// is handed as it comes (every pixel `value`) until `n` are in.
+async fn render_handed(
+    farm: &Farm,
+    w: &mut mpsc::Receiver<SchedulerToWorker>,
+    id: u32,
+    run: u64,
+    mut done: usize,
+    n: usize,
+    value: f32,
+) {
+    while done < n {
         match recv(w).await {
             SchedulerToWorker::Tile(t) => {
                 assert_eq!(t.job, run, "a tile handed out under another run");
                 farm.from(id, result(&t, value)).await;
-                tiles.push(t);
+                done += 1;
             }
             other => panic!("unexpected {other:?}"),
         }
     }
-    tiles
 }
 
 async fn report(farm: &Farm, id: u32, run: u64, workers: usize) {
@@ -526,20 +538,10 @@ async fn a_worker_lost_after_the_last_tile_leaves_the_image_whole() {
         }
     }
     assert_eq!(first.len(), 2, "a share of two workers");
-    let mut tiles = Vec::new();
-    for t in first {
-        farm.from(1, result(&t, 0.25)).await;
-        tiles.push(t);
+    for t in &first {
+        farm.from(1, result(t, 0.25)).await;
     }
-    while tiles.len() < 4 {
-        match recv(&mut w1).await {
-            SchedulerToWorker::Tile(t) => {
-                farm.from(1, result(&t, 0.25)).await;
-                tiles.push(t);
-            }
-            other => panic!("unexpected {other:?}"),
-        }
-    }
+    render_handed(&farm, &mut w1, 1, run, first.len(), 4, 0.25).await;
     report(&farm, 1, run, 2).await;
     farm.events
         .send(Event::Left {
@@ -565,8 +567,7 @@ async fn a_member_not_yet_ready_is_told_to_end_once_it_is() {
     let farm = start();
     let (mut w1, mut w2, mut client, run) = shipped_pair(&farm).await;
     farm.from(1, WorkerToScheduler::Ready { job: run }).await;
-    let tiles = render_tiles(&farm, &mut w1, 1, run, 4, 0.25).await;
-    assert_eq!(tiles.len(), 4);
+    render_tiles(&farm, &mut w1, 1, run, 4, 0.25).await;
     // Told that no tile is left (it asked for more), then to end.
     loop {
         match recv(&mut w1).await {

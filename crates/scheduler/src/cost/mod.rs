@@ -553,6 +553,30 @@ mod tests {
     use locus_core::geometry::TRIANGLE_BYTES;
     use std::sync::atomic::{AtomicU64, Ordering};
 
+    /// The Cornell box, its octree for `workers` and lights, and their
+    /// preview (image divided by `div`, 3 bounces, seed 7) on one BVH over
+    /// the scene: what the preview's tests start from.
+    pub(super) struct Cornell {
+        pub scene: Scene,
+        pub tree: Octree,
+        pub lights: LightSet,
+        pub pv: Preview,
+    }
+
+    pub(super) fn cornell_preview(workers: usize, div: u32) -> Cornell {
+        let scene = crate::cornell_box();
+        let tree = crate::job::octree_for(&scene, workers);
+        let lights = LightSet::build(&scene);
+        let accel = locus_core::render::whole_scene_accel(&scene);
+        let pv = preview(&scene, &tree, &accel, &lights, div, 3, 7);
+        Cornell {
+            scene,
+            tree,
+            lights,
+            pv,
+        }
+    }
+
     /// The scene's BVH with its work left uncounted, and its hits counted:
     /// what the preview then charges is the work that is not tracing.
     struct Untraced(Accel, AtomicU64);
@@ -625,11 +649,12 @@ mod tests {
     /// same preview with the BVH's work left uncounted charges the rest.
     #[test]
     fn the_preview_counts_its_bvh_steps() {
-        let scene = crate::cornell_box();
-        let tree = crate::job::octree_for(&scene, 4);
-        let lights = LightSet::build(&scene);
-        let accel = locus_core::render::whole_scene_accel(&scene);
-        let traced = preview(&scene, &tree, &accel, &lights, 16, 3, 7);
+        let Cornell {
+            scene,
+            tree,
+            lights,
+            pv: traced,
+        } = cornell_preview(4, 16);
         let g = Untraced(
             locus_core::render::whole_scene_accel(&scene),
             AtomicU64::new(0),
@@ -678,13 +703,14 @@ mod tests {
     /// could take (a ray that meets none).
     #[test]
     fn crossings_skip_empty_leaves() {
-        let scene = crate::cornell_box();
-        let tree = crate::job::octree_for(&scene, 8);
+        let Cornell {
+            scene,
+            tree,
+            lights,
+            pv,
+        } = cornell_preview(8, 8);
         let empty: Vec<bool> = tree.leaves.iter().map(|l| l.tris.is_empty()).collect();
         assert!(empty.iter().any(|&e| e), "the test needs empty leaves");
-        let lights = LightSet::build(&scene);
-        let accel = locus_core::render::whole_scene_accel(&scene);
-        let pv = preview(&scene, &tree, &accel, &lights, 8, 3, 7);
         assert!(!pv.crossings.is_empty());
         for &(a, b) in pv.crossings.keys() {
             assert!(!empty[a as usize] && !empty[b as usize], "{a} -> {b}");

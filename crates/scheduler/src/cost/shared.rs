@@ -83,9 +83,8 @@ pub fn shared_leaves(
 
 #[cfg(test)]
 mod tests {
-    use super::super::preview;
+    use super::super::tests::{Cornell, cornell_preview};
     use super::*;
-    use locus_core::light::LightSet;
 
     /// The preview's walks count its crossings again: the same to the
     /// count with nothing shared, and with a leaf shared, none into or out
@@ -93,11 +92,7 @@ mod tests {
     /// up (as many as went into it and on to another leaf).
     #[test]
     fn crossings_beside_shared_leaves_join_what_went_through_them() {
-        let scene = crate::cornell_box();
-        let tree = crate::job::octree_for(&scene, 8);
-        let lights = LightSet::build(&scene);
-        let accel = locus_core::render::whole_scene_accel(&scene);
-        let pv = preview(&scene, &tree, &accel, &lights, 4, 3, 7);
+        let Cornell { tree, pv, .. } = cornell_preview(8, 4);
         let n = tree.leaves.len();
         assert_eq!(pv.crossings_beside(&vec![false; n]), pv.crossings);
         // The leaf crossed most.
