@@ -281,6 +281,32 @@ impl Accel {
             + size_of_val(self.by_id.as_slice())
     }
 
+    /// Whether this BVH was built over exactly `set`: the same triangle
+    /// ids, vertices, materials and shading normals, bit for bit. A worker
+    /// that is handed a BVH another built (the embedded farm's workers
+    /// share one, see `locus_worker::builds`) checks it with this rather
+    /// than trusting that equal keys mean equal triangles. False for a set
+    /// whose ids do not ascend (no shipped region's).
+    pub fn holds_exactly(&self, set: &TriangleSet) -> bool {
+        let same = |a: &[Vec3; 3], b: &[Vec3; 3]| {
+            a.iter()
+                .zip(b)
+                .all(|(a, b)| a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits))
+        };
+        // `by_id` lists one position per triangle by ascending id, so the
+        // set's k-th triangle is at `by_id[k]`.
+        set.is_consistent()
+            && set.ids.is_sorted_by(|a, b| a < b)
+            && set.len() == self.by_id.len()
+            && self.by_id.iter().enumerate().all(|(k, &p)| {
+                let (p, m) = (p as usize, self.meta[p as usize]);
+                m.id == set.ids[k]
+                    && m.material == set.material[k]
+                    && same(&self.verts[p], &set.verts[k])
+                    && same(&self.shading(p as u32), &set.normals_of(k))
+            })
+    }
+
     /// The triangle at BVH position `prim`: vertices and material.
     #[inline(always)]
     pub fn triangle(&self, prim: u32) -> ([Vec3; 3], u32) {
@@ -629,6 +655,47 @@ mod tests {
                 assert_eq!(accel.find(id + 1), None);
             }
             assert_eq!(accel.find(0), None);
+        }
+    }
+
+    /// A BVH holds exactly the set it was built from, split triangles and
+    /// shading normals included, and not a set that differs in one id,
+    /// one vertex bit, one material or one normal, or lacks a triangle.
+    #[test]
+    fn a_bvh_holds_exactly_its_own_set() {
+        let verts = soup(300, 20);
+        let n = verts.len();
+        let set = TriangleSet {
+            ids: (0..n as u32).map(|i| 2 * i + 5).collect(),
+            verts,
+            material: (0..n as u32).map(|i| i % 4).collect(),
+            normals: (0..n).map(|i| [Vec3::Z * (i % 3) as f32; 3]).collect(),
+        };
+        let accel = Accel::from_set(set.clone(), 20.0);
+        assert!(
+            accel.boxes() > accel.len(),
+            "nothing split: pieces untested"
+        );
+        assert!(accel.holds_exactly(&set));
+        let changed: [fn(&mut TriangleSet); 5] = [
+            |s| s.ids[7] += 1,
+            |s| {
+                let y = &mut s.verts[100][1].y;
+                *y = f32::from_bits(y.to_bits() ^ 1);
+            },
+            |s| s.material[0] ^= 1,
+            |s| s.normals[200][2].x = 1e-30,
+            |s| {
+                s.ids.pop();
+                s.verts.pop();
+                s.material.pop();
+                s.normals.pop();
+            },
+        ];
+        for (i, change) in changed.iter().enumerate() {
+            let mut other = set.clone();
+            change(&mut other);
+            assert!(!accel.holds_exactly(&other), "change {i} not noticed");
         }
     }
 

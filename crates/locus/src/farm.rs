@@ -12,9 +12,11 @@ use locus_protocol::handshake::Credentials;
 use locus_protocol::submit::{JobRequest, JobResult};
 use locus_protocol::tls::{Tls, TlsFiles};
 use locus_scheduler::{Scheduler, SchedulerConfig, SchedulerHandle, client};
+use locus_worker::builds::SharedBuilds;
 use locus_worker::{Worker, WorkerConfig};
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::Arc;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
@@ -178,6 +180,9 @@ impl LocalFarm {
                 children,
             });
         }
+        // The workers build a part they all hold (every part, when the job
+        // replicates the scene) once, on all their threads.
+        let builds = Arc::new(SharedBuilds::new(workers * threads_per_worker.max(1))?);
         for i in 0..workers {
             let w = Worker::bind(WorkerConfig {
                 scheduler: addr.to_string(),
@@ -189,6 +194,7 @@ impl LocalFarm {
                 memory_budget: spec.memory_budget,
                 name: format!("embedded-{i}"),
                 dedicated: false,
+                builds: Some(builds.clone()),
             })
             .await?;
             tasks.push(tokio::spawn(w.run(shutdown.clone())));

@@ -128,6 +128,12 @@ pub(crate) fn write_farm_result(
             f.shared_leaves, f.shared_refs, f.triangles
         );
     }
+    if f.totals.shared_parts > 0 {
+        println!(
+            "  BVH parts built once for this process's workers: {} taken from another worker's build",
+            f.totals.shared_parts
+        );
+    }
     let t = &f.totals;
     let c = t.trace.cache;
     if c.local + c.global + c.lookups > 0 {

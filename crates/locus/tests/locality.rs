@@ -57,6 +57,14 @@ fn fetch_policies_keep_the_farm_bit_identical() {
                         for w in &r.report.workers {
                             assert!(w.stats.triangles >= scene.tris.len() as u64);
                         }
+                        // The embedded farm's workers share one build of
+                        // the scene: all but the first take it (each may,
+                        // if the job before left it held a moment longer).
+                        let shared = t.shared_parts as usize;
+                        assert!(
+                            (workers - 1..=workers).contains(&shared),
+                            "{fetch:?}: {shared} of {workers} workers took a shared build"
+                        );
                     } else {
                         assert!(t.fetched_leaves > 0, "{fetch:?} fetched nothing");
                     }

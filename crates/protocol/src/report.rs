@@ -41,6 +41,10 @@ pub struct WorkerStats {
     pub triangles: u64,
     pub leaves: u32,
     pub bvh_build_s: f64,
+    /// Of the worker's BVH parts, those another worker of its process
+    /// built for the same triangles (the embedded farm's workers share
+    /// them): this worker's `bvh_build_s` was then spent waiting.
+    pub shared_parts: u32,
     /// Directional caches held at the end of the job.
     pub cache_memory: CacheMemory,
     /// Remote leaves this worker asked for (merged requests count once).
@@ -106,6 +110,7 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.triangles += o.triangles;
         self.leaves += o.leaves;
         self.bvh_build_s = self.bvh_build_s.max(o.bvh_build_s);
+        self.shared_parts += o.shared_parts;
         let (a, b) = (&mut self.cache_memory, &o.cache_memory);
         a.leaves_with_cache += b.leaves_with_cache;
         a.nodes += b.nodes;

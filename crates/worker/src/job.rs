@@ -2,6 +2,7 @@
 //! building the region's BVH part by part as the parts arrive, linking to
 //! every peer, and starting the [`crate::engine`] on its own thread.
 
+use crate::builds::{Origin, SharedBuilds};
 use crate::engine::{self, EngineError, EngineJob, Event, Links};
 use crate::peers::{self, Inbox, JobLink, OnBreak, Traffic};
 use crate::sys;
@@ -43,6 +44,12 @@ pub struct Building {
     /// The worker's tracing pool (None for a worker of one thread): idle
     /// while the region arrives, it builds the region's BVHs.
     pub pool: Option<Arc<rayon::ThreadPool>>,
+    /// Parts built once for every worker of this process, which then
+    /// build on its threads instead (the embedded farm; see
+    /// [`crate::builds`]).
+    builds: Option<Arc<SharedBuilds>>,
+    /// Parts another worker of this process built.
+    pub shared_parts: u32,
 }
 
 impl Building {
@@ -51,6 +58,7 @@ impl Building {
         setup: Box<JobSetup>,
         dedicated: bool,
         pool: Option<Arc<rayon::ThreadPool>>,
+        builds: Option<Arc<SharedBuilds>>,
     ) -> anyhow::Result<Self> {
         check_setup(&setup)?;
         if dedicated {
@@ -69,6 +77,8 @@ impl Building {
             bvh_s: 0.0,
             cpu0: if dedicated { sys::process_cpu_s() } else { 0.0 },
             pool,
+            builds,
+            shared_parts: 0,
         })
     }
 
@@ -143,19 +153,29 @@ impl Building {
             return Ok(());
         }
         let (mag, t) = (s.magnitude, Instant::now());
-        let pool = self.pool.clone();
-        let part = tokio::task::spawn_blocking(move || {
-            let p = build_region_part(chunk, leaves, mag, pool.as_deref());
+        let (pool, builds) = (self.pool.clone(), self.builds.clone());
+        let (part, origin) = tokio::task::spawn_blocking(move || {
+            let built = match builds {
+                Some(b) => b.part(chunk, leaves, mag),
+                None => (
+                    build_region_part(chunk, leaves, mag, pool.as_deref()),
+                    Origin::Built,
+                ),
+            };
             sys::trim_heap();
-            p
+            built
         })
         .await?;
         self.bvh_s += t.elapsed().as_secs_f64();
+        if origin == Origin::Shared {
+            self.shared_parts += 1;
+        }
         tracing::debug!(
             job = s.job,
             part = self.parts.len(),
             triangles = part.accel.len(),
             bytes = part.accel.bytes(),
+            shared = origin == Origin::Shared,
             resident = sys::resident_bytes().unwrap_or(0),
             peak = sys::peak_resident_bytes().unwrap_or(0),
             "region part built"
@@ -242,6 +262,8 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         cpu0,
         received,
         pool: _,
+        builds: _,
+        shared_parts,
         // Built with the last part.
         pending: _,
     } = b;
@@ -315,6 +337,7 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         let msg = match res {
             Ok(Ok(mut stats)) => {
                 stats.bvh_build_s = bvh_s;
+                stats.shared_parts = shared_parts;
                 if dedicated {
                     stats.cpu_s = sys::process_cpu_s() - cpu0;
                     stats.setup_cpu_s = setup_cpu;
@@ -484,7 +507,7 @@ mod tests {
         let shipped = [part(0..15), part(10..20), part(20..30)];
         let n: u64 = shipped.iter().map(|s| s.len() as u64).sum();
         for budget in [0u64, 1 << 30] {
-            let mut b = Building::new(setup(&tris, n, budget), false, None).unwrap();
+            let mut b = Building::new(setup(&tris, n, budget), false, None, None).unwrap();
             for (k, s) in shipped.iter().enumerate() {
                 b.add_part(vec![k as u32], s.clone(), k == 2).await.unwrap();
             }
@@ -501,7 +524,7 @@ mod tests {
             }
         }
         // Parts whose leaves go back are refused.
-        let mut b = Building::new(setup(&tris, n, 0), false, None).unwrap();
+        let mut b = Building::new(setup(&tris, n, 0), false, None, None).unwrap();
         b.add_part(vec![1], shipped[0].clone(), false)
             .await
             .unwrap();

@@ -10,10 +10,13 @@
 //! Rays never pass through the scheduler. What a worker can trace is its
 //! [`reach`]: its own region plus, under a fetch policy ([`fetch`]), leaves
 //! fetched from their owners and merged into its BVH parts. [`radiosity`]
-//! is the radiosity job's node and its in-process farm. [`sys`] reads
+//! is the radiosity job's node and its in-process farm. [`builds`] lets the
+//! workers of one process (the embedded farm) build a part they all hold
+//! once, on all their threads. [`sys`] reads
 //! the CPU time and peak memory that reports give. Shutdown is by a
 //! cancellation token every task selects on.
 
+pub mod builds;
 pub mod engine;
 pub mod fetch;
 pub mod job;
@@ -61,6 +64,9 @@ pub struct WorkerConfig {
     /// Whether the worker has its process to itself (a daemon): then its
     /// reports give the process's peak memory and CPU time.
     pub dedicated: bool,
+    /// BVH parts shared with the other workers of this process (the
+    /// embedded farm's; see [`builds`]); None for a daemon.
+    pub builds: Option<Arc<builds::SharedBuilds>>,
 }
 
 /// A worker with its peer listener bound.
@@ -278,7 +284,12 @@ impl Session<'_> {
                 if !jobs.admits(job) {
                     return debug!(job, "the start of a run aborted before it came; dropped");
                 }
-                match Building::new(s, self.cfg.dedicated, self.pool.clone()) {
+                match Building::new(
+                    s,
+                    self.cfg.dedicated,
+                    self.pool.clone(),
+                    self.cfg.builds.clone(),
+                ) {
                     Ok(b) => jobs.building = Some(b),
                     Err(e) => fail(ctl_tx, job, e).await,
                 }

@@ -84,6 +84,7 @@ pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
             .or_else(locus_worker::sys::hostname)
             .unwrap_or_else(|| format!("worker-{}", std::process::id())),
         dedicated: true,
+        builds: None,
     };
     if wc.memory_budget > 0 {
         locus_worker::sys::tune_allocator();
