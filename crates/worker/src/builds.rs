@@ -222,8 +222,11 @@ mod tests {
         assert!(got.iter().all(|(p, _)| Arc::ptr_eq(p, &got[0].0)));
         assert!(got[0].0.accel.holds_exactly(&set(2000, 0.0)));
         drop(got);
-        let (_, o) = builds.part(set(2000, 0.0), vec![1, 2], 10.0);
+        let (again, o) = builds.part(set(2000, 0.0), vec![1, 2], 10.0);
         assert_eq!(o, Origin::Built, "nobody held the part: built again");
+        drop(again);
+        // A part of other leaves: the one nobody holds is forgotten.
+        let (_other, _) = builds.part(set(2000, 0.0), vec![3], 10.0);
         assert_eq!(builds.tracked(), 1, "dropped parts are forgotten");
     }
 
