@@ -28,6 +28,7 @@ use std::ops::ControlFlow;
 mod build;
 mod convert;
 mod cwnode;
+mod layout;
 mod leaf;
 mod pages;
 mod split;
@@ -36,6 +37,7 @@ mod walk;
 use leaf::{LeafTest, Prims};
 
 pub use build::{BUILD_BYTES_PER_TRIANGLE, BuildQuality};
+pub use layout::{Layout, ids_hash};
 
 /// A closest hit: global triangle id plus distance and barycentrics.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -178,33 +180,38 @@ impl Accel {
 
     /// [`Self::from_set`] at the quality asked for.
     pub fn from_set_with(set: TriangleSet, magnitude: f32, quality: BuildQuality) -> Self {
-        assert!(set.is_consistent(), "one vertex triple and material per id");
-        let pad = Vec3A::splat(magnitude * crate::geometry::SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
-        let mut bounds = Bounds::EMPTY;
-        let (mut boxes, of_box) = build::boxes(&set.verts, quality);
-        // Padded after the split: the clipped corners are rounded in f32,
-        // and the pad covers that as it covers a grazing ray's box test.
-        for b in &mut boxes {
-            b.min -= pad;
-            b.max += pad;
-            bounds.grow(b.min.into());
-            bounds.grow(b.max.into());
-        }
-        let mut bvh = if boxes.is_empty() {
-            CwBvh::default()
-        } else {
-            build::cwbvh(&boxes, quality)
+        let layout = Layout::build(&set, magnitude, quality);
+        Self::assemble(set, layout)
+    }
+
+    /// The BVH over `set` whose shape another built ([`Layout::build`] of
+    /// the same triangles), once [`Layout::check`] has shown it safe to
+    /// walk: the same BVH the set's own build gives, for the cost of
+    /// gathering the triangles into its order.
+    pub fn from_layout(set: TriangleSet, layout: Layout) -> Result<Self, String> {
+        layout.check(&set)?;
+        Ok(Self::assemble(set, layout))
+    }
+
+    /// The triangles of `set` stored in the order of the layout's boxes,
+    /// with its nodes.
+    fn assemble(set: TriangleSet, layout: Layout) -> Self {
+        let Layout {
+            nodes,
+            order,
+            bounds,
+            splits,
+            ..
+        } = layout;
+        // The primitive index list is not needed: the triangles are
+        // stored in the boxes' order (a split one at each of its boxes).
+        let bvh = CwBvh {
+            nodes: pages::copied(nodes),
+            primitive_indices: Vec::new(),
+            total_aabb: obvhs::aabb::Aabb::new(bounds.min.into(), bounds.max.into()),
+            exact_node_aabbs: None,
+            uses_spatial_splits: splits,
         };
-        drop(boxes);
-        // Traversal reports positions in the primitive order, and the
-        // triangles are stored in that order (a split one at each of its
-        // boxes): the index list is not needed past this point.
-        let order: Vec<u32> = std::mem::take(&mut bvh.primitive_indices)
-            .into_iter()
-            .map(|p| of_box[p as usize])
-            .collect();
-        bvh.exact_node_aabbs = None;
-        bvh.nodes = pages::copied(std::mem::take(&mut bvh.nodes));
         let verts = pages::collect(order.len(), order.iter().map(|&p| set.verts[p as usize]));
         let meta: Vec<PrimMeta> = pages::collect(
             order.len(),

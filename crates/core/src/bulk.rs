@@ -24,6 +24,8 @@ pub trait Words: bytemuck::Pod {}
 
 impl Words for u32 {}
 impl Words for [Vec3; 3] {}
+// A BVH node as it travels (`accel::Layout`).
+impl Words for [u32; 20] {}
 
 // Both are whole 32-bit words, aligned as words: `cast_slice` to and from
 // `u32` below cannot fail for them.

@@ -41,6 +41,7 @@ fn main() {
         memory_budget: 1 << 30,
         resident: 1 << 20,
         name: "w".into(),
+        layouts: true,
     }))
     .unwrap());
     put(postcard::to_allocvec(&Opening::Attach { job: 4 }).unwrap());

@@ -47,6 +47,10 @@ pub struct FarmSpec {
     pub http: Option<String>,
     /// TLS on every link of the farm (None: plain TCP on loopback).
     pub tls: Option<TlsFiles>,
+    /// Whether workers in this process build a BVH they all hold once,
+    /// for all of them ([`SharedBuilds`]). Without, each takes the
+    /// scheduler's layout of a replicated region as a daemon does.
+    pub shared_builds: bool,
 }
 
 impl FarmSpec {
@@ -59,6 +63,7 @@ impl FarmSpec {
             processes: None,
             http: None,
             tls: None,
+            shared_builds: true,
         }
     }
 }
@@ -182,7 +187,12 @@ impl LocalFarm {
         }
         // The workers build a part they all hold (every part, when the job
         // replicates the scene) once, on all their threads.
-        let builds = Arc::new(SharedBuilds::new(workers * threads_per_worker.max(1))?);
+        let builds = match spec.shared_builds {
+            true => Some(Arc::new(SharedBuilds::new(
+                workers * threads_per_worker.max(1),
+            )?)),
+            false => None,
+        };
         for i in 0..workers {
             let w = Worker::bind(WorkerConfig {
                 scheduler: addr.to_string(),
@@ -194,7 +204,7 @@ impl LocalFarm {
                 memory_budget: spec.memory_budget,
                 name: format!("embedded-{i}"),
                 dedicated: false,
-                builds: Some(builds.clone()),
+                builds: builds.clone(),
             })
             .await?;
             tasks.push(tokio::spawn(w.run(shutdown.clone())));

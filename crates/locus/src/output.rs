@@ -95,8 +95,12 @@ pub(crate) fn write_farm_result(
     // Every fixed cost, so that none hides in the total: the preview can
     // take longer than the partition it feeds by a factor of twenty.
     let ph = &f.phases;
+    let layout = match ph.layout_s > 0.0 {
+        true => format!(", layout at the scheduler {:.3}s", ph.layout_s),
+        false => String::new(),
+    };
     println!(
-        "  load {:.3}s  octree {:.3}s  preview {:.3}s  partition {:.3}s  distribution {:.3}s (bvh {:.3}s)  render {:.3}s  total {:.3}s  {:.0} samples/s",
+        "  load {:.3}s  octree {:.3}s  preview {:.3}s  partition {:.3}s  distribution {:.3}s (bvh {:.3}s{layout})  render {:.3}s  total {:.3}s  {:.0} samples/s",
         ph.load_s,
         ph.octree_s,
         ph.preview_s,
@@ -132,6 +136,12 @@ pub(crate) fn write_farm_result(
         println!(
             "  BVH parts built once for this process's workers: {} taken from another worker's build",
             f.totals.shared_parts
+        );
+    }
+    if f.totals.shipped_layouts > 0 {
+        println!(
+            "  BVH laid out once by the scheduler: {} workers took its layout rather than building",
+            f.totals.shipped_layouts
         );
     }
     let t = &f.totals;

@@ -22,8 +22,14 @@ fn fetch_policies_keep_the_farm_bit_identical() {
     let scene = small_cornell();
     let want = single_machine(&scene);
     runtime().block_on(async {
-        for workers in [2usize, 4] {
-            let farm = locus::farm::LocalFarm::start(workers, 1).await.expect("farm");
+        // With the embedded farm's one build for all its workers, and
+        // without it, as worker daemons build.
+        for (workers, shared_builds) in [(2usize, true), (4, true), (3, false)] {
+            let spec = locus::farm::FarmSpec {
+                shared_builds,
+                ..locus::farm::FarmSpec::embedded(workers, 1)
+            };
+            let farm = locus::farm::LocalFarm::launch(&spec).await.expect("farm");
             for fetch in [FetchPolicy::Fetch, FetchPolicy::Hybrid, FetchPolicy::Adaptive] {
                 for budget in [64u64 << 20, 8 << 10] {
                     let opts = JobOptions {
@@ -60,11 +66,17 @@ fn fetch_policies_keep_the_farm_bit_identical() {
                         // The embedded farm's workers share one build of
                         // the scene: all but the first take it (each may,
                         // if the job before left it held a moment longer).
-                        let shared = t.shared_parts as usize;
-                        assert!(
-                            (workers - 1..=workers).contains(&shared),
-                            "{fetch:?}: {shared} of {workers} workers took a shared build"
-                        );
+                        // Workers that build alone take the scheduler's
+                        // layout instead, every one of them.
+                        let (shared, laid) = (t.shared_parts as usize, t.shipped_layouts as usize);
+                        if shared_builds {
+                            assert!(
+                                (workers - 1..=workers).contains(&shared) && laid == 0,
+                                "{fetch:?}: {shared} of {workers} workers took a shared build, {laid} a layout"
+                            );
+                        } else {
+                            assert_eq!((shared, laid), (0, workers), "{fetch:?}: shared, layouts");
+                        }
                     } else {
                         assert!(t.fetched_leaves > 0, "{fetch:?} fetched nothing");
                     }

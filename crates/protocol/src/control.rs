@@ -54,6 +54,10 @@ pub struct Registration {
     /// unknown): what the budget must hold besides any job.
     pub resident: u64,
     pub name: String,
+    /// Whether it takes a BVH layout of a replicated region built by the
+    /// scheduler ([`SchedulerToWorker::Layout`]). The
+    /// embedded farm's workers do not: they build once for the process.
+    pub layouts: bool,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -105,6 +109,15 @@ pub enum SchedulerToWorker {
         leaves: Vec<u32>,
         chunk: TriangleSet,
         last: bool,
+    },
+    /// After the last part, where the job's setup announced it
+    /// ([`JobSetup::layout`]): the BVH over the whole region, built once by
+    /// the scheduler for every worker that holds it. The worker checks it
+    /// against its triangles and stores them in its order instead of
+    /// building; `None` (the scheduler's build failed) and it builds.
+    Layout {
+        job: u64,
+        layout: Option<Box<locus_core::accel::Layout>>,
     },
     Tile(TileAssignment),
     NoMoreTiles {
@@ -218,6 +231,11 @@ pub struct JobSetup {
     /// Whether the scene's triangles carry shading normals (they ship and
     /// are held with them).
     pub normals: bool,
+    /// Whether a [`SchedulerToWorker::Layout`] follows the last part: the
+    /// region is the whole scene, the same for several workers, and the
+    /// scheduler builds its BVH once for them all (only for a worker that
+    /// takes layouts and builds its region as one BVH).
+    pub layout: bool,
 }
 
 /// How a worker keeps to its memory budget in one job, as the scheduler

@@ -45,6 +45,10 @@ pub struct WorkerStats {
     /// built for the same triangles (the embedded farm's workers share
     /// them): this worker's `bvh_build_s` was then spent waiting.
     pub shared_parts: u32,
+    /// Of the worker's BVH parts, those whose layout the scheduler built
+    /// once for every worker of a replicated job: this worker's
+    /// `bvh_build_s` was spent checking it and gathering its triangles.
+    pub shipped_layouts: u32,
     /// Directional caches held at the end of the job.
     pub cache_memory: CacheMemory,
     /// Remote leaves this worker asked for (merged requests count once).
@@ -111,6 +115,7 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
         self.leaves += o.leaves;
         self.bvh_build_s = self.bvh_build_s.max(o.bvh_build_s);
         self.shared_parts += o.shared_parts;
+        self.shipped_layouts += o.shipped_layouts;
         let (a, b) = (&mut self.cache_memory, &o.cache_memory);
         a.leaves_with_cache += b.leaves_with_cache;
         a.nodes += b.nodes;
@@ -169,6 +174,10 @@ pub struct Phases {
     pub distribution_s: f64,
     /// The slowest worker's region BVH build (part of distribution).
     pub bvh_s: f64,
+    /// The scheduler's build of a replicated region's BVH layout, once for
+    /// the workers that take it (part of distribution, beside the
+    /// shipping; 0 without one).
+    pub layout_s: f64,
     /// From the first tile handed out until the last tile is in.
     pub render_s: f64,
     /// From the submission until the result is sent.

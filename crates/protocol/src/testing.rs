@@ -86,5 +86,6 @@ pub fn job_setup(tris: &[[Vec3; 3]], workers: u16) -> JobSetup {
             cache_nodes: 0,
         },
         normals: false,
+        layout: false,
     }
 }

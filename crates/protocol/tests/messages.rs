@@ -109,6 +109,7 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
         },
         region_triangles: n as u64,
         normals: seed.is_multiple_of(2),
+        layout: seed.is_multiple_of(3),
         ..base
     }
 }
@@ -172,10 +173,13 @@ proptest! {
         let t = tris(n, seed);
         let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n], normals: normals(n, seed) };
         let tile = TileAssignment { job: seed, tile: count, pass: workers as u32 % 8, samples: [count / 2, count], x0: 0, y0: 0, x1: 4, y1: 3 };
+        let layout = locus_core::accel::Layout::build(&chunk, 10.0, locus_core::accel::BuildQuality::Full);
         for m in [
             SchedulerToWorker::Welcome { worker: count, heartbeat_ms: count / 3 },
             SchedulerToWorker::StartJob(Box::new(s)),
             SchedulerToWorker::Geometry { job: seed, leaves: vec![1, 2, count], chunk, last: count % 2 == 0 },
+            SchedulerToWorker::Layout { job: seed, layout: Some(Box::new(layout)) },
+            SchedulerToWorker::Layout { job: seed, layout: None },
             SchedulerToWorker::Tile(tile),
             SchedulerToWorker::NoMoreTiles { job: seed },
             SchedulerToWorker::EndJob { job: seed },
@@ -195,7 +199,7 @@ proptest! {
         ] {
             roundtrip(&m);
         }
-        roundtrip(&Opening::Register(Registration { listen: reason.clone(), cores: count, memory_budget: seed, resident: seed / 3, name: reason.clone() }));
+        roundtrip(&Opening::Register(Registration { listen: reason.clone(), cores: count, memory_budget: seed, resident: seed / 3, name: reason.clone(), layouts: count % 2 == 0 }));
     }
 
     #[test]

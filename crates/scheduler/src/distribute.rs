@@ -3,14 +3,37 @@
 //! a time, each part's triangles cut from the scene as it is sent, so
 //! neither side ever holds a second copy of a whole region. The irradiance
 //! cache's known overture levels follow the region.
+//!
+//! When several workers are shipped the same whole region (a job that
+//! replicates the scene) and would each build one BVH over it, the
+//! scheduler builds that BVH once, while the parts are on their way, and
+//! sends its layout after the last part ([`shared_layout`]): each worker
+//! then checks it and gathers its triangles into its order instead of
+//! building the same BVH again.
 
 use crate::job::{PartRun, Prepared};
 use crate::overture::{Overture, send_levels};
+use locus_core::accel::{BuildQuality, Layout};
+use locus_core::scene::Scene;
 use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
 use locus_protocol::overture::IrradianceSetup;
 use locus_protocol::submit::JobRequest;
 use std::sync::Arc;
-use tokio::sync::mpsc;
+use std::time::Instant;
+use tokio::sync::{mpsc, watch};
+use tracing::{info, warn};
+
+/// A layout being built: `None` until it is done, then the layout, or
+/// nothing when the build failed (the workers then build their own).
+type Pending = watch::Receiver<Option<Option<Arc<Layout>>>>;
+
+/// One worker as the shipment sees it: its listen address, its control
+/// channel, and whether it takes layouts (`Registration::layouts`).
+pub struct Member {
+    pub listen: String,
+    pub tx: mpsc::Sender<SchedulerToWorker>,
+    pub layouts: bool,
+}
 
 /// Starts one task per worker (a slow link does not hold the others)
 /// that sends the setup and the parts. `txs[w]` is worker `w`'s listen
@@ -19,13 +42,19 @@ pub fn ship(
     id: u64,
     req: &JobRequest,
     prep: &mut Prepared,
-    txs: Vec<(String, mpsc::Sender<SchedulerToWorker>)>,
+    members: Vec<Member>,
     overture: Option<&Overture>,
 ) {
-    let peers: Vec<String> = txs.iter().map(|(a, _)| a.clone()).collect();
+    let peers: Vec<String> = members.iter().map(|m| m.listen.clone()).collect();
+    let takers: Vec<bool> = members.iter().map(|m| m.layouts).collect();
+    let layout = shared_layout(id, prep, &takers);
     let mut own_leaves = std::mem::take(&mut prep.own_leaves);
-    for (w, (_, tx)) in txs.into_iter().enumerate() {
+    for (w, Member { tx, .. }) in members.into_iter().enumerate() {
         let own = std::mem::take(&mut own_leaves[w]);
+        let layout = layout
+            .as_ref()
+            .filter(|(ws, _)| ws.contains(&w))
+            .map(|(_, p)| p.clone());
         // Each part: its leaves, and their triangles once each.
         let runs = std::mem::take(&mut prep.parts[w]);
         let setup = JobSetup {
@@ -60,6 +89,7 @@ pub fn ship(
             leaf_tris: prep.leaf_tris.clone(),
             region_triangles: prep.region_triangles[w],
             normals: !prep.scene.tri_normals.is_empty(),
+            layout: layout.is_some(),
         };
         let scene = prep.scene.clone();
         // The overture's known levels follow the geometry.
@@ -99,7 +129,86 @@ pub fn ship(
                 })
                 .await?;
             }
+            if let Some(mut pending) = layout {
+                // The build task sends before it ends; a runtime shutting
+                // down drops it unsent, and the worker builds its own.
+                let layout = pending
+                    .wait_for(Option::is_some)
+                    .await
+                    .ok()
+                    .and_then(|l| l.clone().flatten());
+                tx.send(SchedulerToWorker::Layout {
+                    job: id,
+                    layout: layout.map(|l| Box::new((*l).clone())),
+                })
+                .await?;
+            }
             send_levels(&tx, id, 0, &known, &sent).await
         });
     }
+}
+
+/// Starts building, off the runtime, the one BVH layout that the workers
+/// shipped the same whole region would each build: those that hold the
+/// scene replicated, build their region as one BVH (no memory budget) and
+/// take layouts. Returns them and the layout to come, or None where fewer
+/// than two would share it (one worker builds as fast as the scheduler).
+fn shared_layout(job: u64, prep: &Prepared, takers: &[bool]) -> Option<(Vec<usize>, Pending)> {
+    if !prep.replicated {
+        return None;
+    }
+    let runs = |w: usize| -> Vec<*const Vec<u32>> {
+        prep.parts[w].iter().map(|r| Arc::as_ptr(&r.ids)).collect()
+    };
+    let eligible = |w: usize| takers[w] && prep.plans[w].budget == 0 && !prep.parts[w].is_empty();
+    let first = (0..takers.len()).find(|&w| eligible(w))?;
+    // Workers shipped the same parts share their lists (`PartRun`).
+    let same: Vec<usize> = (0..takers.len())
+        .filter(|&w| eligible(w) && runs(w) == runs(first))
+        .collect();
+    if same.len() < 2 {
+        return None;
+    }
+    let ids: Vec<Arc<Vec<u32>>> = prep.parts[first].iter().map(|r| r.ids.clone()).collect();
+    let scene = prep.scene.clone();
+    let (tx, rx) = watch::channel(None);
+    let (workers, spent) = (same.len(), prep.layout_s.clone());
+    tokio::task::spawn_blocking(move || {
+        let t = Instant::now();
+        let built = std::panic::catch_unwind(move || lay_out(&scene, &ids));
+        let seconds = t.elapsed().as_secs_f64();
+        spent.store(seconds.to_bits(), std::sync::atomic::Ordering::Relaxed);
+        let layout = match built {
+            Ok(l) => {
+                info!(
+                    job,
+                    workers,
+                    nodes = l.nodes(),
+                    bytes = l.bytes(),
+                    seconds,
+                    "region BVH laid out once for the workers that replicate it"
+                );
+                Some(Arc::new(l))
+            }
+            Err(_) => {
+                warn!(
+                    job,
+                    "laying out the replicated region's BVH failed; each worker builds its own"
+                );
+                None
+            }
+        };
+        let _ = tx.send(Some(layout));
+    });
+    Some((same, rx))
+}
+
+/// The layout of the BVH a worker builds over the parts `ids`: over their
+/// triangles merged as the worker merges them (ascending ids, each once).
+fn lay_out(scene: &Scene, ids: &[Arc<Vec<u32>>]) -> Layout {
+    let mut all: Vec<u32> = ids.iter().flat_map(|l| l.iter().copied()).collect();
+    all.sort_unstable();
+    all.dedup();
+    let set = TriangleSet::gather(all, &scene.tris, &scene.tri_material, &scene.tri_normals);
+    Layout::build(&set, scene.magnitude(), BuildQuality::Full)
 }

@@ -87,6 +87,7 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
             partition_s: t.partition_s,
             distribution_s: ready.saturating_duration_since(prepared).as_secs_f64(),
             bvh_s: stats.iter().map(|s| s.bvh_build_s).fold(0.0, f64::max),
+            layout_s: f64::from_bits(prep.layout_s.load(std::sync::atomic::Ordering::Relaxed)),
             render_s,
             total_s: j.started.elapsed().as_secs_f64(),
         },

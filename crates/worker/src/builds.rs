@@ -66,6 +66,9 @@ pub enum Origin {
     Built,
     /// Built by another worker of the process, for the same triangles.
     Shared,
+    /// Laid out by the scheduler, once for every worker of the job
+    /// (`locus_core::accel::Layout`).
+    Shipped,
 }
 
 impl SharedBuilds {

@@ -7,7 +7,7 @@ use crate::engine::{self, EngineError, EngineJob, Event, Links};
 use crate::peers::{self, Inbox, JobLink, OnBreak, Traffic};
 use crate::sys;
 use anyhow::{Context, bail};
-use locus_core::accel::Accel;
+use locus_core::accel::{Accel, Layout};
 use locus_core::accel_set::Part;
 use locus_core::irradiance::IrradianceCache;
 use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
@@ -50,6 +50,10 @@ pub struct Building {
     builds: Option<Arc<SharedBuilds>>,
     /// Parts another worker of this process built.
     pub shared_parts: u32,
+    /// Parts whose BVH layout the scheduler built and shipped.
+    pub shipped_layouts: u32,
+    /// Whether the last part has come.
+    shipped_all: bool,
 }
 
 impl Building {
@@ -79,6 +83,8 @@ impl Building {
             pool,
             builds,
             shared_parts: 0,
+            shipped_layouts: 0,
+            shipped_all: false,
         })
     }
 
@@ -92,13 +98,19 @@ impl Building {
     /// one per part. On the country kitchen (1,443,486 triangles, three
     /// parts) `fetch` on 2 workers rendered at 0.69 of one machine's speed
     /// with three parts a worker.
+    /// Returns whether the region is complete: after the last part, or
+    /// after the layout that follows it where the setup announced one
+    /// ([`Building::add_layout`]).
     pub async fn add_part(
         &mut self,
         leaves: Vec<u32>,
         chunk: TriangleSet,
         last: bool,
-    ) -> anyhow::Result<()> {
+    ) -> anyhow::Result<bool> {
         let s = &self.setup;
+        if self.shipped_all {
+            bail!("a region part after the last");
+        }
         if !chunk.is_consistent() {
             bail!("a region part's lists differ in length");
         }
@@ -148,34 +160,67 @@ impl Building {
             }
             None => (leaves, chunk),
         };
-        if !last && s.plan.budget == 0 {
+        self.shipped_all = last;
+        // Held for the next part, or for the layout the setup announced.
+        if (!last && s.plan.budget == 0) || (last && s.layout) {
             self.pending = Some((leaves, chunk));
-            return Ok(());
+            return Ok(false);
         }
+        self.build(leaves, chunk, None).await?;
+        Ok(last)
+    }
+
+    /// The scheduler's layout of the whole region, after its last part
+    /// ([`JobSetup::layout`]); `None` when the scheduler could not build
+    /// it, and this worker builds. Completes the region.
+    pub async fn add_layout(&mut self, layout: Option<Layout>) -> anyhow::Result<()> {
+        if !self.setup.layout || !self.shipped_all {
+            bail!("a BVH layout the job did not announce, or before the region's last part");
+        }
+        let Some((leaves, chunk)) = self.pending.take() else {
+            bail!("a second BVH layout for the region");
+        };
+        self.build(leaves, chunk, layout).await
+    }
+
+    /// Builds one BVH part, or takes it from `layout` (checked against the
+    /// triangles here) or from another worker of the process.
+    async fn build(
+        &mut self,
+        leaves: Vec<u32>,
+        chunk: TriangleSet,
+        layout: Option<Layout>,
+    ) -> anyhow::Result<()> {
+        let s = &self.setup;
         let (mag, t) = (s.magnitude, Instant::now());
         let (pool, builds) = (self.pool.clone(), self.builds.clone());
         let (part, origin) = tokio::task::spawn_blocking(move || {
-            let built = match builds {
-                Some(b) => b.part(chunk, leaves, mag),
-                None => (
+            let built = match (layout, builds) {
+                (Some(l), _) => Accel::from_layout(chunk, l)
+                    .map(|a| (Arc::new(Part::new(a, leaves)), Origin::Shipped))
+                    .map_err(|e| anyhow::anyhow!("the scheduler's BVH layout: {e}")),
+                (None, Some(b)) => Ok(b.part(chunk, leaves, mag)),
+                (None, None) => Ok((
                     build_region_part(chunk, leaves, mag, pool.as_deref()),
                     Origin::Built,
-                ),
+                )),
             };
             sys::trim_heap();
             built
         })
-        .await?;
+        .await??;
         self.bvh_s += t.elapsed().as_secs_f64();
-        if origin == Origin::Shared {
-            self.shared_parts += 1;
+        match origin {
+            Origin::Shared => self.shared_parts += 1,
+            Origin::Shipped => self.shipped_layouts += 1,
+            Origin::Built => {}
         }
         tracing::debug!(
             job = s.job,
             part = self.parts.len(),
             triangles = part.accel.len(),
             bytes = part.accel.bytes(),
-            shared = origin == Origin::Shared,
+            origin = ?origin,
             resident = sys::resident_bytes().unwrap_or(0),
             peak = sys::peak_resident_bytes().unwrap_or(0),
             "region part built"
@@ -196,6 +241,9 @@ fn check_setup(s: &JobSetup) -> anyhow::Result<()> {
             .any(|(l, _)| s.map.owner.get(*l as usize) != Some(&s.me))
     {
         bail!("the list of own leaves is not ascending or names a leaf of another worker");
+    }
+    if s.layout && s.plan.budget != 0 {
+        bail!("a BVH layout announced for a region built in parts");
     }
     if s.leaf_tris.len() != s.map.owner.len() {
         bail!("one triangle count per leaf expected");
@@ -264,6 +312,8 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
         pool: _,
         builds: _,
         shared_parts,
+        shipped_layouts,
+        shipped_all: _,
         // Built with the last part.
         pending: _,
     } = b;
@@ -338,6 +388,7 @@ pub async fn start(b: Building, env: Env) -> anyhow::Result<Arc<JobLink>> {
             Ok(Ok(mut stats)) => {
                 stats.bvh_build_s = bvh_s;
                 stats.shared_parts = shared_parts;
+                stats.shipped_layouts = shipped_layouts;
                 if dedicated {
                     stats.cpu_s = sys::process_cpu_s() - cpu0;
                     stats.setup_cpu_s = setup_cpu;

@@ -196,6 +196,8 @@ impl Session<'_> {
                 0
             },
             name: self.cfg.name.clone(),
+            // Workers that build once for their process do without.
+            layouts: self.cfg.builds.is_none(),
         }))
         .await?;
         let welcome = tokio::time::timeout(
@@ -268,6 +270,31 @@ impl Session<'_> {
         }
     }
 
+    /// The job being built has its whole region: links to the peers and
+    /// starts its engine. Linking may wait on a peer that is stopped, so it
+    /// runs as a task, and the link to the scheduler is served meanwhile
+    /// (an abort must get through).
+    fn region_in(&self, jobs: &mut Jobs, ctl_tx: &flume::Sender<WorkerToScheduler>, job: u64) {
+        let Some(b) = jobs.building.take() else {
+            return;
+        };
+        let cancel = CancellationToken::new();
+        let env = self.env(ctl_tx, cancel.clone());
+        let levels = b.levels.as_ref().map(|(tx, _)| tx.clone());
+        let room = b
+            .setup
+            .irradiance
+            .as_ref()
+            .map_or(0, |i| i.params.max_records);
+        jobs.starting = Some(Starting {
+            job,
+            cancel,
+            levels,
+            room,
+            task: tokio::spawn(job::start(b, env)),
+        });
+    }
+
     /// One message from the scheduler.
     async fn handle(
         &self,
@@ -306,31 +333,28 @@ impl Session<'_> {
                     }
                     return;
                 };
-                if let Err(e) = b.add_part(leaves, chunk, last).await {
-                    jobs.building = None;
-                    fail(ctl_tx, job, e).await;
-                    return;
+                match b.add_part(leaves, chunk, last).await {
+                    Ok(true) => self.region_in(jobs, ctl_tx, job),
+                    Ok(false) => {}
+                    Err(e) => {
+                        jobs.building = None;
+                        fail(ctl_tx, job, e).await;
+                    }
                 }
-                if last {
-                    // Linking to the peers may wait on one that is stopped:
-                    // it runs as a task, and the link to the scheduler is
-                    // served meanwhile (an abort must get through).
-                    let b = jobs.building.take().expect("checked above");
-                    let cancel = CancellationToken::new();
-                    let env = self.env(ctl_tx, cancel.clone());
-                    let levels = b.levels.as_ref().map(|(tx, _)| tx.clone());
-                    let room = b
-                        .setup
-                        .irradiance
-                        .as_ref()
-                        .map_or(0, |i| i.params.max_records);
-                    jobs.starting = Some(Starting {
-                        job,
-                        cancel,
-                        levels,
-                        room,
-                        task: tokio::spawn(job::start(b, env)),
-                    });
+            }
+            SchedulerToWorker::Layout { job, layout } => {
+                let Some(b) = jobs.building.as_mut().filter(|b| b.setup.job == job) else {
+                    if jobs.admits(job) {
+                        warn!(job, "a BVH layout for a job not started here; ignored");
+                    }
+                    return;
+                };
+                match b.add_layout(layout.map(|l| *l)).await {
+                    Ok(()) => self.region_in(jobs, ctl_tx, job),
+                    Err(e) => {
+                        jobs.building = None;
+                        fail(ctl_tx, job, e).await;
+                    }
                 }
             }
             SchedulerToWorker::StartNode(s) => {

@@ -492,6 +492,7 @@ fn spec(plan: &Plan, workers: usize, budget: u64) -> FarmSpec {
         processes: Some(plan.exe.clone()),
         http: None,
         tls: None,
+        shared_builds: false,
     }
 }
 

@@ -103,15 +103,19 @@ impl Actor {
             seconds = prep.timings.total_s,
             "partitioned"
         );
-        let txs: Vec<_> = a
+        let members: Vec<_> = a
             .members
             .iter()
             .map(|m| {
                 let w = &self.workers[m];
-                (w.reg.listen.clone(), w.tx.clone())
+                distribute::Member {
+                    listen: w.reg.listen.clone(),
+                    tx: w.tx.clone(),
+                    layouts: w.reg.layouts,
+                }
             })
             .collect();
-        distribute::ship(run, &j.req, &mut prep, txs, j.overture.as_ref());
+        distribute::ship(run, &j.req, &mut prep, members, j.overture.as_ref());
         a.prep = Some(prep);
     }
 

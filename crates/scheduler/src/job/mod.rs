@@ -60,6 +60,10 @@ pub struct Prepared {
     pub preview_rays: u64,
     pub leaves: u32,
     pub timings: PrepTimings,
+    /// Seconds the scheduler spent building a replicated region's BVH
+    /// layout (f64 bits; 0 without one), written by the build's task
+    /// ([`crate::distribute`]).
+    pub layout_s: Arc<std::sync::atomic::AtomicU64>,
 }
 
 /// One BVH part as a worker is shipped it: a run of leaves, and the
@@ -395,6 +399,7 @@ pub fn prepare(
         plans,
         lights,
         scene,
+        layout_s: Default::default(),
         timings: PrepTimings {
             total_s: t.elapsed().as_secs_f64(),
             octree_s,
