@@ -582,4 +582,69 @@ mod tests {
         let e = b.add_part(vec![0], shipped[1].clone(), true).await;
         assert!(e.unwrap_err().to_string().contains("out of order"));
     }
+
+    /// A region whose setup announces a layout is held after its last
+    /// part until the layout comes, and is then that layout's BVH over
+    /// the merged parts, as large as the worker's own build; `None` (the
+    /// scheduler's build failed) and it builds its own. A layout of other
+    /// triangles fails with the reason, and one not announced, a second
+    /// one, or a part after the last, is refused.
+    #[tokio::test]
+    async fn an_announced_layout_is_checked_and_taken() {
+        let tris: Vec<[Vec3; 3]> = (0..40)
+            .map(|i| {
+                let p = Vec3::new(i as f32 * 0.2 - 4.0, (i % 3) as f32, (i % 4) as f32 * 0.7);
+                [p, p + Vec3::X, p + Vec3::Z]
+            })
+            .collect();
+        let part = |ids: std::ops::Range<u32>| {
+            let mut s = TriangleSet::with_capacity(ids.len());
+            for id in ids {
+                s.push(id, tris[id as usize], 0, FLAT);
+            }
+            s
+        };
+        let shipped = [part(0..25), part(20..40)];
+        let whole = part(0..40);
+        let n = 45;
+        let mag = setup(&tris, n, 0).magnitude;
+        let layout = Layout::build(&whole, mag, locus_core::accel::BuildQuality::Full);
+        let own = Accel::from_set(whole.clone(), mag);
+        let announced = |layout| {
+            let mut s = setup(&tris, n, 0);
+            s.layout = layout;
+            Building::new(s, false, None, None).unwrap()
+        };
+        for given in [Some(layout.clone()), None] {
+            let mut b = announced(true);
+            assert!(
+                !b.add_part(vec![0], shipped[0].clone(), false)
+                    .await
+                    .unwrap()
+            );
+            assert!(!b.add_part(vec![1], shipped[1].clone(), true).await.unwrap());
+            assert!(b.parts.is_empty(), "built before the layout came");
+            let e = b.add_part(vec![2], part(0..1), true).await.unwrap_err();
+            assert!(e.to_string().contains("after the last"), "{e}");
+            let took = given.is_some();
+            b.add_layout(given).await.unwrap();
+            assert_eq!(b.parts.len(), 1);
+            assert_eq!((b.shipped_layouts, took), (took as u32, took));
+            assert!(b.parts[0].accel.holds_exactly(&whole));
+            assert_eq!(b.parts[0].accel.bytes(), own.bytes());
+            let e = b.add_layout(Some(layout.clone())).await.unwrap_err();
+            assert!(e.to_string().contains("second"), "{e}");
+        }
+        // A layout over other triangles.
+        let other = Layout::build(&part(0..39), mag, locus_core::accel::BuildQuality::Full);
+        let mut b = announced(true);
+        b.add_part(vec![0], whole.clone(), true).await.unwrap();
+        let e = b.add_layout(Some(other)).await.unwrap_err();
+        assert!(e.to_string().contains("other triangles"), "{e}");
+        // A layout the setup did not announce.
+        let mut b = announced(false);
+        assert!(b.add_part(vec![0], whole.clone(), true).await.unwrap());
+        let e = b.add_layout(Some(layout)).await.unwrap_err();
+        assert!(e.to_string().contains("did not announce"), "{e}");
+    }
 }
