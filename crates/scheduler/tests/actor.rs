@@ -3,140 +3,19 @@
 //! `SchedulerToClient`, and every event goes in as the connection tasks
 //! would send it.
 
-use locus_core::accel::{Accel, Layout};
-use locus_core::geometry::TriangleSet;
-use locus_core::scene::Scene;
-use locus_protocol::control::{
-    Registration, SchedulerToWorker, TileAssignment, TileResult, WorkerToScheduler,
-};
+use locus_protocol::control::{SchedulerToWorker, TileAssignment, TileResult, WorkerToScheduler};
 use locus_protocol::report::WorkerStats;
-use locus_protocol::submit::{FetchPolicy, JobOptions, JobRequest, SchedulerToClient};
+use locus_protocol::submit::SchedulerToClient;
 use locus_scheduler::actor::{Actor, Event, MAX_FAILED_ATTEMPTS, WORKER_WAIT};
 use locus_scheduler::metrics::Metrics;
-use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::mpsc;
 use tokio::time::timeout;
 use tokio_util::sync::CancellationToken;
 
-struct Farm {
-    events: mpsc::Sender<Event>,
-    metrics: Arc<Metrics>,
-    shutdown: CancellationToken,
-}
-
-fn start() -> Farm {
-    let (tx, rx) = mpsc::channel(64);
-    let metrics = Arc::new(Metrics::new());
-    let shutdown = CancellationToken::new();
-    tokio::spawn(Actor::new(4, tx.clone(), metrics.clone()).run(rx, shutdown.clone()));
-    Farm {
-        events: tx,
-        metrics,
-        shutdown,
-    }
-}
-
-impl Farm {
-    async fn worker(&self, id: u32) -> mpsc::Receiver<SchedulerToWorker> {
-        self.worker_with_room(id, 1024).await
-    }
-
-    /// A worker whose control channel holds `room` messages.
-    async fn worker_with_room(&self, id: u32, room: usize) -> mpsc::Receiver<SchedulerToWorker> {
-        self.worker_as(id, room, false).await
-    }
-
-    /// A worker that takes BVH layouts (`layouts`) or not.
-    async fn worker_as(
-        &self,
-        id: u32,
-        room: usize,
-        layouts: bool,
-    ) -> mpsc::Receiver<SchedulerToWorker> {
-        let (tx, rx) = mpsc::channel(room);
-        let reg = Registration {
-            listen: format!("w{id}:7879"),
-            cores: 1,
-            memory_budget: 0,
-            resident: 0,
-            name: format!("w{id}"),
-            layouts,
-        };
-        let addr = "127.0.0.1:9".parse().unwrap();
-        self.events
-            .send(Event::Joined { id, reg, addr, tx })
-            .await
-            .unwrap();
-        rx
-    }
-
-    async fn submit(&self, workers: u32) -> mpsc::Receiver<SchedulerToClient> {
-        self.submit_request(request(workers, 1, None)).await
-    }
-
-    async fn submit_request(&self, req: JobRequest) -> mpsc::Receiver<SchedulerToClient> {
-        let (tx, rx) = mpsc::channel(64);
-        self.events
-            .send(Event::Submit {
-                req: Box::new(req),
-                client: tx,
-                encoded: None,
-            })
-            .await
-            .unwrap();
-        rx
-    }
-
-    async fn from(&self, id: u32, msg: WorkerToScheduler) {
-        self.events
-            .send(Event::FromWorker { id, msg })
-            .await
-            .unwrap();
-    }
-
-    async fn tiles_done(&self) -> u64 {
-        let (tx, rx) = oneshot::channel();
-        self.events.send(Event::Status(tx)).await.unwrap();
-        rx.await.unwrap().running.map_or(0, |j| j.tile_passes_done)
-    }
-}
-
-/// The Cornell box at 32x32 in four tiles of 16x16, at `spp` with the
-/// noise target `target`, for `workers` workers.
-fn request(workers: u32, spp: u32, target: Option<f64>) -> JobRequest {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let mut scene = Scene::load(&root.join("scenes/cornell-box/cornell.toml")).unwrap();
-    scene.camera.width = 32;
-    scene.camera.height = 32;
-    scene.settings.spp = spp;
-    scene.settings.target_rel_mse = target;
-    let opts = JobOptions {
-        workers,
-        tile_size: 16,
-        ..Default::default()
-    };
-    locus_scheduler::client::request(&scene, opts)
-}
-
-async fn recv<T>(rx: &mut mpsc::Receiver<T>) -> T {
-    timeout(Duration::from_secs(20), rx.recv())
-        .await
-        .expect("a message within 20 s")
-        .expect("channel open")
-}
-
-/// Waits for the job to start (after `Queued`); returns its id.
-async fn accepted(client: &mut mpsc::Receiver<SchedulerToClient>) -> u64 {
-    loop {
-        match recv(client).await {
-            SchedulerToClient::Queued { .. } => {}
-            SchedulerToClient::Accepted { job, .. } => return job,
-            other => panic!("expected the job accepted, got {other:?}"),
-        }
-    }
-}
+mod common;
+use common::*;
 
 /// One worker and a job for it, up to the worker having its region: the
 /// worker's and the client's channels and the job's id.
@@ -801,76 +680,4 @@ async fn a_job_restored_whole_ends_without_a_tile() {
     ));
     farm.shutdown.cancel();
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-/// A worker's shipment of one job: its parts merged as the worker merges
-/// them, whether its setup announced a layout, and the layout if one came
-/// after the last part (the next message).
-async fn shipment(
-    w: &mut mpsc::Receiver<SchedulerToWorker>,
-) -> (TriangleSet, bool, Option<Layout>) {
-    let mut set = TriangleSet::default();
-    let mut announced = None;
-    loop {
-        match recv(w).await {
-            SchedulerToWorker::StartJob(s) => announced = Some(s.layout),
-            SchedulerToWorker::Geometry { chunk, last, .. } => {
-                set = set.merge(chunk);
-                if last {
-                    break;
-                }
-            }
-            SchedulerToWorker::Layout { .. } => panic!("a layout before the last part"),
-            _ => {}
-        }
-    }
-    let announced = announced.expect("the setup before the parts");
-    if !announced {
-        return (set, false, None);
-    }
-    match recv(w).await {
-        SchedulerToWorker::Layout { layout, .. } => (set, true, Some(*layout.expect("built"))),
-        other => panic!("expected the layout after the last part, got {other:?}"),
-    }
-}
-
-/// A job that replicates the scene announces, to the workers that take
-/// layouts, one layout built once, and sends it after their last part; it
-/// fits the triangles they were shipped. A worker that does not take them,
-/// and any job that does not replicate, gets none.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn replicated_regions_come_with_one_layout_for_those_that_take_it() {
-    let farm = start();
-    let mut ws = Vec::new();
-    for (id, takes) in [(1, true), (2, false), (3, true)] {
-        ws.push(farm.worker_as(id, 1024, takes).await);
-    }
-    for fetch in [FetchPolicy::Fetch, FetchPolicy::Forward] {
-        let mut req = request(3, 1, None);
-        req.options.fetch = fetch;
-        let mut client = farm.submit_request(req).await;
-        accepted(&mut client).await;
-        let mut laid = Vec::new();
-        for (k, w) in ws.iter_mut().enumerate() {
-            let (set, announced, layout) = shipment(w).await;
-            let wanted = fetch == FetchPolicy::Fetch && k != 1;
-            assert_eq!(announced, wanted, "{fetch:?}, worker {k}");
-            match layout {
-                Some(l) if wanted => {
-                    assert!(set.len() > 30, "the whole Cornell box");
-                    Accel::from_layout(set, l.clone()).expect("a layout of the shipment");
-                    laid.push(l);
-                }
-                None if !wanted => {}
-                other => panic!("{fetch:?}, worker {k}: layout {}", other.is_some()),
-            }
-        }
-        if fetch == FetchPolicy::Fetch {
-            assert_eq!(laid.len(), 2);
-            assert_eq!(laid[0], laid[1], "one layout for both");
-        }
-        // The client leaves: the job is aborted and the next one starts.
-        drop(client);
-    }
-    farm.shutdown.cancel();
 }

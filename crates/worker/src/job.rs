@@ -535,6 +535,15 @@ mod tests {
         })
     }
 
+    /// The triangles `ids` of `tris` as shipped: ascending, material 0.
+    fn part(tris: &[[Vec3; 3]], ids: std::ops::Range<u32>) -> TriangleSet {
+        let mut s = TriangleSet::with_capacity(ids.len());
+        for id in ids {
+            s.push(id, tris[id as usize], 0, FLAT);
+        }
+        s
+    }
+
     /// Without a budget the parts of a region are kept until the last and
     /// built as one BVH, a triangle shipped in two parts held once; with
     /// one, each part is built as it comes, as the plan sized it.
@@ -548,13 +557,7 @@ mod tests {
             .collect();
         // Three parts over leaves 0, 1 and 2 (as far as the octree has
         // them), triangles 10 to 14 in the first two.
-        let part = |ids: std::ops::Range<u32>| {
-            let mut s = TriangleSet::with_capacity(ids.len());
-            for id in ids {
-                s.push(id, tris[id as usize], 0, FLAT);
-            }
-            s
-        };
+        let part = |ids| part(&tris, ids);
         let shipped = [part(0..15), part(10..20), part(20..30)];
         let n: u64 = shipped.iter().map(|s| s.len() as u64).sum();
         for budget in [0u64, 1 << 30] {
@@ -597,13 +600,7 @@ mod tests {
                 [p, p + Vec3::X, p + Vec3::Z]
             })
             .collect();
-        let part = |ids: std::ops::Range<u32>| {
-            let mut s = TriangleSet::with_capacity(ids.len());
-            for id in ids {
-                s.push(id, tris[id as usize], 0, FLAT);
-            }
-            s
-        };
+        let part = |ids| part(&tris, ids);
         let shipped = [part(0..25), part(20..40)];
         let whole = part(0..40);
         let n = 45;
