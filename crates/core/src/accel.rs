@@ -181,21 +181,22 @@ impl Accel {
     /// [`Self::from_set`] at the quality asked for.
     pub fn from_set_with(set: TriangleSet, magnitude: f32, quality: BuildQuality) -> Self {
         let layout = Layout::build(&set, magnitude, quality);
-        Self::assemble(set, layout)
+        Self::assemble(set, &layout)
     }
 
     /// The BVH over `set` whose shape another built ([`Layout::build`] of
     /// the same triangles), once [`Layout::check`] has shown it safe to
     /// walk: the same BVH the set's own build gives, for the cost of
     /// gathering the triangles into its order.
-    pub fn from_layout(set: TriangleSet, layout: Layout) -> Result<Self, String> {
+    pub fn from_layout(set: TriangleSet, layout: &Layout) -> Result<Self, String> {
         layout.check(&set)?;
         Ok(Self::assemble(set, layout))
     }
 
     /// The triangles of `set` stored in the order of the layout's boxes,
-    /// with its nodes.
-    fn assemble(set: TriangleSet, layout: Layout) -> Self {
+    /// with its nodes (copied: a layout shipped once may serve several
+    /// workers of a process).
+    fn assemble(set: TriangleSet, layout: &Layout) -> Self {
         let Layout {
             nodes,
             order,
@@ -206,11 +207,11 @@ impl Accel {
         // The primitive index list is not needed: the triangles are
         // stored in the boxes' order (a split one at each of its boxes).
         let bvh = CwBvh {
-            nodes: pages::copied(nodes),
+            nodes: pages::collect(nodes.len(), nodes.iter().copied()),
             primitive_indices: Vec::new(),
             total_aabb: obvhs::aabb::Aabb::new(bounds.min.into(), bounds.max.into()),
             exact_node_aabbs: None,
-            uses_spatial_splits: splits,
+            uses_spatial_splits: *splits,
         };
         let verts = pages::collect(order.len(), order.iter().map(|&p| set.verts[p as usize]));
         let meta: Vec<PrimMeta> = pages::collect(
@@ -252,7 +253,7 @@ impl Accel {
             meta,
             normals,
             by_id,
-            bounds,
+            bounds: *bounds,
         }
     }
 

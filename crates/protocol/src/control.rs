@@ -103,21 +103,26 @@ pub enum SchedulerToWorker {
     },
     StartJob(Box<JobSetup>),
     /// One BVH part of the worker's region: the triangles of `leaves`
-    /// (ascending, each triangle once); `last` closes the shipment.
+    /// (ascending, each triangle once); `last` closes the shipment. Workers
+    /// shipped the same part share one `chunk` at the scheduler, which
+    /// each connection encodes as it writes.
     Geometry {
         job: u64,
         leaves: Vec<u32>,
-        chunk: TriangleSet,
+        chunk: std::sync::Arc<TriangleSet>,
         last: bool,
     },
     /// After the last part, where the job's setup announced it
     /// ([`JobSetup::layout`]): the BVH over the whole region, built once by
     /// the scheduler for every worker that holds it. The worker checks it
     /// against its triangles and stores them in its order instead of
-    /// building; `None` (the scheduler's build failed) and it builds.
+    /// building; `None` (the scheduler's build failed) and it builds. One
+    /// layout is shared by every worker's message (`Arc`): the scheduler
+    /// holds it once however many workers take it, and each connection
+    /// encodes it as it writes.
     Layout {
         job: u64,
-        layout: Option<Box<locus_core::accel::Layout>>,
+        layout: Option<std::sync::Arc<locus_core::accel::Layout>>,
     },
     Tile(TileAssignment),
     NoMoreTiles {

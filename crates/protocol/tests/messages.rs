@@ -177,8 +177,8 @@ proptest! {
         for m in [
             SchedulerToWorker::Welcome { worker: count, heartbeat_ms: count / 3 },
             SchedulerToWorker::StartJob(Box::new(s)),
-            SchedulerToWorker::Geometry { job: seed, leaves: vec![1, 2, count], chunk, last: count % 2 == 0 },
-            SchedulerToWorker::Layout { job: seed, layout: Some(Box::new(layout)) },
+            SchedulerToWorker::Geometry { job: seed, leaves: vec![1, 2, count], chunk: std::sync::Arc::new(chunk), last: count % 2 == 0 },
+            SchedulerToWorker::Layout { job: seed, layout: Some(std::sync::Arc::new(layout)) },
             SchedulerToWorker::Layout { job: seed, layout: None },
             SchedulerToWorker::Tile(tile),
             SchedulerToWorker::NoMoreTiles { job: seed },

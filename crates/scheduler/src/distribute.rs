@@ -11,11 +11,12 @@
 //! then checks it and gathers its triangles into its order instead of
 //! building the same BVH again.
 
-use crate::job::{PartRun, Prepared};
+use crate::job::Prepared;
 use crate::overture::{Overture, send_levels};
+use glam::Vec3;
 use locus_core::accel::{BuildQuality, Layout};
 use locus_core::scene::Scene;
-use locus_protocol::control::{JobSetup, SchedulerToWorker, TriangleSet};
+use locus_protocol::control::{JobSetup, SchedulerToWorker};
 use locus_protocol::overture::IrradianceSetup;
 use locus_protocol::submit::JobRequest;
 use std::sync::Arc;
@@ -105,19 +106,20 @@ pub fn ship(
                 let last = SchedulerToWorker::Geometry {
                     job: id,
                     leaves: Vec::new(),
-                    chunk: TriangleSet::default(),
+                    chunk: Default::default(),
                     last: true,
                 };
                 tx.send(last).await?;
                 return send_levels(&tx, id, 0, &known, &sent).await;
             }
-            for (k, PartRun { leaves, ids }) in runs.into_iter().enumerate() {
-                // A part is up to 48 MiB of copying: off the runtime. A
-                // panic there is a bug, and stays one.
+            for (k, run) in runs.into_iter().enumerate() {
+                // A part is up to 48 MiB of copying: off the runtime, and
+                // once for every worker shipped the same run. A panic there
+                // is a bug, and stays one.
                 let scene = scene.clone();
-                let chunk = tokio::task::spawn_blocking(move || {
-                    let ids = Arc::unwrap_or_clone(ids);
-                    TriangleSet::gather(ids, &scene.tris, &scene.tri_material, &scene.tri_normals)
+                let (leaves, chunk) = tokio::task::spawn_blocking(move || {
+                    let chunk = run.gather(&scene);
+                    (run.leaves, chunk)
                 })
                 .await
                 .unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
@@ -137,11 +139,8 @@ pub fn ship(
                     .await
                     .ok()
                     .and_then(|l| l.clone().flatten());
-                tx.send(SchedulerToWorker::Layout {
-                    job: id,
-                    layout: layout.map(|l| Box::new((*l).clone())),
-                })
-                .await?;
+                tx.send(SchedulerToWorker::Layout { job: id, layout })
+                    .await?;
             }
             send_levels(&tx, id, 0, &known, &sent).await
         });
@@ -205,10 +204,17 @@ fn shared_layout(job: u64, prep: &Prepared, takers: &[bool]) -> Option<(Vec<usiz
 
 /// The layout of the BVH a worker builds over the parts `ids`: over their
 /// triangles merged as the worker merges them (ascending ids, each once).
+/// The whole scene (what a replicated job ships) is laid out in place; a
+/// part of it over a copy of its vertices alone.
 fn lay_out(scene: &Scene, ids: &[Arc<Vec<u32>>]) -> Layout {
     let mut all: Vec<u32> = ids.iter().flat_map(|l| l.iter().copied()).collect();
     all.sort_unstable();
     all.dedup();
-    let set = TriangleSet::gather(all, &scene.tris, &scene.tri_material, &scene.tri_normals);
-    Layout::build(&set, scene.magnitude(), BuildQuality::Full)
+    let (mag, quality) = (scene.magnitude(), BuildQuality::Full);
+    // Ascending, distinct and each below the count: all of them, in order.
+    if all.len() == scene.tris.len() {
+        return Layout::build_over(&scene.tris, &all, mag, quality);
+    }
+    let verts: Vec<[Vec3; 3]> = all.iter().map(|&i| scene.tris[i as usize]).collect();
+    Layout::build_over(&verts, &all, mag, quality)
 }

@@ -173,7 +173,7 @@ impl Building {
     /// The scheduler's layout of the whole region, after its last part
     /// ([`JobSetup::layout`]); `None` when the scheduler could not build
     /// it, and this worker builds. Completes the region.
-    pub async fn add_layout(&mut self, layout: Option<Layout>) -> anyhow::Result<()> {
+    pub async fn add_layout(&mut self, layout: Option<Arc<Layout>>) -> anyhow::Result<()> {
         if !self.setup.layout || !self.shipped_all {
             bail!("a BVH layout the job did not announce, or before the region's last part");
         }
@@ -189,14 +189,14 @@ impl Building {
         &mut self,
         leaves: Vec<u32>,
         chunk: TriangleSet,
-        layout: Option<Layout>,
+        layout: Option<Arc<Layout>>,
     ) -> anyhow::Result<()> {
         let s = &self.setup;
         let (mag, t) = (s.magnitude, Instant::now());
         let (pool, builds) = (self.pool.clone(), self.builds.clone());
         let (part, origin) = tokio::task::spawn_blocking(move || {
             let built = match (layout, builds) {
-                (Some(l), _) => Accel::from_layout(chunk, l)
+                (Some(l), _) => Accel::from_layout(chunk, &l)
                     .map(|a| (Arc::new(Part::new(a, leaves)), Origin::Shipped))
                     .map_err(|e| anyhow::anyhow!("the scheduler's BVH layout: {e}")),
                 (None, Some(b)) => Ok(b.part(chunk, leaves, mag)),
@@ -605,7 +605,11 @@ mod tests {
         let whole = part(0..40);
         let n = 45;
         let mag = setup(&tris, n, 0).magnitude;
-        let layout = Layout::build(&whole, mag, locus_core::accel::BuildQuality::Full);
+        let layout = Arc::new(Layout::build(
+            &whole,
+            mag,
+            locus_core::accel::BuildQuality::Full,
+        ));
         let own = Accel::from_set(whole.clone(), mag);
         let announced = |layout| {
             let mut s = setup(&tris, n, 0);
@@ -633,7 +637,11 @@ mod tests {
             assert!(e.to_string().contains("second"), "{e}");
         }
         // A layout over other triangles.
-        let other = Layout::build(&part(0..39), mag, locus_core::accel::BuildQuality::Full);
+        let other = Arc::new(Layout::build(
+            &part(0..39),
+            mag,
+            locus_core::accel::BuildQuality::Full,
+        ));
         let mut b = announced(true);
         b.add_part(vec![0], whole.clone(), true).await.unwrap();
         let e = b.add_layout(Some(other)).await.unwrap_err();

@@ -333,6 +333,9 @@ impl Session<'_> {
                     }
                     return;
                 };
+                // Decoded from the socket, the set is this message's alone:
+                // taken, not copied.
+                let chunk = std::sync::Arc::unwrap_or_clone(chunk);
                 match b.add_part(leaves, chunk, last).await {
                     Ok(true) => self.region_in(jobs, ctl_tx, job),
                     Ok(false) => {}
@@ -349,7 +352,7 @@ impl Session<'_> {
                     }
                     return;
                 };
-                match b.add_layout(layout.map(|l| *l)).await {
+                match b.add_layout(layout).await {
                     Ok(()) => self.region_in(jobs, ctl_tx, job),
                     Err(e) => {
                         jobs.building = None;

@@ -60,9 +60,23 @@ impl Layout {
     /// that a ray grazes at a vertex or an edge.
     pub fn build(set: &TriangleSet, magnitude: f32, quality: BuildQuality) -> Self {
         assert!(set.is_consistent(), "one vertex triple and material per id");
+        Self::build_over(&set.verts, &set.ids, magnitude, quality)
+    }
+
+    /// [`Self::build`] over the set whose triangle `i` is `verts[i]`, with
+    /// global id `ids[i]`: a layout needs no materials or normals, so a
+    /// scheduler laying out the whole scene lays it out in place rather
+    /// than gathering a copy of it.
+    pub fn build_over(
+        verts: &[[Vec3; 3]],
+        ids: &[u32],
+        magnitude: f32,
+        quality: BuildQuality,
+    ) -> Self {
+        assert_eq!(verts.len(), ids.len(), "one vertex triple per id");
         let pad = Vec3A::splat(magnitude * SPAWN_OFFSET_REL + f32::MIN_POSITIVE);
         let mut bounds = Bounds::EMPTY;
-        let (mut boxes, of_box) = build::boxes(&set.verts, quality);
+        let (mut boxes, of_box) = build::boxes(verts, quality);
         // Padded after the split: the clipped corners are rounded in f32,
         // and the pad covers that as it covers a grazing ray's box test.
         for b in &mut boxes {
@@ -84,8 +98,8 @@ impl Layout {
             .map(|p| of_box[p as usize])
             .collect();
         Self {
-            triangles: set.len() as u32,
-            ids_hash: ids_hash(&set.ids),
+            triangles: ids.len() as u32,
+            ids_hash: ids_hash(ids),
             nodes: bvh.nodes,
             order,
             bounds,

@@ -23,16 +23,6 @@ pub(super) fn collect<T>(len: usize, items: impl IntoIterator<Item = T>) -> Vec<
     v
 }
 
-/// `src` copied into memory advised to huge pages (the copy of an array
-/// built elsewhere, whose pages are already written); small arrays are
-/// returned as they are.
-pub(super) fn copied<T: Copy>(src: Vec<T>) -> Vec<T> {
-    if src.len() * size_of::<T>() < HUGE_PAGE {
-        return src;
-    }
-    collect(src.len(), src.iter().copied())
-}
-
 fn advise(ptr: *mut u8, bytes: usize) {
     #[cfg(target_os = "linux")]
     if bytes >= HUGE_PAGE {
@@ -64,7 +54,6 @@ mod tests {
             let src: Vec<u32> = (0..n as u32)
                 .map(|i| i.wrapping_mul(2_654_435_761))
                 .collect();
-            assert_eq!(copied(src.clone()), src);
             assert_eq!(collect(n, src.iter().copied()), src);
         }
     }

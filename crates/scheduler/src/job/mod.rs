@@ -5,7 +5,7 @@
 //! worker's BVH parts and memory ([`crate::memory`]).
 
 use crate::{cost, memory};
-use locus_core::geometry::Bounds;
+use locus_core::geometry::{Bounds, TriangleSet};
 use locus_core::irradiance::overture::{Measured, OvertureStats};
 use locus_core::light::LightSet;
 use locus_core::octree::Octree;
@@ -16,7 +16,7 @@ use locus_protocol::control::MemoryPlan;
 use locus_protocol::submit::{CostModel, FetchPolicy, JobOptions, JobRequest};
 use std::collections::HashMap;
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError, Weak};
 use std::time::Instant;
 
 mod regions;
@@ -70,11 +70,52 @@ pub struct Prepared {
 /// distinct triangles they reference (ascending). Workers shipped the same
 /// leaves in parts of the same size (every worker of a job that replicates
 /// the scene) share one list, computed once while the job is prepared, off
-/// the scheduler's runtime.
-#[derive(Clone, Debug, PartialEq)]
+/// the scheduler's runtime, and its triangles gathered once
+/// ([`PartRun::gather`]).
+#[derive(Clone, Debug)]
 pub struct PartRun {
     pub leaves: Vec<u32>,
     pub ids: Arc<Vec<u32>>,
+    /// The triangles last gathered for this run, while a message to some
+    /// worker still holds them (shared by the run's clones).
+    gathered: Arc<Mutex<Weak<TriangleSet>>>,
+}
+
+impl PartialEq for PartRun {
+    fn eq(&self, other: &Self) -> bool {
+        self.leaves == other.leaves && self.ids == other.ids
+    }
+}
+
+impl PartRun {
+    pub fn new(leaves: Vec<u32>, ids: Vec<u32>) -> Self {
+        Self {
+            leaves,
+            ids: Arc::new(ids),
+            gathered: Default::default(),
+        }
+    }
+
+    /// The run's triangles as they are shipped: gathered from `scene`
+    /// once for every worker the run goes to, while any of their messages
+    /// still holds them, where each worker's shipment gathered its own
+    /// copy (a replicated job's whole scene, once a worker, at the same
+    /// time). A second caller waits for a gather under way. Blocks: call it
+    /// off the runtime.
+    pub fn gather(&self, scene: &Scene) -> Arc<TriangleSet> {
+        let mut slot = self.gathered.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(set) = slot.upgrade() {
+            return set;
+        }
+        let set = Arc::new(TriangleSet::gather(
+            self.ids.to_vec(),
+            &scene.tris,
+            &scene.tri_material,
+            &scene.tri_normals,
+        ));
+        *slot = Arc::downgrade(&set);
+        set
+    }
 }
 
 impl Prepared {
@@ -431,10 +472,10 @@ fn cut_parts(own: &[(u32, Vec<u32>)], max: u64) -> (Vec<PartRun>, u64) {
     for (a, b) in spans {
         let ids = part_triangles(&own[a..b]);
         total += ids.len() as u64;
-        runs.push(PartRun {
-            leaves: own[a..b].iter().map(|(l, _)| *l).collect(),
-            ids: Arc::new(ids),
-        });
+        runs.push(PartRun::new(
+            own[a..b].iter().map(|(l, _)| *l).collect(),
+            ids,
+        ));
     }
     (runs, total)
 }
@@ -603,6 +644,20 @@ mod tests {
                         assert!(Arc::ptr_eq(&a.ids, &b.ids), "worker {w} has its own copy");
                     }
                 }
+            }
+            // Replicas gather a run's triangles once while a message holds
+            // them, and afresh (the same triangles) once none does.
+            if p.replicated {
+                let (a, b) = (&p.parts[1][0], &p.parts[2][0]);
+                let first = a.gather(&scene);
+                assert_eq!(*first.ids, *a.ids);
+                assert_eq!(first.verts[3], scene.tris[a.ids[3] as usize]);
+                let shared = b.gather(&scene);
+                assert!(Arc::ptr_eq(&first, &shared), "gathered twice");
+                let kept = (*first).clone();
+                drop((first, shared));
+                let again = b.gather(&scene);
+                assert_eq!(*again, kept);
             }
         }
     }

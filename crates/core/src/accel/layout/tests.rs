@@ -73,7 +73,7 @@ fn a_shipped_layout_is_the_sets_own_bvh() {
     let shipped: Layout = postcard::from_bytes(&bytes).unwrap();
     assert_eq!(shipped, layout);
     let own = Accel::from_set(set.clone(), 20.0);
-    let taken = Accel::from_layout(set.clone(), shipped).expect("its own set's layout");
+    let taken = Accel::from_layout(set.clone(), &shipped).expect("its own set's layout");
     assert_eq!(taken.bvh.nodes, own.bvh.nodes);
     assert!(taken.holds_exactly(&set));
     let hits = same_answers(&own, &taken);
@@ -84,7 +84,32 @@ fn a_shipped_layout_is_the_sets_own_bvh() {
     // An empty set's layout is empty, and taken.
     let none = TriangleSet::default();
     let empty = Layout::build(&none, 1.0, BuildQuality::Full);
-    assert!(Accel::from_layout(none, empty).unwrap().is_empty());
+    assert!(Accel::from_layout(none, &empty).unwrap().is_empty());
+}
+
+/// A layout built in place over a scene's vertices and a subset's ids
+/// (what the scheduler does) is the one built over the gathered subset,
+/// and the subset's BVH takes it.
+#[test]
+fn a_layout_built_in_place_is_the_gathered_sets() {
+    let whole = set();
+    let pick: Vec<usize> = (0..whole.len()).filter(|i| i % 3 != 1).collect();
+    let subset = TriangleSet {
+        ids: pick.iter().map(|&i| whole.ids[i]).collect(),
+        verts: pick.iter().map(|&i| whole.verts[i]).collect(),
+        material: pick.iter().map(|&i| whole.material[i]).collect(),
+        normals: pick.iter().map(|&i| whole.normals[i]).collect(),
+    };
+    for s in [&whole, &subset] {
+        let gathered = Layout::build(s, 20.0, BuildQuality::Full);
+        let in_place = Layout::build_over(&s.verts, &s.ids, 20.0, BuildQuality::Full);
+        assert_eq!(in_place, gathered);
+        assert!(Accel::from_layout(s.clone(), &in_place).is_ok());
+    }
+    // Over the whole scene's vertices with the subset's ids it is a layout
+    // of other triangles (the count and ids differ from the vertices').
+    let wrong = Layout::build_over(&whole.verts, &whole.ids, 20.0, BuildQuality::Full);
+    assert!(Accel::from_layout(subset, &wrong).is_err());
 }
 
 /// Each way a layout can name what is not there is refused, with the
@@ -222,7 +247,7 @@ fn corrupted_layouts_are_refused_or_walked_safely() {
             }
         }
         let l = Layout::from(wire);
-        match Accel::from_layout(set.clone(), l) {
+        match Accel::from_layout(set.clone(), &l) {
             Err(_) => refused += 1,
             Ok(accel) => {
                 taken += 1;
