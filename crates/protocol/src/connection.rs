@@ -88,7 +88,10 @@ fn decode<T: DeserializeOwned>(
         })
 }
 
-fn encode<T: Serialize>(
+/// `msg` encoded as the payload of one frame for `peer`, at most `max`
+/// bytes: what [`ConnWriter::write_burst_frames`] writes, for a caller that
+/// writes one message to several peers and encodes it once.
+pub fn encode<T: Serialize>(
     msg: &T,
     peer: SocketAddr,
     max: usize,
@@ -261,6 +264,11 @@ impl ConnWriter {
         send(&mut self.framed, msg, self.peer, self.max_frame).await
     }
 
+    /// The largest frame this writer writes.
+    pub fn max_frame(&self) -> usize {
+        self.max_frame
+    }
+
     /// Writes `first` and up to `most - 1` more messages that `next` has
     /// ready, then flushes once: a burst goes out in one write where each
     /// message alone would be a write of its own and, on the other side, a
@@ -268,23 +276,40 @@ impl ConnWriter {
     pub async fn write_burst<T: Serialize>(
         &mut self,
         first: &T,
-        mut next: impl FnMut() -> Option<T>,
+        next: impl FnMut() -> Option<T>,
         most: usize,
     ) -> Result<usize, ProtocolError> {
-        let io = |e| ProtocolError::Io {
-            peer: self.peer,
-            source: e,
-        };
+        let (peer, max) = (self.peer, self.max_frame);
+        self.write_burst_frames(first, next, most, |m| encode(m, peer, max))
+            .await
+    }
+
+    /// [`Self::write_burst`] with each message's frame from `frame`, which
+    /// may hand back one [`encode`]d before for another peer (a message
+    /// several peers are sent alike, encoded once). A frame longer than
+    /// this writer's largest is refused as [`encode`] refuses it.
+    pub async fn write_burst_frames<T>(
+        &mut self,
+        first: &T,
+        mut next: impl FnMut() -> Option<T>,
+        most: usize,
+        mut frame: impl FnMut(&T) -> Result<bytes::Bytes, ProtocolError>,
+    ) -> Result<usize, ProtocolError> {
+        let (peer, max) = (self.peer, self.max_frame);
+        let io = |e| ProtocolError::Io { peer, source: e };
         let mut n = 0;
         let mut feed = |b: bytes::Bytes| {
+            if b.len() > max {
+                return Err(ProtocolError::FrameTooLarge { peer, max });
+            }
             n += b.len() + FRAME_HEADER_LEN;
-            b
+            Ok(b)
         };
-        let b = feed(encode(first, self.peer, self.max_frame)?);
+        let b = feed(frame(first)?)?;
         put(&mut self.framed, b).await.map_err(io)?;
         for _ in 1..most {
             let Some(m) = next() else { break };
-            let b = feed(encode(&m, self.peer, self.max_frame)?);
+            let b = feed(frame(&m)?)?;
             put(&mut self.framed, b).await.map_err(io)?;
         }
         SinkExt::<bytes::Bytes>::flush(&mut self.framed)

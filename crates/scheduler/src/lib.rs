@@ -25,6 +25,7 @@ pub mod client;
 pub mod cost;
 pub mod distribute;
 pub mod film;
+mod frames;
 pub mod http;
 pub mod job;
 pub mod memory;
@@ -189,6 +190,7 @@ impl Scheduler {
             shutdown: shutdown.clone(),
             worker_timeout: self.cfg.worker_timeout,
             store: stored,
+            frames: Default::default(),
         };
         let mut next_id = 0u32;
         let permits = Arc::new(tokio::sync::Semaphore::new(locus_protocol::MAX_CONNECTIONS));

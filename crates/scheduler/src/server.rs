@@ -7,12 +7,15 @@
 //! client closing it cancels the job.
 
 use crate::actor::Event;
+use crate::frames::SharedFrames;
 use locus_core::geometry::NORMALS_BYTES;
+use locus_protocol::connection::encode;
 use locus_protocol::control::{
     HEARTBEATS_MISSED, Opening, Registration, SchedulerToWorker, WorkerToScheduler,
 };
 use locus_protocol::submit::{JobRequest, SchedulerToClient, TrianglePart};
 use locus_protocol::{ConnReader, ConnWriter, Connection, MAX_FRAME_LEN, handshake};
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -28,6 +31,8 @@ pub(crate) struct Shared {
     pub worker_timeout: Duration,
     /// Whether jobs are kept in a store: then requests are encoded here.
     pub store: bool,
+    /// Parts several workers are sent alike, encoded once for all.
+    pub frames: Arc<SharedFrames>,
 }
 
 impl Shared {
@@ -116,7 +121,7 @@ async fn worker(
     let (tx, rx) = mpsc::channel::<SchedulerToWorker>(256);
     info!(worker = id, listen = %reg.listen, cores = reg.cores, "worker registered");
     sh.events.send(Event::Joined { id, reg, addr, tx }).await?;
-    let writer = tokio::spawn(write_worker(w, rx, every));
+    let writer = tokio::spawn(write_worker(w, rx, every, sh.frames.clone()));
     let reason = read_worker(r, id, &sh).await;
     writer.abort();
     let _ = sh.events.send(Event::Left { id, reason }).await;
@@ -129,7 +134,9 @@ async fn write_worker(
     mut w: ConnWriter,
     mut rx: mpsc::Receiver<SchedulerToWorker>,
     every: Duration,
+    frames: Arc<SharedFrames>,
 ) -> Result<(), locus_protocol::ProtocolError> {
+    let (peer, max) = (w.peer(), w.max_frame());
     loop {
         let m = match tokio::time::timeout(every, rx.recv()).await {
             Ok(Some(m)) => m,
@@ -137,8 +144,15 @@ async fn write_worker(
             Err(_) => SchedulerToWorker::Heartbeat,
         };
         // The tiles of one request (and whatever else is queued) go in one
-        // write: the worker's runtime wakes once for them.
-        w.write_burst(&m, || rx.try_recv().ok(), BURST).await?;
+        // write: the worker's runtime wakes once for them. A part other
+        // workers are sent too is encoded once for all of them.
+        let frame = |m: &SchedulerToWorker| frames.frame(m, |m| encode(m, peer, max));
+        let written = w
+            .write_burst_frames(&m, || rx.try_recv().ok(), BURST, frame)
+            .await;
+        drop(m);
+        frames.prune();
+        written?;
     }
 }
 
