@@ -12,7 +12,8 @@
 //! [`job::prepare`] (octree, [`cost`] prediction, [`partition`]
 //! within the workers' [`memory`] budgets) on a blocking thread, then
 //! [`distribute`] (processor map plus each region's geometry, part by
-//! part), then demand-driven tiles in progressive passes into the [`film`], then
+//! part; a part several workers are sent alike is gathered and encoded
+//! once, `frames`), then demand-driven tiles in progressive passes into the [`film`], then
 //! the workers' reports, which
 //! become the [`report`]. [`client`] is the submitting side used by `locus
 //! submit`; [`SchedulerHandle`] submits from the same process (the
