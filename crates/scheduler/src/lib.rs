@@ -98,6 +98,12 @@ pub struct SchedulerHandle {
 }
 
 impl SchedulerHandle {
+    /// A handle on an actor's event channel: the scheduler's own
+    /// ([`Scheduler::handle`]), or that of an actor a test drives alone.
+    pub fn new(events: mpsc::Sender<Event>) -> Self {
+        Self { events }
+    }
+
     /// Submits `req` without a socket; the job's messages arrive on the
     /// returned channel, as a remote client would read them.
     pub async fn submit(
@@ -154,9 +160,7 @@ impl Scheduler {
 
     /// A handle to submit jobs from this process.
     pub fn handle(&self) -> SchedulerHandle {
-        SchedulerHandle {
-            events: self.events.0.clone(),
-        }
+        SchedulerHandle::new(self.events.0.clone())
     }
 
     pub fn local_addr(&self) -> std::io::Result<SocketAddr> {

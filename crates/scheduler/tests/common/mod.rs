@@ -7,6 +7,7 @@
 use locus_core::scene::Scene;
 use locus_protocol::control::{Registration, SchedulerToWorker, WorkerToScheduler};
 use locus_protocol::submit::{JobOptions, JobRequest, SchedulerToClient};
+use locus_scheduler::SchedulerHandle;
 use locus_scheduler::actor::{Actor, Event};
 use locus_scheduler::metrics::Metrics;
 use std::path::Path;
@@ -76,17 +77,12 @@ impl Farm {
         self.submit_request(request(workers, 1, None)).await
     }
 
+    /// `req` submitted as the embedded farm submits it.
     pub async fn submit_request(&self, req: JobRequest) -> mpsc::Receiver<SchedulerToClient> {
-        let (tx, rx) = mpsc::channel(64);
-        self.events
-            .send(Event::Submit {
-                req: Box::new(req),
-                client: tx,
-                encoded: None,
-            })
+        SchedulerHandle::new(self.events.clone())
+            .submit(req)
             .await
-            .unwrap();
-        rx
+            .unwrap()
     }
 
     pub async fn from(&self, id: u32, msg: WorkerToScheduler) {
