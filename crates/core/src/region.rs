@@ -29,6 +29,7 @@ use crate::accel_set::{AccelSet, SetHit};
 use crate::geometry::{Bounds, Ray};
 use crate::octree::{Octree, WalkTable};
 use crate::stats::TraceStats;
+use glam::{Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 use std::ops::ControlFlow;
 
@@ -48,9 +49,10 @@ pub struct Route<L> {
     /// cover entirely (see [`Route::grow_local_boxes`]); its own bounds
     /// until grown.
     boxes: Vec<Bounds>,
-    /// The largest grown box, tried before any other: most pieces a
-    /// worker traces lie in it, and it needs no descent of the tree.
-    largest: Option<Bounds>,
+    /// The largest grown boxes, none inside another, tried before
+    /// anything else: most pieces a worker traces lie in one of them, and
+    /// they need no descent of the tree.
+    largest: Option<LargestBoxes>,
     /// Boxes holding every node that the grown boxes' `local` rejects.
     hull: Option<Hull>,
 }
@@ -135,10 +137,11 @@ impl<L: Copy + PartialEq> Route<L> {
             }
             *out = b;
         }
-        self.largest = (0..boxes.len())
-            .filter(|&i| local(self.labels[i]))
-            .map(|i| boxes[i])
-            .max_by(|a, b| a.volume().total_cmp(&b.volume()));
+        self.largest = LargestBoxes::new(
+            (0..boxes.len())
+                .filter(|&i| local(self.labels[i]))
+                .map(|i| boxes[i]),
+        );
         self.boxes = boxes;
         let foreign = (0..self.labels.len())
             .filter(|&i| !local(self.labels[i]))
@@ -297,6 +300,56 @@ pub enum Known {
     Clear,
 }
 
+/// Up to four grown boxes in the lanes of one SSE register each way, so
+/// that whether a piece's two ends lie in one of them is one test.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct LargestBoxes {
+    /// Per axis, the boxes' lower and upper faces; unused lanes repeat
+    /// the first box.
+    min: [Vec4; 3],
+    max: [Vec4; 3],
+}
+
+impl LargestBoxes {
+    /// The largest of `boxes` by volume, then each next largest that no
+    /// box already taken contains, up to four; None without boxes.
+    fn new(boxes: impl Iterator<Item = Bounds>) -> Option<Self> {
+        let mut all: Vec<Bounds> = boxes.collect();
+        all.sort_by(|a, b| b.volume().total_cmp(&a.volume()));
+        let mut taken: Vec<Bounds> = Vec::with_capacity(4);
+        for b in all {
+            if taken.len() == 4 {
+                break;
+            }
+            if !taken.iter().any(|t| t.contains(b.min) && t.contains(b.max)) {
+                taken.push(b);
+            }
+        }
+        let lane = |i: usize| taken.get(i).unwrap_or(&taken[0]);
+        let faces = |f: fn(&Bounds) -> Vec3| -> [Vec4; 3] {
+            std::array::from_fn(|a| Vec4::from_array(std::array::from_fn(|i| f(lane(i))[a])))
+        };
+        (!taken.is_empty()).then(|| Self {
+            min: faces(|b| b.min),
+            max: faces(|b| b.max),
+        })
+    }
+
+    /// Whether one box holds both `p` and `q` (each lane is
+    /// [`Bounds::contains`] twice).
+    #[inline(always)]
+    fn hold(&self, p: Vec3, q: Vec3) -> bool {
+        let inside = |a: usize| {
+            let (p, q) = (Vec4::splat(p[a]), Vec4::splat(q[a]));
+            p.cmpge(self.min[a])
+                & p.cmple(self.max[a])
+                & q.cmpge(self.min[a])
+                & q.cmple(self.max[a])
+        };
+        (inside(0) & inside(1) & inside(2)).any()
+    }
+}
+
 /// Where tracing through local geometry ends.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum RunEnd<L> {
@@ -311,7 +364,7 @@ pub enum RunEnd<L> {
     Foreign { label: L, ta: f32, tb: f32 },
 }
 
-/// Whether the piece `[ts, te]` of `ray` lies in the largest grown box,
+/// Whether the piece `[ts, te]` of `ray` lies in one of the largest grown boxes,
 /// misses the foreign hull, or lies in one box that local leaves cover (a
 /// local node, grown) or two that both hold its middle; the last is not
 /// tried when the hull is exact (a piece it does not clear crosses a
@@ -332,10 +385,7 @@ fn covered<L: Copy + PartialEq>(
         _ => None,
     };
     let (start, end) = (ray.at(ts), ray.at(te));
-    if let Some(b) = &route.largest
-        && b.contains(start)
-        && b.contains(end)
-    {
+    if route.largest.is_some_and(|l| l.hold(start, end)) {
         return true;
     }
     if let Some(h) = &route.hull {
@@ -495,6 +545,39 @@ mod tests {
         let q = lo + (hi - lo) * Vec3::new(u(3), u(4), u(5));
         let dir = (q - p).try_normalize()?;
         Some((Ray::new(p, dir), (q - p).length()))
+    }
+
+    /// The largest boxes are the four largest that no larger one holds,
+    /// and `hold` says, for many point pairs, exactly whether one of them
+    /// holds both (against [`Bounds::contains`], box by box).
+    #[test]
+    fn largest_boxes_hold_what_one_box_holds() {
+        let b = |lo: [f32; 3], hi: [f32; 3]| Bounds::new(Vec3::from(lo), Vec3::from(hi));
+        let boxes = [
+            b([0.0, 0.0, 0.0], [4.0, 4.0, 4.0]),
+            b([1.0, 1.0, 1.0], [2.0, 2.0, 2.0]), // inside the first
+            b([3.0, 0.0, 0.0], [8.0, 2.0, 2.0]),
+            b([0.0, 5.0, 0.0], [2.0, 8.0, 1.0]),
+            b([6.0, 6.0, 6.0], [7.0, 7.0, 7.0]),
+            b([7.5, 7.5, 7.5], [8.0, 8.0, 8.0]), // the smallest: left out
+        ];
+        let l = LargestBoxes::new(boxes.iter().copied()).unwrap();
+        let kept = [boxes[0], boxes[2], boxes[3], boxes[4]];
+        let (mut both, mut neither) = (0, 0);
+        for i in 0..20_000u64 {
+            let k = SampleKey::independent(i, 1, 11);
+            let p = Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 8.0;
+            let q = Vec3::new(k.get1d(3), k.get1d(4), k.get1d(5)) * 8.0;
+            let want = kept.iter().any(|b| b.contains(p) && b.contains(q));
+            assert_eq!(l.hold(p, q), want, "{p} {q}");
+            both += want as usize;
+            neither += !want as usize;
+        }
+        // Points on faces count as inside, as in `Bounds::contains`.
+        assert!(l.hold(Vec3::new(8.0, 2.0, 0.0), Vec3::new(3.0, 0.0, 2.0)));
+        assert!(!l.hold(Vec3::new(7.75, 7.75, 7.75), Vec3::splat(7.8)));
+        assert!(both > 100 && neither > 100, "{both} {neither}");
+        assert!(LargestBoxes::new(std::iter::empty()).is_none());
     }
 
     /// Whenever [`covered`] says a piece lies in boxes of local leaves, the

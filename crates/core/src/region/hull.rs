@@ -1,7 +1,10 @@
 //! The foreign hull: a few boxes whose union holds every route node that
 //! a worker cannot trace, so that one test of a ray piece against all of
-//! them, four lanes at a time, says that the piece crosses local leaves
+//! them, eight lanes at a time, says that the piece crosses local leaves
 //! only, where the route's walk would descend the octree node by node.
+//! The eight lanes are one AVX2 instruction each where the processor has
+//! AVX2 and two SSE ones where it does not: the same operations lane by
+//! lane, so the answer is the same bit for bit on every worker.
 //!
 //! The test may say "not clear" for a piece that is clear (the boxes are
 //! merged, and swallow some local space): the caller then walks, which is
@@ -13,21 +16,33 @@
 use crate::geometry::{Bounds, Ray};
 use glam::{Vec3, Vec4};
 
-/// Boxes in a hull at most: four groups of four lanes.
+/// Boxes in a hull at most: two groups of eight lanes.
 const HULL_BOXES: usize = 16;
 
 /// The largest share of the local space a hull may swallow.
 const MAX_SWALLOWED: f64 = 0.25;
 
+/// Boxes tested together: one AVX2 register of lanes.
+const LANES: usize = 8;
+
+/// Eight boxes' faces, per axis, lower then upper, lane by lane.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(32))]
+struct Group {
+    lo: [[f32; LANES]; 3],
+    hi: [[f32; LANES]; 3],
+}
+
 /// At most [`HULL_BOXES`] inflated boxes covering the foreign route nodes.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Hull {
-    /// Per group of four boxes, per axis, the lower and upper faces (the
-    /// last group's unused lanes repeat its first box, which changes no
-    /// answer). The largest boxes come first: a piece that crosses the
-    /// hull most often meets one of them, and the test stops at the first
-    /// group it meets.
-    groups: Vec<[[Vec4; 3]; 2]>,
+    /// The boxes, eight to a group (the last group's unused lanes repeat
+    /// its first box, which changes no answer). The largest boxes come
+    /// first: a piece that crosses the hull most often meets one of them,
+    /// and the test stops at the first group it meets.
+    groups: Vec<Group>,
+    /// Whether this processor tests a group in one AVX2 pass.
+    avx2: bool,
     /// Rays starting in here are near enough to the boxes for the margin
     /// to cover the test's rounding.
     near: Bounds,
@@ -108,19 +123,23 @@ impl Hull {
             return None;
         }
         boxes.sort_by(|a, b| b.volume().total_cmp(&a.volume()));
-        let mut groups = Vec::new();
-        for group in boxes.chunks(4) {
-            let lane = |i: usize| group.get(i).unwrap_or(&group[0]);
-            let face = |f: fn(&Bounds) -> Vec3, d: f32| -> [Vec4; 3] {
-                std::array::from_fn(|a| {
-                    Vec4::from_array(std::array::from_fn(|i| f(lane(i))[a] + d))
-                })
-            };
-            groups.push([face(|b| b.min, -margin), face(|b| b.max, margin)]);
-        }
+        let groups = boxes
+            .chunks(LANES)
+            .map(|group| {
+                let lane = |i: usize| group.get(i).unwrap_or(&group[0]);
+                let face = |f: fn(&Bounds) -> Vec3, d: f32| -> [[f32; LANES]; 3] {
+                    std::array::from_fn(|a| std::array::from_fn(|i| f(lane(i))[a] + d))
+                };
+                Group {
+                    lo: face(|b| b.min, -margin),
+                    hi: face(|b| b.max, margin),
+                }
+            })
+            .collect();
         let near = Bounds::new(root.min - root.extent(), root.max + root.extent());
         Some(Self {
             groups,
+            avx2: has_avx2(),
             near,
             exact: exact && !halved,
         })
@@ -142,14 +161,52 @@ impl Hull {
         if !self.near.contains(ray.origin) || !inv.is_finite() {
             return false;
         }
-        let o = ray.origin.to_array().map(Vec4::splat);
-        let inv = inv.to_array().map(Vec4::splat);
-        let (ts, te) = (Vec4::splat(ts), Vec4::splat(te));
-        for [lo, hi] in &self.groups {
+        let (o, inv) = (ray.origin.to_array(), inv.to_array());
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: `avx2` is set only where the processor has AVX2.
+            return unsafe { clear_avx2(&self.groups, o, inv, ts, te) };
+        }
+        clear_lanes(&self.groups, o, inv, ts, te)
+    }
+
+    /// [`Hull::clear`] on four lanes at a time, whatever the processor
+    /// (for tests: it must agree with the path a processor takes).
+    #[cfg(test)]
+    fn clear_four_lanes(&self, ray: &Ray, ts: f32, te: f32) -> Option<bool> {
+        let inv = ray.dir.recip();
+        if !self.near.contains(ray.origin) || !inv.is_finite() {
+            return None;
+        }
+        Some(clear_lanes(
+            &self.groups,
+            ray.origin.to_array(),
+            inv.to_array(),
+            ts,
+            te,
+        ))
+    }
+}
+
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::arch::is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// The slab test of `[ts, te]` against every group, four lanes at a time.
+#[inline]
+fn clear_lanes(groups: &[Group], o: [f32; 3], inv: [f32; 3], ts: f32, te: f32) -> bool {
+    let (o, inv) = (o.map(Vec4::splat), inv.map(Vec4::splat));
+    let (ts, te) = (Vec4::splat(ts), Vec4::splat(te));
+    for g in groups {
+        for half in [0, 4] {
+            let lanes = |f: &[f32; LANES]| Vec4::from_slice(&f[half..half + 4]);
             let (mut near, mut far) = (ts, te);
             for a in 0..3 {
-                let t1 = (lo[a] - o[a]) * inv[a];
-                let t2 = (hi[a] - o[a]) * inv[a];
+                let t1 = (lanes(&g.lo[a]) - o[a]) * inv[a];
+                let t2 = (lanes(&g.hi[a]) - o[a]) * inv[a];
                 near = near.max(t1.min(t2));
                 far = far.min(t1.max(t2));
             }
@@ -157,8 +214,39 @@ impl Hull {
                 return false;
             }
         }
-        true
     }
+    true
+}
+
+/// [`clear_lanes`] eight lanes at a time: the same operations in the same
+/// order on each lane (`min`, `max` and the comparison are the SSE ones
+/// widened), so the same answer.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn clear_avx2(groups: &[Group], o: [f32; 3], inv: [f32; 3], ts: f32, te: f32) -> bool {
+    use std::arch::x86_64::*;
+    let (o, inv) = (o.map(|v| _mm256_set1_ps(v)), inv.map(|v| _mm256_set1_ps(v)));
+    let (ts, te) = (_mm256_set1_ps(ts), _mm256_set1_ps(te));
+    for g in groups {
+        let (mut near, mut far) = (ts, te);
+        for a in 0..3 {
+            // SAFETY: `Group` is aligned to 32 bytes and each row is 8 f32s.
+            let (lo, hi) = unsafe {
+                (
+                    _mm256_load_ps(g.lo[a].as_ptr()),
+                    _mm256_load_ps(g.hi[a].as_ptr()),
+                )
+            };
+            let t1 = _mm256_mul_ps(_mm256_sub_ps(lo, o[a]), inv[a]);
+            let t2 = _mm256_mul_ps(_mm256_sub_ps(hi, o[a]), inv[a]);
+            near = _mm256_max_ps(near, _mm256_min_ps(t1, t2));
+            far = _mm256_min_ps(far, _mm256_max_ps(t1, t2));
+        }
+        if _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OS>(near, far)) != 0 {
+            return false;
+        }
+    }
+    true
 }
 
 #[cfg(test)]
@@ -205,6 +293,7 @@ mod tests {
             assert!(case < 2, "a hull of scattered leaves was kept");
             assert_eq!(hull.exact(), case == 0, "case {case}");
             let (mut clear_said, mut clear_true, mut ends_on_border) = (0, 0, 0);
+            let mut agreed = 0;
             for i in 0..20_000u64 {
                 let Some((ray, length)) = random_piece(&tree, i) else {
                     continue;
@@ -242,7 +331,12 @@ mod tests {
                 // margin: measured apart.
                 let inner = i % 4 != 1;
                 clear_true += (truly && inner) as usize;
-                if hull.clear(&ray, ts, te) {
+                let said = hull.clear(&ray, ts, te);
+                if let Some(four) = hull.clear_four_lanes(&ray, ts, te) {
+                    assert_eq!(said, four, "case {case}: piece {i}: lanes disagree");
+                    agreed += 1;
+                }
+                if said {
                     clear_said += inner as usize;
                     assert!(
                         truly,
@@ -250,6 +344,7 @@ mod tests {
                     );
                 }
             }
+            assert!(agreed > 10_000, "case {case}: {agreed} pieces compared");
             assert!(
                 ends_on_border > 1000,
                 "case {case}: {ends_on_border} pieces ending on a border"
