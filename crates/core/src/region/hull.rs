@@ -167,6 +167,8 @@ impl Hull {
             // SAFETY: `avx2` is set only where the processor has AVX2.
             return unsafe { clear_avx2(&self.groups, o, inv, ts, te) };
         }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = self.avx2;
         clear_lanes(&self.groups, o, inv, ts, te)
     }
 
