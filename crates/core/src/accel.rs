@@ -28,6 +28,7 @@ use std::ops::ControlFlow;
 mod build;
 mod convert;
 mod cwnode;
+pub(crate) use cwnode::wide_available;
 mod layout;
 mod leaf;
 mod pages;

@@ -190,11 +190,10 @@ impl Hull {
     }
 }
 
+/// Whether the eight lanes run as one AVX2 pass: where the BVH's node test
+/// does (AVX2 found at run time, `LOCUS_NODE_TEST=narrow` not set).
 fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    return std::arch::is_x86_feature_detected!("avx2");
-    #[cfg(not(target_arch = "x86_64"))]
-    false
+    crate::accel::wide_available()
 }
 
 /// The slab test of `[ts, te]` against every group, four lanes at a time.
