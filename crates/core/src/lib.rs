@@ -30,6 +30,10 @@
 //! the scene, the BVH and the image writers. [`generate`] writes the generated scenes (the
 //! benchmarks, in the `locus` crate, use them too).
 
+// These docs are for the crate's developers, who read them with
+// `cargo doc --document-private-items`: links to private items resolve there.
+#![allow(rustdoc::private_intra_doc_links)]
+
 pub mod accel;
 pub mod accel_set;
 pub mod bulk;

@@ -3,7 +3,7 @@
 //! ([`config`]), the `locus status` client ([`status`]) and signal
 //! handling, shared by the binary and the integration tests; the SVG line
 //! plots every figure uses ([`plot`]); and apart from them, the benchmarks
-//! ([`bench`]).
+//! ([`bench`](mod@bench)).
 
 pub mod bench;
 pub mod config;

@@ -3,7 +3,8 @@
 //!
 //! Connections are accepted here and served by [`server`]: the handshake,
 //! then the first message says whether the peer is a worker
-//! ([`Opening::Register`]) or a client ([`Opening::Submit`]); workers are
+//! ([`Opening::Register`](locus_protocol::control::Opening::Register)) or a
+//! client ([`Opening::Submit`](locus_protocol::control::Opening::Submit)); workers are
 //! watched by heartbeats. Every connection task talks to the [`actor`]
 //! through a bounded channel; the actor owns the worker registry and the
 //! running job, so no state is shared between tasks. A job runs in
@@ -20,6 +21,10 @@
 //! embedded farm) without copying or re-parsing the scene. [`http`] serves
 //! the read-only status page, [`status`] (asked of the actor through the
 //! same channel) and [`metrics`] (kept by the actor as events happen).
+
+// These docs are for the crate's developers, who read them with
+// `cargo doc --document-private-items`: links to private items resolve there.
+#![allow(rustdoc::private_intra_doc_links)]
 
 pub mod actor;
 pub mod client;

@@ -193,7 +193,7 @@ unsafe fn intersect_sse41(node: &CwBvhNode, r: &Ray, nr: &NodeRay, oct_inv4: u32
     }
 }
 
-/// [`intersect_sse41`] on all eight children at once: the same per-lane
+/// `intersect_sse41` on all eight children at once: the same per-lane
 /// arithmetic in 256-bit registers, and each child's `bits << at` by a
 /// variable shift.
 #[cfg(target_arch = "x86_64")]

@@ -5,7 +5,7 @@
 //! Every scene triangle is split into patches, the shooters, and each patch
 //! is meshed into elements whose corners carry radiosity on both sides
 //! ([`mesh`]). Each iteration the patch side
-//! with the most unshot power shoots it ([`solve`]): every other patch
+//! with the most unshot power shoots it ([`solve`](mod@solve)): every other patch
 //! receives, at each of its corners, the analytic form factor
 //! ([`formfactor`]) of the shooter's visible parts (M of them, 16 or 64,
 //! one visibility ray each), splits elements whose corners now differ by

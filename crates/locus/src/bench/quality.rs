@@ -51,7 +51,7 @@ pub struct Plan {
 
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Row {
-    /// "locus" or "Mitsuba <version> <variant>".
+    /// "locus" or "Mitsuba `<version>` `<variant>`".
     pub renderer: String,
     pub sampler: String,
     pub spp: u32,

@@ -283,7 +283,7 @@ pub struct Actor {
     events: mpsc::Sender<Event>,
     metrics: Arc<Metrics>,
     pub(crate) started: Instant,
-    /// The last jobs that ended, newest first (at most [`status::HISTORY`]).
+    /// The last jobs that ended, newest first (at most [`crate::status::HISTORY`]).
     pub(crate) history: VecDeque<EndedJob>,
     /// The last finished jobs' images and reports, newest first, for their
     /// previews and for clients that attach late.

@@ -1,5 +1,5 @@
 //! Preparing a job on the scheduler: checking the submitted scene
-//! ([`validate`]), building the octree, predicting leaf costs, choosing
+//! ([`validate`](mod@validate)), building the octree, predicting leaf costs, choosing
 //! the leaves every worker holds and partitioning the rest within the
 //! workers' shares and memory budgets ([`regions`]), and planning each
 //! worker's BVH parts and memory ([`crate::memory`]).

@@ -30,7 +30,7 @@ const MAX_TILES_AHEAD: usize = 32;
 /// The longest a finished tile is held back (see [`TILES_DONE_BATCH`]).
 pub(super) const TILES_DONE_HOLD: Duration = Duration::from_millis(5);
 
-/// Tiles a worker holds, as [`Slots::tiles_held`] counts them, and those
+/// Tiles a worker holds, as [`Slots::tiles_held`](super::slots::Slots::tiles_held) counts them, and those
 /// asked for and not yet received.
 #[derive(Clone, Copy, Debug)]
 struct Held {
