@@ -139,7 +139,9 @@ impl Hull {
         let near = Bounds::new(root.min - root.extent(), root.max + root.extent());
         Some(Self {
             groups,
-            avx2: has_avx2(),
+            // Where the BVH's node test runs eight wide (AVX2 found at run
+            // time, `LOCUS_NODE_TEST=narrow` not set).
+            avx2: crate::accel::wide_available(),
             near,
             exact: exact && !halved,
         })
@@ -157,11 +159,9 @@ impl Hull {
     /// subnormal), where a face through the origin would make a NaN.
     #[inline]
     pub fn clear(&self, ray: &Ray, ts: f32, te: f32) -> bool {
-        let inv = ray.dir.recip();
-        if !self.near.contains(ray.origin) || !inv.is_finite() {
+        let Some((o, inv)) = self.slab_ray(ray) else {
             return false;
-        }
-        let (o, inv) = (ray.origin.to_array(), inv.to_array());
+        };
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: `avx2` is set only where the processor has AVX2.
@@ -176,24 +176,18 @@ impl Hull {
     /// (for tests: it must agree with the path a processor takes).
     #[cfg(test)]
     fn clear_four_lanes(&self, ray: &Ray, ts: f32, te: f32) -> Option<bool> {
-        let inv = ray.dir.recip();
-        if !self.near.contains(ray.origin) || !inv.is_finite() {
-            return None;
-        }
-        Some(clear_lanes(
-            &self.groups,
-            ray.origin.to_array(),
-            inv.to_array(),
-            ts,
-            te,
-        ))
+        let (o, inv) = self.slab_ray(ray)?;
+        Some(clear_lanes(&self.groups, o, inv, ts, te))
     }
-}
 
-/// Whether the eight lanes run as one AVX2 pass: where the BVH's node test
-/// does (AVX2 found at run time, `LOCUS_NODE_TEST=narrow` not set).
-fn has_avx2() -> bool {
-    crate::accel::wide_available()
+    /// The ray's origin and inverse direction for the slab test, or None
+    /// where the test cannot vouch for its rounding (see [`Hull::clear`]).
+    #[inline(always)]
+    fn slab_ray(&self, ray: &Ray) -> Option<([f32; 3], [f32; 3])> {
+        let inv = ray.dir.recip();
+        (self.near.contains(ray.origin) && inv.is_finite())
+            .then(|| (ray.origin.to_array(), inv.to_array()))
+    }
 }
 
 /// The slab test of `[ts, te]` against every group, four lanes at a time.

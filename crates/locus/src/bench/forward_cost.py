@@ -25,6 +25,7 @@ valgrind and callgrind_annotate on the PATH.
         [--scene scenes/generated/room.toml] [--width 96] [--height 72] [--spp 4]
         [--fetch forward] [--workers 2] [--cost sampled|analytic]
         [--partitioner region-growing|morton] [--shared-percent 10] [--threads 1] [--per-thread]
+        [--self-costs N]
         [--out bench-out/forward-cost]
 
 LOCUS_CALLGRIND_ARGS adds options to every valgrind call (for instance
@@ -145,6 +146,24 @@ def inclusive_one(path):
     return costs, total
 
 
+def self_costs(path):
+    """Self (exclusive) instructions by function over callgrind's per-thread
+    files `path-NN`, summed; a function's inlined pieces, which callgrind
+    lists under their source files, are added into it."""
+    costs = {}
+    for part in sorted(glob.glob(path + "-*")):
+        out = subprocess.run(
+            ["callgrind_annotate", "--inclusive=no", "--threshold=100", "--auto=no", part],
+            capture_output=True, text=True, check=True).stdout
+        for line in out.splitlines():
+            m = re.match(r"\s*([\d,]+) \(\s*[\d.]+%\)\s+(.*)$", line)
+            if not m or m.group(2).strip() == "PROGRAM TOTALS":
+                continue
+            fn = re.sub(r" \[.*\]$", "", m.group(2).split(":", 1)[-1]).strip()
+            costs[fn] = costs.get(fn, 0) + int(m.group(1).replace(",", ""))
+    return costs
+
+
 def small_scene(src, dst, width, height, spp):
     """A copy of scene `src` at another size, its mesh paths made absolute."""
     base = os.path.dirname(os.path.abspath(src))
@@ -184,6 +203,10 @@ def main():
                     help="the scene's share every worker holds beside its region (0: regions only)")
     ap.add_argument("--per-thread", action="store_true",
                     help="print what each worker's engine thread spends by function")
+    ap.add_argument("--self-costs", type=int, default=0, metavar="N",
+                    help="print the N functions whose self instructions the farm's workers "
+                         "spend most above one machine's, per ray and per forwarded query "
+                         "(with LOCUS_CALLGRIND_ARGS' toggles, those of the toggled code only)")
     ap.add_argument("--out", default="bench-out/forward-cost")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -275,6 +298,16 @@ def main():
             print(f"w{i} engine thread ({os.path.basename(part)}), inclusive:")
             for fn in ENGINE_PARTS:
                 print(f"  {parts[fn] / 1e6:8.1f} M  {fn}")
+    if a.self_costs:
+        base = self_costs(f"{out}/one.cg")
+        farm_self = {}
+        for i in range(1, a.workers + 1):
+            for fn, n in self_costs(f"{out}/w{i}.cg").items():
+                farm_self[fn] = farm_self.get(fn, 0) + n
+        above = sorted(((n - base.get(fn, 0), fn) for fn, n in farm_self.items()), reverse=True)
+        print("self instructions above one machine: per ray, per forwarded query, function")
+        for n, fn in above[:a.self_costs]:
+            print(f"  {n / max(rays, 1):8.0f} {n / max(forwards, 1):8.0f}  {fn[:100]}")
     json.dump({"one": one, "workers": rows, "forwards": forwards, "per_forward": per,
                "rays": rays,
                "busiest": busiest,
