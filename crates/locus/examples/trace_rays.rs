@@ -11,9 +11,9 @@
 //! rays also sorted by direction octant and origin cell, alternating round
 //! by round with their random order: how much faster the same work runs
 //! when consecutive rays share cache lines bounds what memory costs the
-//! tracer. Prints the best round's rays per second, the node visits a
-//! query and the sum of hit distances (the same in both orders, up to the
-//! order of the sum).
+//! tracer. Prints the best round's rays per second, the node visits and
+//! triangle tests a query and the sum of hit distances (the same in both
+//! orders, up to the order of the sum).
 
 use locus_core::geometry::Ray;
 use locus_core::render::Prepared;
@@ -21,8 +21,9 @@ use locus_core::scene::Scene;
 use locus_core::stats::TraceStats;
 use std::time::Instant;
 
-/// One round over `rays`: seconds, node visits and the sum of distances.
-fn round(prep: &Prepared, rays: &[Ray]) -> (f64, u64, f64) {
+/// One round over `rays`: seconds, node visits, triangle tests and the sum
+/// of distances.
+fn round(prep: &Prepared, rays: &[Ray]) -> (f64, u64, u64, f64) {
     let mut st = TraceStats::default();
     let mut sum = 0f64;
     let t = Instant::now();
@@ -31,7 +32,7 @@ fn round(prep: &Prepared, rays: &[Ray]) -> (f64, u64, f64) {
             sum += f64::from(h.t);
         }
     }
-    (t.elapsed().as_secs_f64(), st.bvh_nodes, sum)
+    (t.elapsed().as_secs_f64(), st.bvh_nodes, st.tri_tests, sum)
 }
 
 fn main() -> anyhow::Result<()> {
@@ -59,7 +60,7 @@ fn main() -> anyhow::Result<()> {
         });
         orders.push(("sorted by octant and origin cell", s));
     }
-    let mut best = vec![(f64::INFINITY, 0, 0.0); orders.len()];
+    let mut best = vec![(f64::INFINITY, 0, 0, 0.0); orders.len()];
     for _ in 0..rounds.max(1) {
         for (k, (_, rays)) in orders.iter().enumerate() {
             let r = round(&prep, rays);
@@ -68,11 +69,13 @@ fn main() -> anyhow::Result<()> {
             }
         }
     }
-    for ((name, rays), (s, nodes, sum)) in orders.iter().zip(best) {
+    for ((name, rays), (s, nodes, tests, sum)) in orders.iter().zip(best) {
+        let per_query = |n: u64| n as f64 / rays.len() as f64;
         println!(
-            "{name}: {:.2} Mrays/s, {:.3} nodes a query, distances sum to {sum:.1}",
+            "{name}: {:.2} Mrays/s, {:.3} nodes and {:.3} triangle tests a query, distances sum to {sum:.1}",
             rays.len() as f64 / s / 1e6,
-            nodes as f64 / rays.len() as f64
+            per_query(nodes),
+            per_query(tests)
         );
     }
     Ok(())
