@@ -303,6 +303,10 @@ pub struct WatertightRay {
     pub(crate) sx: f32,
     pub(crate) sy: f32,
     pub(crate) sz: f32,
+    /// The origin's components in the order `kx`, `ky`, `kz`: the scalar
+    /// test's six compiled axis orders share them (see
+    /// [`Self::intersect_axes`]).
+    pub(crate) origin_k: [f32; 3],
 }
 
 impl WatertightRay {
@@ -326,8 +330,10 @@ impl WatertightRay {
         let neg = (d[kz] < 0.0) as usize;
         let (kx, ky) = (KX[kz][neg], KY[kz][neg]);
         let dz = d[kz];
+        let o = ray.origin.to_array();
         Self {
             origin: ray.origin,
+            origin_k: [o[kx], o[ky], o[kz]],
             kx,
             ky,
             sx: d[kx] / dz,
@@ -361,16 +367,19 @@ impl WatertightRay {
         t0: f32,
         t1: f32,
     ) -> Option<TriHit> {
-        let a = (v[0] - self.origin).to_array();
-        let b = (v[1] - self.origin).to_array();
-        let c = (v[2] - self.origin).to_array();
-        let (kx, ky, kz) = (KX, KY, KZ);
-        let ax = a[kx] - self.sx * a[kz];
-        let ay = a[ky] - self.sy * a[kz];
-        let bx = b[kx] - self.sx * b[kz];
-        let by = b[ky] - self.sy * b[kz];
-        let cx = c[kx] - self.sx * c[kz];
-        let cy = c[ky] - self.sy * c[kz];
+        // Each vertex less the origin in the sheared frame's axis order:
+        // the same differences as `(v - origin)[k]`, with the origin's
+        // components picked once a ray (`origin_k`), so that the six
+        // compiled orders do not each keep their own copy of them.
+        let [ox, oy, oz] = self.origin_k;
+        let rel = |p: &Vec3| [p[KX] - ox, p[KY] - oy, p[KZ] - oz];
+        let (a, b, c) = (rel(&v[0]), rel(&v[1]), rel(&v[2]));
+        let ax = a[0] - self.sx * a[2];
+        let ay = a[1] - self.sy * a[2];
+        let bx = b[0] - self.sx * b[2];
+        let by = b[1] - self.sy * b[2];
+        let cx = c[0] - self.sx * c[2];
+        let cy = c[1] - self.sy * c[2];
         let mut u = cx * by - cy * bx;
         let mut vv = ax * cy - ay * cx;
         let mut w = bx * ay - by * ax;
@@ -391,9 +400,9 @@ impl WatertightRay {
         if det == 0.0 {
             return None;
         }
-        let az = self.sz * a[kz];
-        let bz = self.sz * b[kz];
-        let cz = self.sz * c[kz];
+        let az = self.sz * a[2];
+        let bz = self.sz * b[2];
+        let cz = self.sz * c[2];
         let tt = u * az + vv * bz + w * cz;
         let inv = 1.0 / det;
         let t = tt * inv;
