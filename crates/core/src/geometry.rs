@@ -297,15 +297,15 @@ pub struct TriHit {
 /// point of the precomputation.
 #[derive(Clone, Copy, Debug)]
 pub struct WatertightRay {
-    pub origin: Vec3,
     pub(crate) kx: usize,
     pub(crate) ky: usize,
     pub(crate) sx: f32,
     pub(crate) sy: f32,
     pub(crate) sz: f32,
-    /// The origin's components in the order `kx`, `ky`, `kz`: the scalar
-    /// test's six compiled axis orders share them (see
-    /// [`Self::intersect_axes`]).
+    /// The ray's origin, its components in the order `kx`, `ky`, `kz`
+    /// (the shear's axes): the scalar test's six compiled axis orders
+    /// share them (see [`Self::intersect_axes`]), and the eight-wide test
+    /// reads them without a runtime index.
     pub(crate) origin_k: [f32; 3],
 }
 
@@ -332,7 +332,6 @@ impl WatertightRay {
         let dz = d[kz];
         let o = ray.origin.to_array();
         Self {
-            origin: ray.origin,
             origin_k: [o[kx], o[ky], o[kz]],
             kx,
             ky,

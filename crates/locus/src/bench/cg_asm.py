@@ -9,15 +9,16 @@ callgrind files' per-instruction self costs of the functions whose names
 match a regular expression, and prints the binary's disassembly (`objdump
 -d -l`) over those functions with each instruction's count beside it. The
 count of a function's first instruction is its number of calls, so a
-block's count over that is how often it ran per call.
+block's count over that is how often it ran per call. The expression
+should match one function: the calls are read from the lowest address
+matched, and the script says when several functions matched.
 
     python3 crates/locus/src/bench/cg_asm.py BINARY 'region::trace_local' FILE.cg [FILE.cg ...]
         [--min N]    print only instructions executed at least N times
-        [--lines]    print self instructions by source line instead, in
-                     the order the lines first appear, for the instructions
-                     run exactly as often as the function's first one (a
-                     call's fixed cost: its prologue, setup and epilogue)
-                     with --once, or for all of them
+        [--lines]    print self instructions a call by source line instead,
+                     in the order the lines first appear
+        [--once]     with --lines, only the instructions run exactly once a
+                     call (the call's fixed cost: prologue, setup, epilogue)
 
 It needs valgrind's callgrind output and `objdump` (binutils).
 """
@@ -31,8 +32,10 @@ import sys
 
 
 def self_costs(paths, pattern):
-    """Self instructions by address of the functions matching `pattern`."""
+    """Self instructions by address of the functions matching `pattern`, and
+    the names that matched."""
     cost = collections.Counter()
+    matched = set()
     for path in paths:
         # Names are compressed: `fn=(7) name` defines 7, `fn=(7)` reuses
         # it, and a definition may first appear on a `cfn=` line.
@@ -53,6 +56,8 @@ def self_costs(paths, pattern):
                         name = line[len(key):].strip()
                     if key == "fn=":
                         in_fn = bool(pattern.search(name))
+                        if in_fn:
+                            matched.add(name)
                     continue
                 if line.startswith("calls="):
                     # The next cost line is the call's inclusive cost.
@@ -73,7 +78,7 @@ def self_costs(paths, pattern):
                 # `positions: instr line`: address, line, then the cost.
                 if in_fn and len(parts) >= 3:
                     cost[addr] += int(parts[2])
-    return cost
+    return cost, matched
 
 
 def disassembly(binary, lo, hi):
@@ -102,9 +107,15 @@ def main():
     ap.add_argument("--lines", action="store_true")
     ap.add_argument("--once", action="store_true")
     a = ap.parse_args()
-    cost = self_costs(a.files, re.compile(a.function))
+    if a.once and not a.lines:
+        ap.error("--once goes with --lines")
+    cost, matched = self_costs(a.files, re.compile(a.function))
     if not cost:
-        sys.exit(f"no self cost for /{a.function}/ in {a.files} (made with --dump-instr=yes?)")
+        sys.exit(f"no self cost for /{a.function}/ in {a.files}: no function matches, "
+                 "or the files were made without valgrind's --dump-instr=yes")
+    if len(matched) > 1:
+        print(f"note: {len(matched)} functions match, counted together and their calls "
+              f"read from the lowest address: {sorted(matched)}", file=sys.stderr)
     lo, hi = min(cost), max(cost) + 16
     calls = cost[lo]
     print(f"{sum(cost.values())} instructions, {calls} calls (the first instruction's count)")
