@@ -15,8 +15,9 @@
 //! collapses it into the eight-wide BVH as obvhs would, node for node, in
 //! less time. `cwnode` and `leaf` are the traversal's node and triangle
 //! tests, `walk` the traversal, `build` the build's steps and how much
-//! each [`BuildQuality`] spends on them, `split` the pre-splits and
-//! `pages` the huge-page arrays.
+//! each [`BuildQuality`] spends on them, `split` the pre-splits,
+//! `pages` the huge-page arrays and `merge` the joining of BVHs built in
+//! parts into one ([`Accel::join`]).
 
 use crate::geometry::{Bounds, FLAT, Ray, TriHit, TriangleSet, WatertightRay};
 use crate::octree::Octree;
@@ -31,6 +32,7 @@ mod cwnode;
 pub(crate) use cwnode::wide_available;
 mod layout;
 mod leaf;
+mod merge;
 mod pages;
 mod split;
 mod walk;
@@ -85,6 +87,7 @@ pub fn closer(a: Option<AccelHit>, b: Option<AccelHit>) -> Option<AccelHit> {
     }
 }
 
+#[derive(Clone)]
 pub struct Accel {
     bvh: CwBvh,
     /// Triangle vertices in BVH primitive order, so leaf visits read
@@ -130,11 +133,18 @@ const BVH_T_SHIFT: f32 = 2.5e-4;
 /// conservative without creating inf * 0. The origin moves back by
 /// [`BVH_T_SHIFT`] along the ray; its rounding moves the ray by about an
 /// ulp of the scene's magnitude, far inside the boxes' padding.
+///
+/// The clamp's sign follows `x < 0.0`, as the node test's near planes
+/// ([`cwnode::NodeRay`]) and the ray's octant do. Taken from the sign bit
+/// (obvhs's `safe_inverse` and `copysign` both do), a direction component
+/// of -0.0, which negating an axis gives (`-Vec3::Z`), had a negative
+/// inverse but positive near planes: every box's entry came out beyond
+/// its exit, and such a ray hit nothing at all.
 #[inline(always)]
 fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
     let inv = |x: f32| {
         if x.abs() < 1e-30 {
-            1e30f32.copysign(x)
+            if x < 0.0 { -1e30 } else { 1e30 }
         } else {
             1.0 / x
         }

@@ -21,6 +21,7 @@ use glam::Vec3;
 use std::sync::Arc;
 
 /// One BVH of a set, and the octree leaves whose triangles it holds.
+#[derive(Clone)]
 pub struct Part {
     pub accel: Accel,
     /// Octree leaves (ascending) this part was built from; empty when it
@@ -67,6 +68,38 @@ pub struct SetHit {
     pub part: u32,
 }
 
+/// `parts` joined into one BVH ([`Accel::join`]) over all their leaves:
+/// one query a ray where a set of them makes one for every part the ray
+/// enters, with the same answers. A part that another holder shares (the
+/// embedded farm's workers share identical builds) is copied, every other
+/// one moved. The parts come back as they were when the joined tree would
+/// be too deep to walk.
+pub fn join(parts: Vec<Arc<Part>>) -> Vec<Arc<Part>> {
+    if parts.len() < 2 {
+        return parts;
+    }
+    let (accels, leaves): (Vec<Accel>, Vec<Vec<u32>>) = parts
+        .into_iter()
+        .map(|p| {
+            let part = Arc::unwrap_or_clone(p);
+            (part.accel, part.leaves)
+        })
+        .unzip();
+    match Accel::join(accels) {
+        Ok(one) => {
+            let mut all: Vec<u32> = leaves.into_iter().flatten().collect();
+            all.sort_unstable();
+            all.dedup();
+            vec![Arc::new(Part::new(one, all))]
+        }
+        Err(accels) => accels
+            .into_iter()
+            .zip(leaves)
+            .map(|(a, l)| Arc::new(Part::new(a, l)))
+            .collect(),
+    }
+}
+
 /// The most parts a set may have: a query keeps their entries on the stack.
 pub const MAX_PARTS: usize = 256;
 
@@ -102,6 +135,13 @@ impl AccelSet {
 
     pub fn parts(&self) -> &[Arc<Part>] {
         &self.parts
+    }
+
+    /// The parts joined into one BVH ([`join`]).
+    pub fn joined(self) -> AccelSet {
+        Self {
+            parts: join(self.parts),
+        }
     }
 
     /// Triangles over all parts (a triangle in two parts counts twice).
@@ -331,6 +371,18 @@ mod tests {
         let sizes = [40usize, 300, 1000, 1 << 20].map(|m| (m, BuildQuality::Full));
         for (max_part, quality) in sizes.into_iter().chain([(300, BuildQuality::Quick)]) {
             let set = AccelSet::from_parts(build_parts(&leaves, max_part, 12.0, quality, &tri));
+            // The same parts joined into one BVH answer the same.
+            let joined = set.clone().joined();
+            assert_eq!(joined.parts().len(), 1);
+            assert_eq!(joined.parts()[0].accel.len(), one.len());
+            assert_eq!(
+                joined.parts()[0].leaves,
+                (0..leaves.len() as u32).collect::<Vec<_>>()
+            );
+            for id in 0..tris.len() as u32 {
+                let p = joined.parts()[0].accel.find(id).expect("every triangle");
+                assert_eq!(joined.parts()[0].accel.triangle(p).0, tris[id as usize]);
+            }
             assert!(max_part < 1 << 20 || set.parts().len() == 1);
             assert!(max_part > 40 || set.parts().len() > 50);
             // Built several at once, the parts still come in leaf order,
@@ -347,10 +399,11 @@ mod tests {
                 let a = one.intersect(&r, 0.0, t1, &mut st);
                 let b = set.closest(&r, 0.0, t1, &mut st).map(|h| h.hit.hit);
                 assert_eq!(a, b, "part size {max_part}, {quality:?}, ray {i}");
-                assert_eq!(
-                    one.occluded(&r, 0.0, t1, &mut st),
-                    set.occluded(&r, 0.0, t1, &mut st)
-                );
+                let c = joined.closest(&r, 0.0, t1, &mut st).map(|h| h.hit.hit);
+                assert_eq!(a, c, "joined, part size {max_part}, {quality:?}, ray {i}");
+                let occluded = one.occluded(&r, 0.0, t1, &mut st);
+                assert_eq!(occluded, set.occluded(&r, 0.0, t1, &mut st));
+                assert_eq!(occluded, joined.occluded(&r, 0.0, t1, &mut st));
                 hits += a.is_some() as usize;
             }
             assert!(hits > 500, "only {hits} hits");

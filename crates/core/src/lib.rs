@@ -7,7 +7,7 @@
 //! [`accel`] (obvhs CWBVH with the watertight test of [`geometry`]), which
 //! answers ray queries clipped to any parameter interval; [`accel_set`]
 //! traces several BVHs as one, so a build never needs more memory than a
-//! budget allows. [`region`] is the processor map and the one routine that
+//! budget allows, and joins them into one where nothing will be added. [`region`] is the processor map and the one routine that
 //! traces a ray through what a worker holds.
 //!
 //! [`path`] is the path state machine, the one implementation of every

@@ -129,6 +129,12 @@ pub(crate) struct BenchFarmArgs {
     /// Write the Markdown tables here too.
     #[arg(long)]
     pub(crate) markdown: Option<PathBuf>,
+    /// Write every farm run's whole report (each worker's counts and CPU
+    /// time) into this directory, one JSON file a run: what
+    /// `crates/locus/src/bench/fit_costs.py --cpu` fits the partition's
+    /// cost model to.
+    #[arg(long)]
+    pub(crate) reports: Option<PathBuf>,
 }
 
 #[derive(clap::Args, Clone)]

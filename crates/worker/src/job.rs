@@ -8,12 +8,13 @@ use crate::peers::{self, Inbox, JobLink, OnBreak, Traffic};
 use crate::sys;
 use anyhow::{Context, bail};
 use locus_core::accel::{Accel, Layout};
-use locus_core::accel_set::Part;
+use locus_core::accel_set::{self, Part};
 use locus_core::irradiance::IrradianceCache;
 use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
 use locus_protocol::handshake::Credentials;
 use locus_protocol::overture::LevelChunk;
 use locus_protocol::report::WorkerStats;
+use locus_protocol::submit::FetchPolicy;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
@@ -167,7 +168,48 @@ impl Building {
             return Ok(false);
         }
         self.build(leaves, chunk, None).await?;
+        if last {
+            self.join_parts().await?;
+        }
         Ok(last)
+    }
+
+    /// Joins the region's parts, built one at a time within the memory
+    /// budget, into one BVH ([`accel_set::join`]): a ray then makes one
+    /// query where it made one for every part it entered. Nothing is
+    /// built again; the join holds the parts and the largest of them
+    /// once more at its peak.
+    ///
+    /// Only where no geometry will come later: a job that fetches leaves
+    /// (or takes handed ones, random polling) merges them into the part
+    /// whose run of leaves they fall in (`reach::merge`), which must stay
+    /// small enough to build again within the plan.
+    async fn join_parts(&mut self) -> anyhow::Result<()> {
+        let s = &self.setup;
+        let fixed = s.fetch == FetchPolicy::Forward && !s.tuning.random_polling;
+        if self.parts.len() < 2 || !fixed {
+            return Ok(());
+        }
+        let parts = std::mem::take(&mut self.parts);
+        let before = parts.len();
+        let t = Instant::now();
+        self.parts = tokio::task::spawn_blocking(move || {
+            let joined = accel_set::join(parts);
+            sys::trim_heap();
+            joined
+        })
+        .await?;
+        self.bvh_s += t.elapsed().as_secs_f64();
+        tracing::debug!(
+            job = self.setup.job,
+            parts = before,
+            joined = self.parts.len(),
+            join_s = t.elapsed().as_secs_f64(),
+            resident = sys::resident_bytes().unwrap_or(0),
+            peak = sys::peak_resident_bytes().unwrap_or(0),
+            "region parts joined"
+        );
+        Ok(())
     }
 
     /// The scheduler's layout of the whole region, after its last part
@@ -546,9 +588,11 @@ mod tests {
 
     /// Without a budget the parts of a region are kept until the last and
     /// built as one BVH, a triangle shipped in two parts held once; with
-    /// one, each part is built as it comes, as the plan sized it.
+    /// one, each part is built as it comes, as the plan sized it, and a job
+    /// to which no geometry comes later joins them into one BVH after the
+    /// last (`accel_set::join`); one that fetches keeps them apart.
     #[tokio::test]
-    async fn an_unbudgeted_region_is_one_bvh_however_it_ships() {
+    async fn a_region_is_one_bvh_however_it_ships_unless_it_fetches() {
         let tris: Vec<[Vec3; 3]> = (0..30)
             .map(|i| {
                 let p = Vec3::new(i as f32 * 0.3 - 4.5, (i % 5) as f32, (i % 7) as f32 * 0.5);
@@ -560,17 +604,25 @@ mod tests {
         let part = |ids| part(&tris, ids);
         let shipped = [part(0..15), part(10..20), part(20..30)];
         let n: u64 = shipped.iter().map(|s| s.len() as u64).sum();
-        for budget in [0u64, 1 << 30] {
-            let mut b = Building::new(setup(&tris, n, budget), false, None, None).unwrap();
+        for (budget, fetch) in [
+            (0u64, FetchPolicy::Forward),
+            (1 << 30, FetchPolicy::Forward),
+            (1 << 30, FetchPolicy::Adaptive),
+        ] {
+            let mut setup = setup(&tris, n, budget);
+            setup.fetch = fetch;
+            let mut b = Building::new(setup, false, None, None).unwrap();
             for (k, s) in shipped.iter().enumerate() {
                 b.add_part(vec![k as u32], s.clone(), k == 2).await.unwrap();
             }
-            if budget == 0 {
-                assert_eq!(b.parts.len(), 1);
+            if fetch == FetchPolicy::Forward {
+                assert_eq!(b.parts.len(), 1, "budget {budget}");
                 assert_eq!(b.parts[0].accel.len(), 30);
                 assert_eq!(b.parts[0].leaves, vec![0, 1, 2]);
                 for id in 0..30 {
-                    assert!(b.parts[0].accel.find(id).is_some(), "triangle {id}");
+                    let p = b.parts[0].accel.find(id);
+                    assert!(p.is_some(), "triangle {id}, budget {budget}");
+                    assert_eq!(b.parts[0].accel.triangle(p.unwrap()).0, tris[id as usize]);
                 }
             } else {
                 assert_eq!(b.parts.len(), 3);

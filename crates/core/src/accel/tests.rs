@@ -91,6 +91,59 @@ fn a_bvh_holds_exactly_its_own_set() {
     }
 }
 
+/// Rays along the axes, their other components +0.0 or -0.0 (negating an
+/// axis gives -0.0), and rays with one component of either zero, find
+/// what testing every triangle finds: closest hits and occlusion. A -0.0
+/// once made the BVH miss every box.
+#[test]
+fn rays_with_zero_components_of_either_sign_find_what_every_triangle_gives() {
+    let set = soup(8000, 40);
+    let ids: Vec<u32> = (0..set.len() as u32).collect();
+    let accel = Accel::build(&set, &ids, 20.0);
+    let brute = |r: &Ray, t1: f32| {
+        let w = WatertightRay::new(r);
+        set.iter()
+            .enumerate()
+            .filter_map(|(i, v)| w.intersect(v, 0.0, t1).map(|h| (h.t, i as u32)))
+            .min_by(|a, b| a.partial_cmp(b).unwrap())
+    };
+    let mut st = TraceStats::default();
+    let mut hits = 0;
+    for i in 0..3000u64 {
+        let k = SampleKey::independent(i, 5, 9);
+        let o = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 12.0;
+        let axis = (i % 3) as usize;
+        let mut d = Vec3::ZERO;
+        d[axis] = if i % 2 == 0 { 1.0 } else { -1.0 };
+        // Each other component +0.0, -0.0 or, for every fourth ray, a
+        // value, so that one zero is left.
+        for a in (0..3).filter(|&a| a != axis) {
+            d[a] = match (i / 6 + a as u64) % 4 {
+                0 => 0.0,
+                1 | 2 => -0.0,
+                _ => k.get1d(3 + a as u32) - 0.5,
+            };
+        }
+        let d = if d.length() != 1.0 { d.normalize() } else { d };
+        let r = Ray::new(o, d);
+        let t1 = if i % 5 == 0 { 8.0 } else { f32::INFINITY };
+        let want = brute(&r, t1);
+        let got = accel.closest(&r, 0.0, t1, &mut st);
+        assert_eq!(
+            got.map(|h| (h.hit.t, h.hit.tri)),
+            want,
+            "ray {i}: {o:?} along {d:?}"
+        );
+        assert_eq!(
+            accel.occluded(&r, 0.0, t1, &mut st),
+            want.is_some(),
+            "ray {i}"
+        );
+        hits += want.is_some() as usize;
+    }
+    assert!(hits > 300, "only {hits} hits: the rays test little");
+}
+
 /// The traversal compiled for AVX2 around the eight-wide node test and
 /// the eight-lane triangle test gives every query the four-wide and
 /// scalar one's answer, to the bit, visiting the same nodes and, for

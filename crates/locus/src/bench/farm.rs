@@ -59,6 +59,8 @@ pub struct Plan {
     pub large: Option<Large>,
     /// The `locus` executable the workers run.
     pub exe: PathBuf,
+    /// Where every run's whole report goes, if anywhere.
+    pub reports: Option<PathBuf>,
 }
 
 pub struct Large {
@@ -204,7 +206,13 @@ struct FarmRun {
 
 /// Runs `run` `repeat` times on fresh processes; keeps the fastest render
 /// and whether every image matched.
-fn farm(scene: &Scene, run: &FarmRun, repeat: u32, want: &[u32]) -> Result<(FarmReport, bool)> {
+fn farm(
+    scene: &Scene,
+    run: &FarmRun,
+    repeat: u32,
+    want: &[u32],
+    reports: Option<&Path>,
+) -> Result<(FarmReport, bool)> {
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -233,6 +241,9 @@ fn farm(scene: &Scene, run: &FarmRun, repeat: u32, want: &[u32]) -> Result<(Farm
             pixels: r.pixels,
         };
         identical &= img.to_bits() == want;
+        if let Some(d) = reports {
+            write_report(d, &r.report, run)?;
+        }
         if best
             .as_ref()
             .is_none_or(|b| r.report.phases.render_s < b.phases.render_s)
@@ -241,6 +252,30 @@ fn farm(scene: &Scene, run: &FarmRun, repeat: u32, want: &[u32]) -> Result<(Farm
         }
     }
     Ok((best.expect("at least one run"), identical))
+}
+
+/// Writes `report` into `dir` under a name no other run of the benchmark
+/// takes: the scene, the configuration and the first free number.
+fn write_report(dir: &Path, report: &FarmReport, run: &FarmRun) -> Result<()> {
+    let scene = Path::new(&report.scene).file_stem().map_or_else(
+        || report.scene.clone(),
+        |s| s.to_string_lossy().into_owned(),
+    );
+    let stem = format!(
+        "{}-{}w-{}-{:?}-{}pc",
+        scene,
+        run.spec.workers,
+        run.policy.name(),
+        run.partitioner,
+        run.shared_percent
+    )
+    .replace(|c: char| !c.is_ascii_alphanumeric() && c != '-', "_");
+    let path = (0..)
+        .map(|i| dir.join(format!("{stem}-{i}.json")))
+        .find(|p| !p.exists())
+        .expect("a free name");
+    std::fs::write(&path, serde_json::to_string_pretty(report)?)
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 fn row(scene: &str, run: &FarmRun, one: &Single, f: &FarmReport, identical: bool) -> Row {
@@ -450,7 +485,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             }
         }
         for r in &runs {
-            let (f, identical) = farm(&scene, r, plan.repeat, &one.bits)?;
+            let (f, identical) = farm(&scene, r, plan.repeat, &one.bits, plan.reports.as_deref())?;
             let row = row(&name, r, &one, &f, identical);
             tracing::info!(config = %row.config, render_s = row.render_s, "measured");
             rows.push(row);

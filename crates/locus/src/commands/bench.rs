@@ -221,7 +221,11 @@ pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
         cores,
         large,
         exe: std::env::current_exe().context("finding the locus executable")?,
+        reports: a.reports.clone(),
     };
+    if let Some(d) = &a.reports {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+    }
     let (rows, predictions) = farm::run(&plan)?;
     let md = format!(
         "{}\n{}",
