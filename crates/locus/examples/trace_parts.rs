@@ -5,7 +5,7 @@
 //!
 //!     cargo build --release -p locus --example trace_parts
 //!     target/release/examples/trace_parts scenes/generated/room.toml 16 5
-//!     valgrind --tool=callgrind --toggle-collect='trace_parts::round_*' \
+//!     valgrind --tool=callgrind --toggle-collect='trace_parts::round*' \
 //!         target/release/examples/trace_parts scenes/generated/room.toml 16 1
 //!
 //! Arguments: the scene, the number of parts (about; default 16) and the
@@ -14,7 +14,7 @@
 //! round in rays per second, with BVH queries, node visits and triangle
 //! tests a ray, and checks that all three find the same closest hits.
 
-use locus_core::accel::{Accel, BuildQuality};
+use locus_core::accel::BuildQuality;
 use locus_core::accel_set::{self, AccelSet};
 use locus_core::geometry::{FLAT, Ray};
 use locus_core::octree::{Octree, OctreeParams};
@@ -23,34 +23,29 @@ use locus_core::scene::Scene;
 use locus_core::stats::TraceStats;
 use std::time::Instant;
 
-/// One round through one BVH: seconds, the stats, and each ray's hit.
+/// One round: `closest` over every ray, its seconds, the stats and each
+/// ray's hit.
 #[inline(never)]
-fn round_one(a: &Accel, rays: &[Ray], hits: &mut Vec<Option<(f32, u32)>>) -> (f64, TraceStats) {
+fn round(
+    rays: &[Ray],
+    hits: &mut Vec<Option<(f32, u32)>>,
+    closest: impl Fn(&Ray, &mut TraceStats) -> Option<(f32, u32)>,
+) -> (f64, TraceStats) {
     let mut st = TraceStats::default();
     hits.clear();
     let t = Instant::now();
     for r in rays {
-        hits.push(
-            a.closest(r, 0.0, f32::INFINITY, &mut st)
-                .map(|h| (h.hit.t, h.hit.tri)),
-        );
+        hits.push(closest(r, &mut st));
     }
     (t.elapsed().as_secs_f64(), st)
 }
 
-/// One round through a set of parts.
-#[inline(never)]
-fn round_set(s: &AccelSet, rays: &[Ray], hits: &mut Vec<Option<(f32, u32)>>) -> (f64, TraceStats) {
-    let mut st = TraceStats::default();
-    hits.clear();
-    let t = Instant::now();
-    for r in rays {
-        hits.push(
-            s.closest(r, 0.0, f32::INFINITY, &mut st)
-                .map(|h| (h.hit.hit.t, h.hit.hit.tri)),
-        );
+/// The closest hit through a set of parts.
+fn in_set(s: &AccelSet) -> impl Fn(&Ray, &mut TraceStats) -> Option<(f32, u32)> + '_ {
+    move |r, st| {
+        s.closest(r, 0.0, f32::INFINITY, st)
+            .map(|h| (h.hit.hit.t, h.hit.hit.tri))
     }
-    (t.elapsed().as_secs_f64(), st)
 }
 
 fn main() -> anyhow::Result<()> {
@@ -98,10 +93,15 @@ fn main() -> anyhow::Result<()> {
     let mut best = [(f64::INFINITY, TraceStats::default()); 3];
     let mut hits = [Vec::new(), Vec::new(), Vec::new()];
     for _ in 0..rounds.max(1) {
+        let [h0, h1, h2] = &mut hits;
         let r = [
-            round_one(&prep.accel, &rays, &mut hits[0]),
-            round_set(&set, &rays, &mut hits[1]),
-            round_set(&joined, &rays, &mut hits[2]),
+            round(&rays, h0, |r, st| {
+                prep.accel
+                    .closest(r, 0.0, f32::INFINITY, st)
+                    .map(|h| (h.hit.t, h.hit.tri))
+            }),
+            round(&rays, h1, in_set(&set)),
+            round(&rays, h2, in_set(&joined)),
         ];
         for (b, r) in best.iter_mut().zip(r) {
             if r.0 < b.0 {

@@ -18,10 +18,10 @@
 //! Hits are exact and ties go to the smaller global id, so the joined BVH
 //! gives every ray the answer the set gave.
 
+use super::convert::{frame, internal_meta, quantise, slots};
 use super::{Accel, pages};
 use crate::geometry::{Bounds, FLAT};
-use glam::{UVec3, Vec3A, vec3a};
-use obvhs::PerComponent;
+use glam::Vec3A;
 use obvhs::aabb::Aabb;
 use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::node::CwBvhNode;
@@ -30,9 +30,6 @@ use obvhs::cwbvh::node::CwBvhNode;
 /// `TRAVERSAL_STACK_SIZE`) bounds the depth a joined tree may reach: a
 /// traversal pushes at most one entry a level.
 const MAX_DEPTH: usize = 30;
-
-/// 1 / 255: a child plane is quantised to 8 bits of its node's extent.
-const DENOM: f32 = 1.0 / 255.0;
 
 /// A node of the new top: its box and its children.
 struct Top {
@@ -249,37 +246,24 @@ fn emit(
     if roots.is_empty() {
         roots.resize(parts.len(), usize::MAX);
     }
-    let slots = order(parts, t);
+    let centres: Vec<Vec3A> = t.children.iter().map(|c| c.aabb(parts).center()).collect();
+    let mut in_slot = [None; 8];
+    for (c, s) in slots(t.aabb.center(), &centres)
+        .into_iter()
+        .take(t.children.len())
+        .enumerate()
+    {
+        in_slot[s] = Some(c);
+    }
     let mut node = CwBvhNode::default();
-    let p = t.aabb.min;
-    node.p = p.into();
-    let e = ((t.aabb.max - t.aabb.min).max(Vec3A::splat(1e-20)) * DENOM)
-        .log2()
-        .ceil()
-        .exp2();
-    let rcp_e = 1.0 / e;
-    let e: UVec3 = e.per_comp(|c: f32| c.to_bits() >> 23);
-    node.e = [e.x as u8, e.y as u8, e.z as u8];
+    let (p, rcp_e) = frame(&mut node, &t.aabb);
     node.child_base_idx = nodes.len() as u32;
-    node.primitive_base_idx = 0;
     let mut inner = Vec::new();
-    for (i, slot) in slots.iter().enumerate() {
+    for (i, slot) in in_slot.iter().enumerate() {
         let Some(c) = slot else { continue };
-        let b = t.children[*c].aabb(parts);
-        let lo = ((b.min - p) * rcp_e)
-            .floor()
-            .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-        let hi = ((b.max - p) * rcp_e)
-            .ceil()
-            .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-        node.child_min_x[i] = lo.x as u8;
-        node.child_min_y[i] = lo.y as u8;
-        node.child_min_z[i] = lo.z as u8;
-        node.child_max_x[i] = hi.x as u8;
-        node.child_max_y[i] = hi.y as u8;
-        node.child_max_z[i] = hi.z as u8;
+        quantise(&mut node, i, &t.children[*c].aabb(parts), p, rcp_e);
         node.imask |= 1u8 << i;
-        node.child_meta[i] = (24 + i as u8) | 0b0010_0000;
+        node.child_meta[i] = internal_meta(i);
         inner.push(*c);
     }
     let base = nodes.len();
@@ -291,45 +275,6 @@ fn emit(
             Child::Node(n) => emit(nodes, roots, parts, n, base + k, false),
         }
     }
-}
-
-/// obvhs's greedy assignment of a node's children to its eight slots, by
-/// their centres along each octant's diagonal, so that a ray's octant
-/// gives a near-to-far traversal order (`accel::convert`'s `order`).
-fn order(parts: &[Accel], t: &Top) -> [Option<usize>; 8] {
-    let directions: [Vec3A; 8] = std::array::from_fn(|s| {
-        vec3a(
-            if s & 0b100 != 0 { -1.0 } else { 1.0 },
-            if s & 0b010 != 0 { -1.0 } else { 1.0 },
-            if s & 0b001 != 0 { -1.0 } else { 1.0 },
-        )
-    });
-    let centre = t.aabb.center();
-    let n = t.children.len();
-    let cost: Vec<[f32; 8]> = t
-        .children
-        .iter()
-        .map(|c| {
-            let v = c.aabb(parts).center() - centre;
-            directions.map(|d| d.dot(v))
-        })
-        .collect();
-    let mut slots = [None; 8];
-    let mut placed = vec![false; n];
-    loop {
-        let mut best: Option<(f32, usize, usize)> = None;
-        for c in (0..n).filter(|&c| !placed[c]) {
-            for s in (0..8).filter(|&s| slots[s].is_none()) {
-                if best.is_none_or(|(m, _, _)| cost[c][s] < m) {
-                    best = Some((cost[c][s], s, c));
-                }
-            }
-        }
-        let Some((_, s, c)) = best else { break };
-        slots[s] = Some(c);
-        placed[c] = true;
-    }
-    slots
 }
 
 #[cfg(test)]

@@ -6,8 +6,9 @@
 //! plans charge (see `docs/benchmarks/loading.md`).
 
 use super::{Decisions, Kind, Tree};
-use glam::{UVec3, Vec3A};
+use glam::{UVec3, Vec3A, vec3a};
 use obvhs::PerComponent;
+use obvhs::aabb::Aabb;
 use obvhs::cwbvh::BRANCHING;
 use obvhs::cwbvh::node::CwBvhNode;
 
@@ -20,12 +21,11 @@ pub(super) struct Emit<'a> {
     d: &'a Decisions,
     pub(super) nodes: Vec<CwBvhNode>,
     pub(super) primitive_indices: Vec<u32>,
-    directions: [Vec3A; 8],
 }
 
 impl<'a> Emit<'a> {
     /// An emission whose first wide node, at index 0, is still to come.
-    pub(super) fn new(t: &'a Tree, d: &'a Decisions, directions: [Vec3A; 8], prims: usize) -> Self {
+    pub(super) fn new(t: &'a Tree, d: &'a Decisions, prims: usize) -> Self {
         let mut nodes = Vec::with_capacity(prims.max(1));
         nodes.push(CwBvhNode::default());
         Self {
@@ -33,7 +33,6 @@ impl<'a> Emit<'a> {
             d,
             nodes,
             primitive_indices: Vec::with_capacity(prims),
-            directions,
         }
     }
 
@@ -52,16 +51,7 @@ impl<'a> Emit<'a> {
     /// room starts and the internal children's entries, in slot order.
     fn head(&mut self, at8: usize, at2: usize) -> (usize, [u32; 8], usize) {
         let mut node = self.nodes[at8];
-        let aabb = self.t.nodes[at2].aabb();
-        let p = aabb.min;
-        node.p = p.into();
-        let e = ((aabb.max - aabb.min).max(Vec3A::splat(1e-20)) * DENOM)
-            .log2()
-            .ceil()
-            .exp2();
-        let rcp_e = 1.0 / e;
-        let e: UVec3 = e.per_comp(|c: f32| c.to_bits() >> 23);
-        node.e = [e.x as u8, e.y as u8, e.z as u8];
+        let (p, rcp_e) = frame(&mut node, &self.t.nodes[at2].aabb());
         let mut children = [u32::MAX; 8];
         let mut count = 0;
         self.children(at2, &mut children, &mut count, 0);
@@ -74,19 +64,7 @@ impl<'a> Emit<'a> {
             if c == u32::MAX {
                 continue;
             }
-            let b = self.t.nodes[c as usize].aabb();
-            let lo = ((b.min - p - 0.0) * rcp_e)
-                .floor()
-                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-            let hi = ((b.max - p + 0.0) * rcp_e)
-                .ceil()
-                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-            node.child_min_x[i] = lo.x as u8;
-            node.child_min_y[i] = lo.y as u8;
-            node.child_min_z[i] = lo.z as u8;
-            node.child_max_x[i] = hi.x as u8;
-            node.child_max_y[i] = hi.y as u8;
-            node.child_max_z[i] = hi.z as u8;
+            quantise(&mut node, i, &self.t.nodes[c as usize].aabb(), p, rcp_e);
             match self.d.kind(c as usize, 0) {
                 Kind::Leaf => {
                     let n = self.leaf_prims(c as usize);
@@ -101,7 +79,7 @@ impl<'a> Emit<'a> {
                 }
                 Kind::Internal => {
                     node.imask |= 1u8 << i;
-                    node.child_meta[i] = (24 + i as u8) | 0b0010_0000;
+                    node.child_meta[i] = internal_meta(i);
                     internal += 1;
                 }
                 Kind::Distribute => unreachable!("a child slot that distributes"),
@@ -154,40 +132,95 @@ impl<'a> Emit<'a> {
         }
     }
 
-    /// obvhs's greedy assignment of children to the eight slots, by their
-    /// centres along each octant's diagonal, so that a ray's octant gives
-    /// its traversal order.
+    /// The children in their slots ([`slots`]).
     fn order(&self, i: usize, children: &mut [u32; 8], count: usize) {
-        let p = self.t.nodes[i].aabb().center();
-        let mut cost = [[f32::MAX; 8]; BRANCHING];
-        for (s, d) in self.directions.iter().enumerate() {
-            for c in 0..count {
-                let v = self.t.nodes[children[c] as usize].aabb().center() - p;
-                cost[c][s] = d.dot(v);
-            }
+        let centres: Vec<Vec3A> = children[..count]
+            .iter()
+            .map(|&c| self.t.nodes[c as usize].aabb().center())
+            .collect();
+        let slot = slots(self.t.nodes[i].aabb().center(), &centres);
+        let original = std::mem::replace(children, [u32::MAX; 8]);
+        for c in 0..count {
+            children[slot[c]] = original[c];
         }
-        let mut assignment = [usize::MAX; BRANCHING];
-        let mut filled = [false; 8];
-        loop {
-            let (mut min, mut slot, mut index) = (f32::MAX, usize::MAX, usize::MAX);
-            for c in 0..count {
-                if assignment[c] == usize::MAX {
-                    for (s, &f) in filled.iter().enumerate() {
-                        if !f && cost[c][s] < min {
-                            (min, slot, index) = (cost[c][s], s, c);
-                        }
+    }
+}
+
+/// Sets `node`'s frame over `aabb`: its origin and per-axis scale, a
+/// power of two stored as its exponent, so that 255 steps span the box.
+/// Returns the origin and the scale's reciprocal, for [`quantise`].
+pub(in crate::accel) fn frame(node: &mut CwBvhNode, aabb: &Aabb) -> (Vec3A, Vec3A) {
+    let p = aabb.min;
+    node.p = p.into();
+    let e = ((aabb.max - aabb.min).max(Vec3A::splat(1e-20)) * DENOM)
+        .log2()
+        .ceil()
+        .exp2();
+    let rcp_e = 1.0 / e;
+    let e: UVec3 = e.per_comp(|c: f32| c.to_bits() >> 23);
+    node.e = [e.x as u8, e.y as u8, e.z as u8];
+    (p, rcp_e)
+}
+
+/// Writes child `i`'s box `b` into `node`, quantised outward in the frame
+/// [`frame`] set.
+pub(in crate::accel) fn quantise(node: &mut CwBvhNode, i: usize, b: &Aabb, p: Vec3A, rcp_e: Vec3A) {
+    let lo = ((b.min - p - 0.0) * rcp_e)
+        .floor()
+        .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
+    let hi = ((b.max - p + 0.0) * rcp_e)
+        .ceil()
+        .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
+    node.child_min_x[i] = lo.x as u8;
+    node.child_min_y[i] = lo.y as u8;
+    node.child_min_z[i] = lo.z as u8;
+    node.child_max_x[i] = hi.x as u8;
+    node.child_max_y[i] = hi.y as u8;
+    node.child_max_z[i] = hi.z as u8;
+}
+
+/// The meta byte of an internal child in slot `i`.
+pub(in crate::accel) fn internal_meta(i: usize) -> u8 {
+    (24 + i as u8) | 0b0010_0000
+}
+
+/// obvhs's greedy assignment of a node's children (their box centres) to
+/// its eight slots, by their centres along each octant's diagonal seen
+/// from the node's `centre`, so that a ray's octant gives its traversal
+/// order: child `c` goes to slot `result[c]`.
+pub(in crate::accel) fn slots(centre: Vec3A, children: &[Vec3A]) -> [usize; BRANCHING] {
+    let directions: [Vec3A; 8] = std::array::from_fn(|s| {
+        vec3a(
+            if s & 0b100 != 0 { -1.0 } else { 1.0 },
+            if s & 0b010 != 0 { -1.0 } else { 1.0 },
+            if s & 0b001 != 0 { -1.0 } else { 1.0 },
+        )
+    });
+    let count = children.len();
+    let mut cost = [[f32::MAX; 8]; BRANCHING];
+    for (s, d) in directions.iter().enumerate() {
+        for c in 0..count {
+            cost[c][s] = d.dot(children[c] - centre);
+        }
+    }
+    let mut assignment = [usize::MAX; BRANCHING];
+    let mut filled = [false; 8];
+    loop {
+        let (mut min, mut slot, mut index) = (f32::MAX, usize::MAX, usize::MAX);
+        for c in 0..count {
+            if assignment[c] == usize::MAX {
+                for (s, &f) in filled.iter().enumerate() {
+                    if !f && cost[c][s] < min {
+                        (min, slot, index) = (cost[c][s], s, c);
                     }
                 }
             }
-            if slot == usize::MAX {
-                break;
-            }
-            filled[slot] = true;
-            assignment[index] = slot;
         }
-        let original = std::mem::replace(children, [u32::MAX; 8]);
-        for c in 0..count {
-            children[assignment[c]] = original[c];
+        if slot == usize::MAX {
+            break;
         }
+        filled[slot] = true;
+        assignment[index] = slot;
     }
+    assignment
 }

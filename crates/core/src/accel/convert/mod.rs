@@ -23,13 +23,14 @@
 //! which BVH is built changes no hit, but the preview's BVH steps, and so
 //! the regions drawn from them, would move with it.
 
-use glam::{Vec3, vec3a};
+use glam::Vec3;
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::Bvh2;
 use obvhs::cwbvh::CwBvh;
 
 mod emit;
 use emit::Emit;
+pub(super) use emit::{frame, internal_meta, quantise, slots};
 
 /// obvhs's SAH weight of a primitive against a node.
 const PRIM_COST: f32 = 0.3;
@@ -342,14 +343,7 @@ fn bvh2_to_cwbvh_sharing(bvh2: &Bvh2, max_prims_per_leaf: u32, share_below: usiz
     }
     let t = Tree::from_bvh2(bvh2);
     let d = decide(&t, max_prims_per_leaf.clamp(1, 3), share_below);
-    let directions = std::array::from_fn(|s| {
-        vec3a(
-            if s & 0b100 != 0 { -1.0 } else { 1.0 },
-            if s & 0b010 != 0 { -1.0 } else { 1.0 },
-            if s & 0b001 != 0 { -1.0 } else { 1.0 },
-        )
-    });
-    let mut e = Emit::new(&t, &d, directions, bvh2.primitive_indices.len());
+    let mut e = Emit::new(&t, &d, bvh2.primitive_indices.len());
     e.node(0, 0);
     CwBvh {
         nodes: e.nodes,
@@ -363,7 +357,7 @@ fn bvh2_to_cwbvh_sharing(bvh2: &Bvh2, max_prims_per_leaf: u32, share_below: usiz
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::Vec3A;
+    use glam::{Vec3A, vec3a};
     use obvhs::bvh2::reinsertion::ReinsertionOptimizer;
     use obvhs::cwbvh::node::CwBvhNode;
     use obvhs::ploc::{PlocBuilder, PlocSearchDistance, SortPrecision};
