@@ -1,7 +1,9 @@
 //! What a BVH built in parts costs a ray, as a worker under a memory
-//! budget builds its region (`accel_set::build_parts`, runs of octree
-//! leaves in Morton order), traced as a set of parts and joined into one
-//! BVH (`accel_set::join`), against one BVH built over everything:
+//! budget builds its region, against one BVH built over everything: parts
+//! that are runs of octree leaves in Morton order (`accel_set::build_parts`,
+//! as a fetching worker's are) traced as a set and joined into one BVH
+//! (`accel_set::join`), and parts cut by centroid
+//! (`accel_set::cut_by_centroids`, as a joining worker's are) joined:
 //!
 //!     cargo build --release -p locus --example trace_parts
 //!     target/release/examples/trace_parts scenes/generated/room.toml 16 5
@@ -10,9 +12,9 @@
 //!
 //! Arguments: the scene, the number of parts (about; default 16) and the
 //! rounds (default 5), each round tracing `locus bench`'s 500,000
-//! incoherent rays through the three in turn. Prints each one's best
+//! incoherent rays through the four in turn. Prints each one's best
 //! round in rays per second, with BVH queries, node visits and triangle
-//! tests a ray, and checks that all three find the same closest hits.
+//! tests a ray, and checks that all four find the same closest hits.
 
 use locus_core::accel::BuildQuality;
 use locus_core::accel_set::{self, AccelSet};
@@ -82,18 +84,39 @@ fn main() -> anyhow::Result<()> {
     );
     let set = AccelSet::from_parts(parts.clone());
     let joined = AccelSet::from_parts(accel_set::join(parts));
+    // As a joining worker's region is cut (`accel_set::cut_by_centroids`).
+    let centroid = |id: u32| {
+        let t = scene.tris[id as usize];
+        (t[0] + t[1] + t[2]) / 3.0
+    };
+    let all: Vec<u32> = (0..scene.tris.len() as u32).collect();
+    let cut: Vec<_> = accel_set::cut_by_centroids(all, &centroid, refs.div_ceil(want.max(1)))
+        .iter()
+        .flat_map(|g| {
+            let one = [(0, g.as_slice())];
+            accel_set::build_parts(&one, g.len(), scene.magnitude(), BuildQuality::Full, &tri)
+        })
+        .collect();
+    let cut_parts = cut.len();
+    let cut_joined = AccelSet::from_parts(accel_set::join(cut));
     let rays = locus::bench::trace::rays(&prep, 500_000);
     println!(
-        "{} triangles; {} parts; joined into {}",
+        "{} triangles; {} leaf-run parts, joined into {}; {} centroid-cut parts",
         scene.tris.len(),
         set.parts().len(),
-        joined.parts().len()
+        joined.parts().len(),
+        cut_parts
     );
-    let names = ["one BVH", "parts as a set", "parts joined"];
-    let mut best = [(f64::INFINITY, TraceStats::default()); 3];
-    let mut hits = [Vec::new(), Vec::new(), Vec::new()];
+    let names = [
+        "one BVH",
+        "leaf-run parts as a set",
+        "leaf-run parts joined",
+        "centroid-cut parts joined",
+    ];
+    let mut best = [(f64::INFINITY, TraceStats::default()); 4];
+    let mut hits = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
     for _ in 0..rounds.max(1) {
-        let [h0, h1, h2] = &mut hits;
+        let [h0, h1, h2, h3] = &mut hits;
         let r = [
             round(&rays, h0, |r, st| {
                 prep.accel
@@ -102,6 +125,7 @@ fn main() -> anyhow::Result<()> {
             }),
             round(&rays, h1, in_set(&set)),
             round(&rays, h2, in_set(&joined)),
+            round(&rays, h3, in_set(&cut_joined)),
         ];
         for (b, r) in best.iter_mut().zip(r) {
             if r.0 < b.0 {
@@ -110,6 +134,7 @@ fn main() -> anyhow::Result<()> {
         }
     }
     anyhow::ensure!(hits[0] == hits[1], "the set's hits differ from one BVH's");
+    anyhow::ensure!(hits[0] == hits[3], "the centroid-cut parts' hits differ");
     anyhow::ensure!(
         hits[0] == hits[2],
         "the joined BVH's hits differ from one BVH's"
@@ -124,6 +149,6 @@ fn main() -> anyhow::Result<()> {
             st.tri_tests as f64 / n,
         );
     }
-    println!("every closest hit the same in all three");
+    println!("every closest hit the same in all four");
     Ok(())
 }

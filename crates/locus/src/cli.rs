@@ -91,7 +91,9 @@ pub(crate) struct BenchFarmArgs {
     #[arg(long, default_value_t = 16)]
     pub(crate) spp: u32,
     /// Runs per configuration; the fastest is reported (shared machines
-    /// are noisy, and noise only ever adds time).
+    /// are noisy, and noise only ever adds time), and region growing is
+    /// judged against Morton over all of them (means and standard errors
+    /// of forwards and imbalance).
     #[arg(long, default_value_t = 1)]
     pub(crate) repeat: u32,
     /// Farm sizes to measure.

@@ -116,8 +116,8 @@ pub(crate) fn write_farm_result(
         _ => String::new(),
     };
     println!(
-        "  load imbalance {:.3}  forwarded per ray {:.3}  bytes per sample {:.1}{r}",
-        f.load_imbalance, f.forwarded_fraction, f.bytes_per_sample,
+        "  load imbalance {:.3} ({:.3} with setup)  forwarded per ray {:.3}  bytes per sample {:.1}{r}",
+        f.load_imbalance, f.total_imbalance, f.forwarded_fraction, f.bytes_per_sample,
     );
     if f.replicated {
         let why = if f.policy == FetchPolicy::Adaptive.name() {

@@ -231,6 +231,13 @@ pub struct FarmReport {
     /// Max over mean of the workers' render-phase CPU time (of their busy
     /// time where CPU time was not counted).
     pub load_imbalance: f64,
+    /// Max over mean of the workers' whole CPU time on the job, setup
+    /// (receiving and building the region) included; the render-phase
+    /// figure where CPU time was not counted. A partition places both: a
+    /// worker with fewer triangles to build starts rendering first and
+    /// takes more tiles, which `load_imbalance` charges as imbalance and
+    /// this figure, rightly, does not.
+    pub total_imbalance: f64,
     /// Trace items forwarded over all local traces.
     pub forwarded_fraction: f64,
     pub bytes_per_sample: f64,

@@ -42,13 +42,19 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
     // time another process held its core, as on any machine with fewer
     // cores than worker threads), else its busy time.
     let cpu: Vec<f64> = stats.iter().map(|s| s.cpu_s - s.setup_cpu_s).collect();
-    let busy: Vec<f64> = if cpu.iter().all(|&c| c > 0.0) {
+    let counted = cpu.iter().all(|&c| c > 0.0);
+    let busy: Vec<f64> = if counted {
         cpu
     } else {
         stats.iter().map(|s| s.busy_s).collect()
     };
-    let mean_busy = busy.iter().sum::<f64>() / busy.len().max(1) as f64;
-    let max_busy = busy.iter().cloned().fold(0.0, f64::max);
+    let load_imbalance = max_over_mean(&busy);
+    // With its setup, what the partition put on each worker.
+    let total_imbalance = if counted {
+        max_over_mean(&stats.iter().map(|s| s.cpu_s).collect::<Vec<_>>())
+    } else {
+        load_imbalance
+    };
     let end = a.t_rendered.unwrap_or_else(Instant::now);
     let prepared = a.t_prepared.unwrap_or(a.started);
     let ready = a.t_ready.unwrap_or(end);
@@ -110,11 +116,8 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
                 stats: s.clone(),
             })
             .collect(),
-        load_imbalance: if mean_busy > 0.0 {
-            max_busy / mean_busy
-        } else {
-            1.0
-        },
+        load_imbalance,
+        total_imbalance,
         forwarded_fraction: totals.forwarded_out as f64 / totals.trace.rays().max(1) as f64,
         bytes_per_sample: bytes as f64 / samples.max(1) as f64,
         samples_per_s: samples as f64 / render_s.max(1e-9),
@@ -125,4 +128,11 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         target_rel_mse: j.req.settings.target_rel_mse,
         spp_rendered: j.film.spp_done(),
     }
+}
+
+/// The largest of `v` over their mean; 1 where there is nothing to share.
+fn max_over_mean(v: &[f64]) -> f64 {
+    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let max = v.iter().cloned().fold(0.0, f64::max);
+    if mean > 0.0 { max / mean } else { 1.0 }
 }

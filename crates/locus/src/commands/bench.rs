@@ -3,7 +3,7 @@
 
 use crate::cli::*;
 use anyhow::{Context, Result, bail};
-use locus::bench::{farm, locality, quality, trace};
+use locus::bench::{farm, farm_table, locality, partitions, quality, trace};
 use locus_core::generate::{RoomParams, write_room};
 use locus_core::render::Prepared;
 use locus_core::scene::Scene;
@@ -227,19 +227,25 @@ pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
     let (rows, predictions) = farm::run(&plan)?;
+    let partitions = partitions::compare(&rows);
     let md = format!(
-        "{}\n{}",
-        farm::markdown(&rows),
-        farm::prediction_markdown(&predictions)
+        "{}\n{}\n{}",
+        farm_table::markdown(&rows),
+        partitions::markdown(&partitions),
+        farm_table::prediction_markdown(&predictions)
     );
     print!("{md}");
     if let Some(j) = &a.json {
-        let out = serde_json::json!({ "rows": rows, "prediction": predictions });
+        let out = serde_json::json!({
+            "rows": rows,
+            "partitions": partitions,
+            "prediction": predictions,
+        });
         std::fs::write(j, serde_json::to_string_pretty(&out)?)
             .with_context(|| format!("writing {}", j.display()))?;
     }
     if let Some(m) = &a.markdown {
         std::fs::write(m, &md).with_context(|| format!("writing {}", m.display()))?;
     }
-    farm::check(&rows)
+    farm_table::check(&rows)
 }

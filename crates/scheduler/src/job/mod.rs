@@ -5,6 +5,7 @@
 //! worker's BVH parts and memory ([`crate::memory`]).
 
 use crate::{cost, memory};
+use locus_core::accel_set;
 use locus_core::geometry::{Bounds, TriangleSet};
 use locus_core::irradiance::overture::{Measured, OvertureStats};
 use locus_core::light::LightSet;
@@ -364,9 +365,15 @@ pub fn prepare(
     let mut plans = Vec::with_capacity(workers);
     let mut parts = Vec::with_capacity(workers);
     let mut region_triangles = Vec::with_capacity(workers);
-    // Cut once per distinct (leaves held, part size): on the room, four
-    // of the five passes over 325,000 triangles' ids were repeats.
-    let mut cut: HashMap<(usize, u32), (Vec<PartRun>, u64)> = HashMap::new();
+    // Cut once per distinct (leaves held, part size, cut): on the room,
+    // four of the five passes over 325,000 triangles' ids were repeats.
+    let mut cut: HashMap<(usize, u32, bool), (Vec<PartRun>, u64)> = HashMap::new();
+    // A worker that will get no geometry after its region joins its parts
+    // into one BVH (`accel_set::join`): they are cut by centroid, tight
+    // and apart, rather than as runs of whole leaves, which a fetching
+    // worker needs to merge fetched leaves into.
+    let joins =
+        !replicated && options.fetch == FetchPolicy::Forward && !options.tuning.random_polling;
     for (w, m) in members.iter().enumerate() {
         let held_leaves = if replicated {
             &everything
@@ -383,9 +390,16 @@ pub fn prepare(
             tb,
         );
         let held_by = if replicated { usize::MAX } else { w };
+        let by_centroid = joins && plan.budget > 0;
         let (p, n) = cut
-            .entry((held_by, plan.part_triangles))
-            .or_insert_with(|| cut_parts(held_leaves, plan.part_triangles as u64))
+            .entry((held_by, plan.part_triangles, by_centroid))
+            .or_insert_with(|| {
+                if by_centroid {
+                    cut_by_centroids(held_leaves, plan.part_triangles as usize, &scene)
+                } else {
+                    cut_parts(held_leaves, plan.part_triangles as u64)
+                }
+            })
             .clone();
         plans.push(plan);
         parts.push(p);
@@ -477,6 +491,36 @@ fn cut_parts(own: &[(u32, Vec<u32>)], max: u64) -> (Vec<PartRun>, u64) {
             ids,
         ));
     }
+    (runs, total)
+}
+
+/// Cuts a worker's region into parts of at most `max` distinct triangles
+/// by their centroids ([`accel_set::cut_by_centroids`]), for a worker that
+/// joins its parts. Each leaf goes with the part that holds its first
+/// triangle (an empty leaf with the first part), so every leaf is named
+/// once; returns the parts and their triangles in all.
+fn cut_by_centroids(own: &[(u32, Vec<u32>)], max: usize, scene: &Scene) -> (Vec<PartRun>, u64) {
+    let ids = part_triangles(own);
+    let total = ids.len() as u64;
+    let centroid = |id: u32| {
+        let t = scene.tris[id as usize];
+        (t[0] + t[1] + t[2]) / 3.0
+    };
+    let groups = accel_set::cut_by_centroids(ids, &centroid, max);
+    let mut leaves = vec![Vec::new(); groups.len()];
+    for (l, t) in own {
+        let g = t
+            .iter()
+            .min()
+            .and_then(|first| groups.iter().position(|g| g.binary_search(first).is_ok()))
+            .unwrap_or(0);
+        leaves[g].push(*l);
+    }
+    let runs = groups
+        .into_iter()
+        .zip(leaves)
+        .map(|(ids, leaves)| PartRun::new(leaves, ids))
+        .collect();
     (runs, total)
 }
 
@@ -658,6 +702,37 @@ mod tests {
                 drop((first, shared));
                 let again = b.gather(&scene);
                 assert_eq!(*again, kept);
+            }
+        }
+    }
+
+    /// A region cut by centroid for a joining worker: parts of at most the
+    /// size asked, each triangle of the region in exactly one, every leaf
+    /// named by exactly one part (ascending within it).
+    #[test]
+    fn a_centroid_cut_holds_the_region_once_and_names_every_leaf_once() {
+        let scene = Arc::new(crate::cornell_box());
+        let tiles = tiles_of(&scene);
+        let options = JobOptions {
+            fetch: FetchPolicy::Forward,
+            ..JobOptions::default()
+        };
+        let p = prepare(scene.clone(), &options, &[MEMBER; 2], &tiles, &[]).expect("prepared");
+        for own in &p.own_leaves {
+            let region = part_triangles(own);
+            for max in [1, 3, 7, region.len()] {
+                let (runs, total) = cut_by_centroids(own, max, &scene);
+                assert_eq!(runs.len(), region.len().div_ceil(max));
+                assert_eq!(total as usize, region.len());
+                let mut ids: Vec<u32> = runs.iter().flat_map(|r| r.ids.iter().copied()).collect();
+                assert!(runs.iter().all(|r| r.ids.len() <= max && r.ids.is_sorted()));
+                ids.sort_unstable();
+                assert_eq!(ids, region, "max {max}");
+                let mut leaves: Vec<u32> = runs.iter().flat_map(|r| r.leaves.clone()).collect();
+                assert!(runs.iter().all(|r| r.leaves.is_sorted_by(|a, b| a < b)));
+                leaves.sort_unstable();
+                let want: Vec<u32> = own.iter().map(|(l, _)| *l).collect();
+                assert_eq!(leaves, want, "max {max}");
             }
         }
     }
