@@ -390,6 +390,26 @@ mod tests {
     use crate::octree::{Octree, OctreeParams};
     use crate::sampler::SampleKey;
 
+    /// Small leaves over `tris`, so that runs of them make many parts.
+    fn octree(tris: &[[Vec3; 3]]) -> Octree {
+        Octree::build(
+            tris,
+            OctreeParams {
+                max_leaf_tris: 16,
+                max_depth: 6,
+            },
+        )
+    }
+
+    /// Every leaf of `oct` with its triangle ids, in leaf order.
+    fn leaf_list(oct: &Octree) -> Vec<(u32, &[u32])> {
+        oct.leaves
+            .iter()
+            .enumerate()
+            .map(|(i, l)| (i as u32, l.tris.as_slice()))
+            .collect()
+    }
+
     fn soup() -> Vec<[Vec3; 3]> {
         let mut v = Vec::new();
         for i in 0..3000u64 {
@@ -454,19 +474,8 @@ mod tests {
             }
         }
         // The cut's boxes overlap less than leaf runs of the same size.
-        let oct = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 16,
-                max_depth: 6,
-            },
-        );
-        let leaves: Vec<(u32, &[u32])> = oct
-            .leaves
-            .iter()
-            .enumerate()
-            .map(|(i, l)| (i as u32, l.tris.as_slice()))
-            .collect();
+        let oct = octree(&tris);
+        let leaves = leaf_list(&oct);
         let volume = |parts: &[Arc<Part>]| -> f32 {
             parts
                 .iter()
@@ -502,21 +511,10 @@ mod tests {
         for i in 0..200 {
             tris.push(tris[i * 7]);
         }
-        let oct = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 16,
-                max_depth: 6,
-            },
-        );
+        let oct = octree(&tris);
         let all: Vec<u32> = (0..tris.len() as u32).collect();
         let one = Accel::build(&tris, &all, 12.0);
-        let leaves: Vec<(u32, &[u32])> = oct
-            .leaves
-            .iter()
-            .enumerate()
-            .map(|(i, l)| (i as u32, l.tris.as_slice()))
-            .collect();
+        let leaves = leaf_list(&oct);
         let tri = |id: u32| (tris[id as usize], 0, crate::geometry::FLAT);
         let mut st = TraceStats::default();
         let sizes = [40usize, 300, 1000, 1 << 20].map(|m| (m, BuildQuality::Full));
