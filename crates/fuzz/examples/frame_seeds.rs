@@ -25,6 +25,7 @@ fn main() {
         y0: 0,
         x1: 4,
         y1: 4,
+        queue_share: 1 << 20,
     };
     put(postcard::to_allocvec(&Handshake::Hello {
         version: 9,

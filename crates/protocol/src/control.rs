@@ -280,6 +280,13 @@ pub struct TileAssignment {
     pub y0: u32,
     pub x1: u32,
     pub y1: u32,
+    /// An even share, over the job's workers, of the camera samples in
+    /// tile passes the scheduler still held when it handed this one out.
+    /// A worker keeps no more samples in flight than this (and a floor
+    /// that keeps its threads busy): near the job's end, samples in flight
+    /// are work that no idle worker can take over, and a worker holding
+    /// many more than the others would finish long after them.
+    pub queue_share: u64,
 }
 
 impl TileAssignment {

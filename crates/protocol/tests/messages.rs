@@ -172,7 +172,7 @@ proptest! {
         let s = setup(n, seed, workers);
         let t = tris(n, seed);
         let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n], normals: normals(n, seed) };
-        let tile = TileAssignment { job: seed, tile: count, pass: workers as u32 % 8, samples: [count / 2, count], x0: 0, y0: 0, x1: 4, y1: 3 };
+        let tile = TileAssignment { job: seed, tile: count, pass: workers as u32 % 8, samples: [count / 2, count], x0: 0, y0: 0, x1: 4, y1: 3, queue_share: u64::from(count) * 3 };
         let layout = locus_core::accel::Layout::build(&chunk, 10.0, locus_core::accel::BuildQuality::Full);
         for m in [
             SchedulerToWorker::Welcome { worker: count, heartbeat_ms: count / 3 },
@@ -291,6 +291,7 @@ fn tile_problems_are_named() {
         y0: 0,
         x1: 4,
         y1: 3,
+        queue_share: 0,
     };
     assert_eq!(t.problem(4, 3, 4), None);
     assert_eq!(t.pixels() * t.pass_samples(), 48);

@@ -154,6 +154,19 @@ impl Film {
             y0: t.y0,
             x1: t.x1,
             y1: t.y1,
+            queue_share: 0,
+        }
+    }
+
+    /// Camera samples in each tile pass, by tile and pass.
+    pub fn sizes(&self) -> crate::tiles::Sizes {
+        crate::tiles::Sizes {
+            tile_pixels: self
+                .tiles
+                .iter()
+                .map(|t| (t.x1.saturating_sub(t.x0) as u64) * (t.y1.saturating_sub(t.y0) as u64))
+                .collect(),
+            pass_samples: self.passes.iter().map(|r| r.len() as u64).collect(),
         }
     }
 

@@ -100,6 +100,25 @@ pub fn inflight(affinity: &[Option<WorkerId>], workers: usize, max_inflight: u32
 pub struct TileQueue {
     own: Vec<VecDeque<Unit>>,
     shared: VecDeque<Unit>,
+    sizes: Sizes,
+    /// Camera samples in the units waiting, by `sizes`.
+    samples: u64,
+}
+
+/// How many camera samples a tile pass holds: its tile's pixels times its
+/// pass's samples a pixel ([`crate::film::Film::sizes`]). Units outside
+/// them hold none.
+#[derive(Clone, Debug, Default)]
+pub struct Sizes {
+    pub tile_pixels: Vec<u64>,
+    pub pass_samples: Vec<u64>,
+}
+
+impl Sizes {
+    pub fn of(&self, u: Unit) -> u64 {
+        let pixels = self.tile_pixels.get(u.tile as usize).copied().unwrap_or(0);
+        pixels * self.pass_samples.get(u.pass as usize).copied().unwrap_or(0)
+    }
 }
 
 impl TileQueue {
@@ -109,16 +128,24 @@ impl TileQueue {
         order: impl IntoIterator<Item = Unit>,
         affinity: &[Option<WorkerId>],
         workers: usize,
+        sizes: Sizes,
     ) -> Self {
         let mut own = vec![VecDeque::new(); workers.max(1)];
         let mut shared = VecDeque::new();
+        let mut samples = 0;
         for u in order {
+            samples += sizes.of(u);
             match affinity.get(u.tile as usize).copied().flatten() {
                 Some(w) if (w as usize) < own.len() => own[w as usize].push_back(u),
                 _ => shared.push_back(u),
             }
         }
-        Self { own, shared }
+        Self {
+            own,
+            shared,
+            sizes,
+            samples,
+        }
     }
 
     /// The next tile pass for worker `w`: its own or a shared one,
@@ -146,7 +173,9 @@ impl TileQueue {
         if q.front()?.pass >= open {
             return None;
         }
-        q.pop_front()
+        let u = q.pop_front()?;
+        self.samples -= self.sizes.of(u);
+        Some(u)
     }
 
     /// Returns a unit `next_for` gave that could not be handed out (its
@@ -154,7 +183,13 @@ impl TileQueue {
     /// next. It was of the earliest pass waiting, so the shared queue stays
     /// in pass order.
     pub fn put_back(&mut self, u: Unit) {
+        self.samples += self.sizes.of(u);
         self.shared.push_front(u);
+    }
+
+    /// Camera samples in the tile passes waiting.
+    pub fn samples(&self) -> u64 {
+        self.samples
     }
 
     /// Tile passes not yet handed out.
@@ -182,7 +217,7 @@ mod tests {
     fn workers_get_their_own_tiles_then_shared_ones_then_others() {
         let aff = [Some(1), None, Some(0), Some(1), None, Some(7)];
         let order = [5, 4, 3, 2, 1, 0].map(|tile| Unit { tile, pass: 0 });
-        let mut q = TileQueue::new(order, &aff, 2);
+        let mut q = TileQueue::new(order, &aff, 2, Sizes::default());
         assert_eq!(q.len(), 6);
         // Worker 0: its tile 2, then shared tiles in order (tile 5's
         // worker does not exist, so it is shared).
@@ -203,7 +238,7 @@ mod tests {
         // passes.
         let aff = [Some(0), Some(0), Some(0), Some(0), Some(2)];
         let order = (0..2).flat_map(|pass| (0..5).map(move |tile| Unit { tile, pass }));
-        let mut q = TileQueue::new(order, &aff, 3);
+        let mut q = TileQueue::new(order, &aff, 3, Sizes::default());
         assert!(!q.is_empty());
         assert_eq!(tiles(&mut q, 1, 2), [(0, 0), (1, 0)]);
         // Worker 0 has 6 left, worker 2 has 2: worker 2 gets its own.
@@ -222,7 +257,7 @@ mod tests {
         // Tile 0 is worker 0's, tiles 1 and 2 nobody's; two passes.
         let aff = [Some(0), None, None];
         let order = (0..2).flat_map(|pass| (0..3).map(move |tile| Unit { tile, pass }));
-        let mut q = TileQueue::new(order, &aff, 2);
+        let mut q = TileQueue::new(order, &aff, 2, Sizes::default());
         assert_eq!(
             tiles(&mut q, 0, 9),
             [(0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (2, 1)]
@@ -235,7 +270,7 @@ mod tests {
         // closed (a noise target's barrier until the first is in).
         let aff = [Some(0), None];
         let order = (0..2).flat_map(|pass| (0..2).map(move |tile| Unit { tile, pass }));
-        let mut q = TileQueue::new(order, &aff, 2);
+        let mut q = TileQueue::new(order, &aff, 2, Sizes::default());
         assert_eq!(q.next_for(0, 1), Some(Unit { tile: 0, pass: 0 }));
         assert_eq!(q.next_for(1, 1), Some(Unit { tile: 1, pass: 0 }));
         assert_eq!(q.next_for(0, 1), None);
@@ -360,5 +395,39 @@ mod tests {
         let mut shared = vec![false; tree.leaves.len()];
         shared[cam as usize] = true;
         assert_eq!(affinity(&camera, &map, &shared, &tile), Some(1));
+    }
+
+    /// The queue counts the samples it holds, through hand-outs and
+    /// units put back, against the sum over what it still holds.
+    #[test]
+    fn the_queue_counts_the_samples_it_holds() {
+        let sizes = Sizes {
+            tile_pixels: vec![256, 256, 64, 16],
+            pass_samples: vec![1, 3, 12],
+        };
+        let order: Vec<Unit> = (0..3)
+            .flat_map(|pass| (0..4).map(move |tile| Unit { tile, pass }))
+            .collect();
+        let aff = [Some(0), Some(1), None, Some(1)];
+        let mut q = TileQueue::new(order.clone(), &aff, 2, sizes.clone());
+        let all: u64 = order.iter().map(|&u| sizes.of(u)).sum();
+        assert_eq!(q.samples(), all);
+        let mut out = Vec::new();
+        for step in 0..order.len() {
+            let w = step % 2;
+            let Some(u) = q.next_for(w, 3) else { break };
+            out.push(u);
+            if step % 5 == 4 {
+                q.put_back(out.pop().unwrap());
+            }
+            let held: u64 = all - out.iter().map(|&u| sizes.of(u)).sum::<u64>();
+            assert_eq!(q.samples(), held, "step {step}");
+        }
+        while let Some(u) = q.next_for(0, 3) {
+            out.push(u);
+        }
+        assert_eq!((q.samples(), q.len(), out.len()), (0, 0, order.len()));
+        // Units outside the sizes hold nothing.
+        assert_eq!(sizes.of(Unit { tile: 9, pass: 0 }), 0);
     }
 }

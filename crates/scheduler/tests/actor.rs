@@ -107,6 +107,16 @@ async fn tiles_count_once_and_requests_are_clamped() {
         }
     }
     assert_eq!(tiles.len(), 4, "32x32 in 16x16 tiles");
+    // Each tile says how many camera samples are still queued behind it
+    // (one worker: the whole of them), the last none.
+    for (i, t) in tiles.iter().enumerate() {
+        let behind: u64 = tiles[i + 1..]
+            .iter()
+            .map(|u| u64::from(u.pixels() * u.pass_samples()))
+            .sum();
+        assert_eq!(t.queue_share, behind, "tile {i}");
+    }
+    assert!(tiles[0].queue_share > 0);
     farm.from(1, result(&tiles[0], 1.0)).await;
     farm.from(1, result(&tiles[0], 2.0)).await;
     let mut unknown = tiles[0];

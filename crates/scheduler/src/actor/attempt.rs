@@ -95,7 +95,12 @@ impl Actor {
         let a = &mut j.attempt;
         a.t_prepared = Some(Instant::now());
         a.advance(Phase::Distributing);
-        a.queue = TileQueue::new(j.film.missing(), &prep.tile_affinity, a.members.len());
+        a.queue = TileQueue::new(
+            j.film.missing(),
+            &prep.tile_affinity,
+            a.members.len(),
+            j.film.sizes(),
+        );
         info!(
             job = j.id,
             run,
@@ -227,7 +232,8 @@ impl Actor {
                 break;
             }
             if let Some(u) = a.queue.next_for(w, open) {
-                let t = j.film.assignment(u, a.run);
+                let mut t = j.film.assignment(u, a.run);
+                t.queue_share = a.queue.samples().div_ceil(a.members.len().max(1) as u64);
                 if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
                     // A full channel (a worker asking far ahead, or
                     // one whose socket is slow): the tile waits for

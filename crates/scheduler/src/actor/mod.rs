@@ -245,7 +245,7 @@ impl Attempt {
             members: Vec::new(),
             phase: Phase::Waiting,
             prep: None,
-            queue: TileQueue::new([], &[], 0),
+            queue: TileQueue::new([], &[], 0, Default::default()),
             tiles_by: Vec::new(),
             before,
             told_no_more: Vec::new(),

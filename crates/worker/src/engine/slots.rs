@@ -497,6 +497,7 @@ mod tests {
             y0: 20,
             x1: 10 + w,
             y1: 20 + h,
+            queue_share: 0,
         }
     }
 

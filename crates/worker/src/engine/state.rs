@@ -42,6 +42,9 @@ pub(super) struct Engine<'a> {
     pub(super) slots: Slots,
     pub(super) work: WorkQueue,
     pub(super) no_more_tiles: bool,
+    /// The scheduler's last word on the samples it still holds, an even
+    /// share of them (see [`super::tiles::window`]); None before any.
+    pub(super) queue_share: Option<u64>,
     /// Tiles asked for and not yet received.
     pub(super) tiles_asked: usize,
     pub(super) stats: WorkerStats,
@@ -127,6 +130,7 @@ impl<'a> Engine<'a> {
             slots: Slots::new(s.me, s.job, [s.camera.width, s.camera.height, s.spp]),
             work: WorkQueue::default(),
             no_more_tiles: false,
+            queue_share: None,
             tiles_asked: 0,
             stats: WorkerStats {
                 peers: vec![Default::default(); job.workers],
@@ -181,6 +185,7 @@ impl<'a> Engine<'a> {
         if self.reach.all_local && !self.polling.on {
             cap = cap.min(LOCAL_INFLIGHT_PER_THREAD * self.threads);
         }
+        let cap = super::tiles::window(cap, self.queue_share, self.threads);
         let me = self.job.setup.me;
         let whole = self.whole_tiles();
         while self.slots.samples_open() < cap {
@@ -281,9 +286,13 @@ impl<'a> Engine<'a> {
             Input::Leaf { from, bytes, leaf } => self.receive_leaf(from, bytes, *leaf, scope)?,
             Input::Tile(a) => {
                 self.tiles_asked = self.tiles_asked.saturating_sub(1);
+                self.queue_share = Some(a.queue_share);
                 self.slots.add_tile(a).map_err(EngineError::BadTile)?
             }
-            Input::NoMoreTiles => self.no_more_tiles = true,
+            Input::NoMoreTiles => {
+                self.no_more_tiles = true;
+                self.queue_share = Some(0);
+            }
             Input::End => unreachable!("handled by the loop"),
         }
         Ok(())

@@ -63,6 +63,25 @@ fn tiles_to_ask(tiles_ahead: usize, max_inflight: usize, threads: usize, h: Held
     (more - have).min(cap.saturating_sub(h.all + h.asked))
 }
 
+/// Camera samples a worker keeps open, of the `cap` its tiles call for,
+/// as the job nears its end: no more than `queue_share`, an even share of
+/// the samples the scheduler still holds (the tile that brought it said
+/// so; `NoMoreTiles` says none), and no fewer than half of what keeps
+/// `threads` busy. The samples in flight when the scheduler runs dry are
+/// the job's tail, which no idle worker can take over, and the windows
+/// are shared out by the tiles each worker originates
+/// (`locus_scheduler::tiles::inflight`): on the room at 4 and 8 workers
+/// under `forward` the worker with the most tiles was still draining
+/// its window while the others idled, half a second of a five-second
+/// render. Shrinking every window with the queue ends them together.
+pub(super) fn window(cap: usize, queue_share: Option<u64>, threads: usize) -> usize {
+    let floor = LOCAL_INFLIGHT_PER_THREAD / 2 * threads.max(1);
+    match queue_share {
+        Some(share) => cap.min(usize::try_from(share).unwrap_or(usize::MAX).max(floor)),
+        None => cap,
+    }
+}
+
 impl Engine<'_> {
     /// Asks the scheduler for tiles so that at least `ahead` tiles with
     /// samples not yet started are held or on their way (`tiles_ahead`,
@@ -189,5 +208,20 @@ mod tests {
         let cap = ahead + ahead / 2 + TILES_PER_INFLIGHT * inflight / tile;
         assert_eq!(tiles_to_ask(2, inflight, 1, held(cap, 0, 0, tile)), 0);
         assert_eq!(tiles_to_ask(2, inflight, 1, held(cap - 3, 0, 0, tile)), 3);
+    }
+
+    #[test]
+    fn windows_shrink_with_the_queue_down_to_what_keeps_threads_busy() {
+        let floor = LOCAL_INFLIGHT_PER_THREAD / 2;
+        // Before any tile says, and while the queue holds more than the
+        // window, the window is what the tiles call for.
+        assert_eq!(window(65536, None, 1), 65536);
+        assert_eq!(window(65536, Some(1 << 40), 1), 65536);
+        // Then it follows the share, down to the floor for its threads.
+        assert_eq!(window(65536, Some(20_000), 1), 20_000);
+        assert_eq!(window(65536, Some(100), 1), floor);
+        assert_eq!(window(65536, Some(0), 2), 2 * floor);
+        // A window already below the floor stays as it was.
+        assert_eq!(window(1000, Some(0), 4), 1000);
     }
 }
