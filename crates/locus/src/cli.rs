@@ -280,7 +280,9 @@ pub(crate) struct FarmArgs {
     /// in microseconds.
     #[arg(long, default_value_t = 1000)]
     pub(crate) flush_us: u32,
-    /// Camera samples each worker keeps in flight.
+    /// Camera samples each worker keeps in flight, scaled by the tiles it
+    /// originates; fewer once the scheduler holds less than that for each
+    /// worker, so that the workers end together.
     #[arg(long, default_value_t = 65536)]
     pub(crate) max_inflight: u32,
     #[arg(long, default_value_t = 16)]
