@@ -141,8 +141,9 @@ impl Film {
         &self.passes
     }
 
-    /// Tile `u.tile` as a worker renders it in pass `u.pass`.
-    pub fn assignment(&self, u: Unit, run: u64) -> TileAssignment {
+    /// Tile `u.tile` as a worker renders it in pass `u.pass`, handed out
+    /// with `queue_share` (see [`TileAssignment::queue_share`]).
+    pub fn assignment(&self, u: Unit, run: u64, queue_share: u64) -> TileAssignment {
         let r = &self.passes[u.pass as usize];
         let t = self.tiles[u.tile as usize];
         TileAssignment {
@@ -154,18 +155,14 @@ impl Film {
             y0: t.y0,
             x1: t.x1,
             y1: t.y1,
-            queue_share: 0,
+            queue_share,
         }
     }
 
     /// Camera samples in each tile pass, by tile and pass.
     pub fn sizes(&self) -> crate::tiles::Sizes {
         crate::tiles::Sizes {
-            tile_pixels: self
-                .tiles
-                .iter()
-                .map(|t| (t.x1.saturating_sub(t.x0) as u64) * (t.y1.saturating_sub(t.y0) as u64))
-                .collect(),
+            tile_pixels: self.tiles.iter().map(|t| u64::from(t.pixels())).collect(),
             pass_samples: self.passes.iter().map(|r| r.len() as u64).collect(),
         }
     }
@@ -387,7 +384,7 @@ mod tests {
 
     /// What a worker sends for unit `u`.
     fn render(f: &Film, u: Unit) -> Vec<Moments> {
-        let a = f.assignment(u, 3);
+        let a = f.assignment(u, 3, 0);
         let mut st = TraceStats::default();
         let mut v = Vec::new();
         for y in a.y0..a.y1 {

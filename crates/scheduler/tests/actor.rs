@@ -316,6 +316,11 @@ async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
     farm.from(2, WorkerToScheduler::Ready { job: r1 }).await;
     let first = ask(&farm, &mut w1, 1, r1, 1).await;
     let held = ask(&farm, &mut w2, 2, r1, 1).await;
+    // Four tile passes of one size: each tile's share is what is queued
+    // behind it over the two members.
+    let size = u64::from(first[0].pixels() * first[0].pass_samples());
+    assert_eq!(first[0].queue_share, (3 * size).div_ceil(2));
+    assert_eq!(held[0].queue_share, size);
     farm.from(1, result(&first[0], 1.0)).await;
     farm.events
         .send(Event::Left {

@@ -232,8 +232,8 @@ impl Actor {
                 break;
             }
             if let Some(u) = a.queue.next_for(w, open) {
-                let mut t = j.film.assignment(u, a.run);
-                t.queue_share = a.queue.samples().div_ceil(a.members.len().max(1) as u64);
+                let share = a.queue.samples().div_ceil(a.members.len().max(1) as u64);
+                let t = j.film.assignment(u, a.run, share);
                 if tx.try_send(SchedulerToWorker::Tile(t)).is_err() {
                     // A full channel (a worker asking far ahead, or
                     // one whose socket is slow): the tile waits for
