@@ -1,12 +1,18 @@
 //! Which worker renders which tile.
 //!
 //! Any worker can render any sample (sampling is a pure function of pixel,
-//! sample and seed), but a camera ray is traced first by the owner of the
-//! leaves it starts in: a tile rendered by another worker costs a forward
-//! per camera ray before any work is done. So each tile has an affinity,
-//! the owner of the first leaf along its camera rays (the majority of its
-//! centre and corner rays), and a worker asking for tiles gets the tiles
-//! of its affinity, then tiles without one (rays that miss the scene).
+//! sample and seed), but a path is held by the worker that starts it until
+//! it enters a leaf that worker does not hold: a tile rendered by another
+//! worker than the owner of the leaves its paths reach first costs a
+//! forward per path before much work is done. With leaves shared by every
+//! worker (walls, floors) a path may bounce between them several times
+//! first. So each tile has an affinity: the owner that most of the
+//! preview's paths in the tile reach first beside the shared leaves
+//! ([`affinities`], from `cost::Preview::first_leaves`), or where the
+//! preview has none there, the owner of the first leaf along its camera
+//! rays (the majority of its centre and corner rays, [`affinity`]); and a
+//! worker asking for tiles gets the tiles of its affinity, then tiles
+//! without one (rays that miss the scene).
 //! Workers with no such tiles left get none: they still work, on the
 //! queries the others forward them, and the partition balanced that work
 //! (camera rays included) before any tile was handed out.
@@ -60,6 +66,59 @@ pub fn affinity(
         .copied()
         .max_by_key(|&o| (count(o), o == centre))
         .flatten()
+}
+
+/// Each tile's affinity: the owner that most of the preview paths in it
+/// (`firsts`: each path's pixel and the first leaf beside the shared ones
+/// that it entered) reach first, the lowest such worker on a tie; where
+/// none of a tile's preview paths reached such a leaf, [`affinity`].
+pub fn affinities(
+    camera: &Camera,
+    map: &ProcessorMap,
+    shared: &[bool],
+    tiles: &[Tile],
+    firsts: &[((u32, u32), Option<u32>)],
+) -> Vec<Option<WorkerId>> {
+    use rayon::prelude::*;
+    let workers = map.owner.iter().map(|&o| o as usize + 1).max().unwrap_or(1);
+    // Tiles are a grid: a pixel's tile is found by its cell.
+    let size = tiles
+        .iter()
+        .map(|t| (t.x1 - t.x0).max(t.y1 - t.y0))
+        .max()
+        .unwrap_or(1)
+        .max(1);
+    let cell: std::collections::HashMap<(u32, u32), usize> = tiles
+        .iter()
+        .enumerate()
+        .map(|(i, t)| ((t.x0 / size, t.y0 / size), i))
+        .collect();
+    let mut votes = vec![0u32; tiles.len() * workers];
+    for &((x, y), leaf) in firsts {
+        let Some(&i) = cell.get(&(x / size, y / size)) else {
+            continue;
+        };
+        let t = &tiles[i];
+        let inside = (t.x0..t.x1).contains(&x) && (t.y0..t.y1).contains(&y);
+        if let Some(o) = leaf
+            .and_then(|l| map.owner.get(l as usize))
+            .filter(|_| inside)
+        {
+            votes[i * workers + *o as usize] += 1;
+        }
+    }
+    tiles
+        .par_iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let v = &votes[i * workers..(i + 1) * workers];
+            // The first of the most voted (max_by_key keeps the last).
+            match (0..workers).rev().max_by_key(|&w| v[w]) {
+                Some(w) if v[w] > 0 => Some(w as WorkerId),
+                _ => affinity(camera, map, shared, t),
+            }
+        })
+        .collect()
 }
 
 /// Camera samples each worker may keep in flight: the job's
@@ -346,6 +405,41 @@ mod tests {
             ..camera
         };
         assert_eq!(affinity(&away, &map, &[], &tile(8, 8)), None);
+
+        // With the preview's paths: a tile goes to the owner most of its
+        // paths reach first, whatever its camera rays meet first; on a tie
+        // to the lower worker; without a path that reached a leaf (or
+        // only paths outside it), by its camera rays.
+        let grid: Vec<Tile> = (0..4)
+            .flat_map(|y| (0..4).map(move |x| tile(x * 8, y * 8)))
+            .collect();
+        let left = map.owner.iter().position(|&o| o == 0).unwrap() as u32;
+        let right = map.owner.iter().position(|&o| o == 1).unwrap() as u32;
+        let firsts = [
+            // Tile (0, 0): three paths reach worker 1 first, one worker 0.
+            ((1, 1), Some(right)),
+            ((7, 7), Some(right)),
+            ((3, 0), Some(right)),
+            ((2, 2), Some(left)),
+            // Tile (8, 0): one each.
+            ((9, 1), Some(right)),
+            ((15, 7), Some(left)),
+            // Tile (16, 0): a path that met shared leaves only.
+            ((16, 0), None),
+            // Tile (24, 24): its own camera rays decide.
+        ];
+        let a = affinities(&camera, &map, &[], &grid, &firsts);
+        assert_eq!(a.len(), 16);
+        assert_eq!(a[0], Some(1));
+        assert_eq!(a[1], Some(0));
+        assert_eq!(a[2], affinity(&camera, &map, &[], &grid[2]));
+        assert_eq!(a[15], Some(0));
+        // Every tile without paths, by its camera rays.
+        let by_rays: Vec<_> = grid
+            .iter()
+            .map(|t| affinity(&camera, &map, &[], t))
+            .collect();
+        assert_eq!(affinities(&camera, &map, &[], &grid, &[]), by_rays);
     }
 
     /// A camera inside the scene: its rays all start in its leaf, whose

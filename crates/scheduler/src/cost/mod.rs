@@ -91,27 +91,36 @@ pub struct Preview {
     /// Paths traced (one per preview pixel), against which crossings scale
     /// to a job's samples.
     pub paths: u64,
-    /// Crossings per ordered pair of leaves `(from, into)`: a ray that
-    /// went on from leaf `from` straight into leaf `into`. The direction
+    /// Crossings per ordered pair of leaves `(from, into)`: a path that
+    /// went on from leaf `from` straight into leaf `into` (counted by
+    /// [`Preview::crossings_beside`] with nothing shared). The direction
     /// matters because the two ends of a forwarded query pay unequally
     /// (see `partition::FORWARD_COST`).
     pub crossings: HashMap<(u32, u32), u32>,
-    /// The leaves with triangles each ray crossing more than one went
-    /// through, in order, each ray's run ended by [`WALK_END`]: what
-    /// [`Preview::crossings_beside`] counts crossings from again.
+    /// The leaves with triangles each ray went through, in order, path
+    /// by path: each ray's run ended by [`WALK_END`] (a path's ray) or
+    /// [`SHADOW_END`] (its shadow ray), each path by [`PATH_END`]. What
+    /// [`Preview::crossings_beside`] and [`Preview::first_leaves`] follow.
     pub walks: Vec<u32>,
+    /// The pixel of each path, in the order of [`Preview::walks`].
+    pub pixels: Vec<(u32, u32)>,
 }
 
-/// Ends a ray's run of leaves in [`Preview::walks`].
+/// Ends the run of leaves of a path's ray (the camera ray or a bounce) in
+/// [`Preview::walks`].
 pub const WALK_END: u32 = u32::MAX;
+/// Ends the run of leaves of a shadow ray in [`Preview::walks`].
+pub const SHADOW_END: u32 = u32::MAX - 1;
+/// Ends a path in [`Preview::walks`].
+pub const PATH_END: u32 = u32::MAX - 2;
 
 /// What one thread of the preview counts.
 struct Tally {
     cost: Vec<u64>,
     rays: u64,
     steps: u64,
-    crossings: HashMap<(u32, u32), u32>,
     walks: Vec<u32>,
+    pixels: Vec<(u32, u32)>,
 }
 
 impl Tally {
@@ -120,8 +129,8 @@ impl Tally {
             cost: vec![0; n],
             rays: 0,
             steps: 0,
-            crossings: HashMap::new(),
             walks: Vec::new(),
+            pixels: Vec::new(),
         }
     }
     fn merge(mut self, o: Tally) -> Tally {
@@ -130,10 +139,8 @@ impl Tally {
         }
         self.rays += o.rays;
         self.steps += o.steps;
-        for (k, v) in o.crossings {
-            *self.crossings.entry(k).or_default() += v;
-        }
         self.walks.extend(o.walks);
+        self.pixels.extend(o.pixels);
         self
     }
 }
@@ -410,19 +417,24 @@ pub fn preview(
                             None => break,
                         }
                     }
+                    t.walks.push(PATH_END);
+                    t.pixels.push((x, y));
                 }
                 t
             },
         )
         .reduce(|| Tally::new(n), Tally::merge);
-    Preview {
+    let mut pv = Preview {
         cost: t.cost.into_iter().map(|c| c as f64).collect(),
         rays: t.rays,
         steps: t.steps,
         paths: w as u64 * h as u64,
-        crossings: t.crossings,
+        crossings: HashMap::new(),
         walks: t.walks,
-    }
+        pixels: t.pixels,
+    };
+    pv.crossings = pv.crossings_beside(&[]);
+    pv
 }
 
 /// Traces `ray` one leaf interval at a time, adding each interval's BVH
@@ -462,10 +474,7 @@ fn leafwise(
         let held = !everyones && !tree.leaves[leaf as usize].tris.is_empty();
         if held {
             match prev.replace(leaf) {
-                Some(p) if p != leaf => {
-                    *t.crossings.entry((p, leaf)).or_default() += 1;
-                    t.walks.push(leaf);
-                }
+                Some(p) if p != leaf => t.walks.push(leaf),
                 Some(_) => {}
                 None => {
                     t.cost[leaf as usize] += std::mem::take(&mut unowned);
@@ -493,11 +502,10 @@ fn leafwise(
             None => ControlFlow::Continue(()),
         }
     });
-    // A ray that stayed in one leaf crossed nothing.
-    if t.walks.len() - run < 2 {
-        t.walks.truncate(run);
-    } else {
-        t.walks.push(WALK_END);
+    // A ray that stayed in one leaf is kept too: a path's first leaf may
+    // be the only one its camera ray enters.
+    if t.walks.len() > run {
+        t.walks.push(if any { SHADOW_END } else { WALK_END });
     }
     if let Some(l) = last.filter(|_| unowned > 0) {
         t.cost[l as usize] += unowned;

@@ -3,32 +3,79 @@
 //! left once those are passed over ([`Preview::crossings_beside`]), along
 //! which regions are grown (`job::regions`).
 
-use super::{Preview, WALK_END};
+use super::{PATH_END, Preview, SHADOW_END, WALK_END};
 use std::collections::HashMap;
 
 impl Preview {
-    /// The crossings as the preview would have counted them had the
-    /// `shared` leaves (which every worker holds, so that no query is
-    /// forwarded into them) been passed over like the camera's: a ray
-    /// from leaf `a` through shared leaves into leaf `b` crosses from `a`
-    /// into `b`. With none shared, [`Preview::crossings`] to the count.
+    /// The crossings a farm forwards once the `shared` leaves (which every
+    /// worker holds, so that no query is forwarded into them) are passed
+    /// over like the camera's. A path is held, ray after ray, by whoever
+    /// holds the last leaf it entered that is not shared (the worker that
+    /// shades a vertex traces its continuation), so its run of such leaves
+    /// goes on across its rays: a path from leaf `a` through shared leaves,
+    /// or off a shared surface and on, into leaf `b` crosses from `a` into
+    /// `b`. A shadow ray branches off its path and leaves it where it was.
+    /// Where a path first enters a leaf that is not shared no crossing is
+    /// counted: its tile goes to that leaf's owner ([`Preview::first_leaves`]).
     pub fn crossings_beside(&self, shared: &[bool]) -> HashMap<(u32, u32), u32> {
         let mut out: HashMap<(u32, u32), u32> = HashMap::new();
-        let mut prev: Option<u32> = None;
+        self.follow(shared, |_, from, into, _| {
+            if let Some(p) = from.filter(|&p| p != into) {
+                *out.entry((p, into)).or_default() += 1;
+            }
+        });
+        out
+    }
+
+    /// Per path (in the order of [`Preview::pixels`]), the first leaf
+    /// beside the `shared` ones that its rays enter (its shadow rays
+    /// aside): whoever owns it holds the path from there, so the tile
+    /// whose paths mostly enter one worker's leaves first is best started
+    /// by that worker (`tiles::affinity`). None for a path that meets
+    /// shared leaves only.
+    pub fn first_leaves(&self, shared: &[bool]) -> Vec<Option<u32>> {
+        let mut first = vec![None; self.pixels.len()];
+        self.follow(shared, |path, _, into, shadow| {
+            if !shadow && let Some(f) = first.get_mut(path) {
+                f.get_or_insert(into);
+            }
+        });
+        first
+    }
+
+    /// Follows every path's rays through [`Preview::walks`], calling `f`
+    /// with the path's index, the leaf that held it before (None before
+    /// its first), each leaf beside the `shared` ones that a ray enters,
+    /// and whether that ray is a shadow ray.
+    fn follow(&self, shared: &[bool], mut f: impl FnMut(usize, Option<u32>, u32, bool)) {
+        let mut run: Vec<(Option<u32>, u32)> = Vec::new();
+        let (mut path, mut prev, mut before) = (0usize, None, None);
         for &l in &self.walks {
-            if l == WALK_END {
-                prev = None;
-                continue;
-            }
-            if shared.get(l as usize).copied().unwrap_or(false) {
-                continue;
-            }
-            match prev.replace(l) {
-                Some(p) if p != l => *out.entry((p, l)).or_default() += 1,
-                _ => {}
+            match l {
+                WALK_END | SHADOW_END => {
+                    let shadow = l == SHADOW_END;
+                    for &(p, x) in &run {
+                        f(path, p, x, shadow);
+                    }
+                    run.clear();
+                    // A shadow ray leaves the path with the leaf it had.
+                    if shadow {
+                        prev = before;
+                    } else {
+                        before = prev;
+                    }
+                }
+                PATH_END => {
+                    (path, prev, before) = (path + 1, None, None);
+                    run.clear();
+                }
+                _ if shared.get(l as usize).copied().unwrap_or(false) => {}
+                _ => {
+                    run.push((prev, l));
+                    prev = Some(l);
+                }
             }
         }
-        out
     }
 }
 
@@ -86,15 +133,61 @@ mod tests {
     use super::super::tests::{Cornell, cornell_preview};
     use super::*;
 
-    /// The preview's walks count its crossings again: the same to the
-    /// count with nothing shared, and with a leaf shared, none into or out
-    /// of it, every other crossing kept, and the ones through it joined
-    /// up (as many as went into it and on to another leaf).
+    /// A path's run of leaves goes on across its rays, past the shared
+    /// leaves it bounces off; a shadow ray branches off it; a path's first
+    /// leaf is not a crossing, and nothing carries over from one path to
+    /// the next. Leaves: 0 shared, 1, 2 and 3 not.
+    #[test]
+    fn paths_are_followed_across_their_rays_and_past_shared_leaves() {
+        let (s, a, b, c) = (0, 1, 2, 3);
+        let walks = vec![
+            // Path 0: the camera ray enters a, its shadow ray crosses
+            // into b; the bounce from a hits the shared leaf, whose shadow
+            // ray (the path still a's) reaches c; the next bounce enters b.
+            s, a, WALK_END, a, b, SHADOW_END, a, s, WALK_END, s, c, SHADOW_END, s, b, WALK_END,
+            PATH_END, // Path 1: shared leaves only, but for its shadow ray into c.
+            s, WALK_END, s, c, SHADOW_END, s, WALK_END, PATH_END,
+            // Path 2: starts in c and stays there.
+            c, WALK_END, PATH_END,
+        ];
+        let pv = Preview {
+            cost: vec![0.0; 4],
+            rays: 9,
+            steps: 0,
+            paths: 3,
+            crossings: HashMap::new(),
+            walks,
+            pixels: vec![(0, 0), (1, 0), (2, 0)],
+        };
+        let shared = [true, false, false, false];
+        let beside = pv.crossings_beside(&shared);
+        assert_eq!(beside, [((a, b), 2), ((a, c), 1)].into());
+        assert_eq!(pv.first_leaves(&shared), [Some(a), None, Some(c)]);
+        // With nothing shared every change of leaf is a crossing, ray
+        // after ray.
+        let all = pv.crossings_beside(&[]);
+        let want: HashMap<(u32, u32), u32> = [
+            ((s, a), 1),
+            ((a, b), 1),
+            ((a, s), 1),
+            ((s, c), 2),
+            ((s, b), 1),
+        ]
+        .into();
+        assert_eq!(all, want);
+        assert_eq!(pv.first_leaves(&[]), [Some(s), Some(s), Some(c)]);
+    }
+
+    /// On a real preview: with nothing shared the walks give the
+    /// preview's crossings; with the most crossed leaf shared, none into
+    /// or out of it, every other crossing kept, and some through it
+    /// joined up.
     #[test]
     fn crossings_beside_shared_leaves_join_what_went_through_them() {
         let Cornell { tree, pv, .. } = cornell_preview(8, 4);
         let n = tree.leaves.len();
         assert_eq!(pv.crossings_beside(&vec![false; n]), pv.crossings);
+        assert_eq!(pv.first_leaves(&[]).len() as u64, pv.paths);
         // The leaf crossed most.
         let through = traffic(&pv.crossings, n);
         let s = (0..n).max_by_key(|&l| through[l]).expect("leaves");
@@ -110,13 +203,6 @@ mod tests {
             joined += c - before;
         }
         assert!(joined > 0, "no crossing went through leaf {s}");
-        let into: u32 = pv
-            .crossings
-            .iter()
-            .filter(|((_, b), _)| *b == s)
-            .map(|(_, c)| c)
-            .sum();
-        assert!(joined <= into);
     }
 
     /// Leaves are shared by crossings per triangle, best first, as many

@@ -258,6 +258,15 @@ pub fn prepare(
         (shared, owner) = drawing.drawn(pv.as_ref())?;
         partition_s += t.elapsed().as_secs_f64();
     }
+    // Each preview path's first leaf beside the shared ones, which the
+    // tiles are handed out by.
+    let firsts: Vec<((u32, u32), Option<u32>)> = pv.as_ref().map_or_else(Vec::new, |pv| {
+        pv.pixels
+            .iter()
+            .copied()
+            .zip(pv.first_leaves(&shared))
+            .collect()
+    });
     let (sampled, preview_rays) = match pv {
         Some(pv) => (pv.cost, decision_rays + pv.rays),
         None => (analytic.clone(), 0),
@@ -307,11 +316,7 @@ pub fn prepare(
     let tile_affinity = if replicated || workers < 2 || options.tuning.random_polling {
         vec![None; tiles.len()]
     } else {
-        use rayon::prelude::*;
-        tiles
-            .par_iter()
-            .map(|t| crate::tiles::affinity(&scene.camera, &map, &shared, t))
-            .collect()
+        crate::tiles::affinities(&scene.camera, &map, &shared, tiles, &firsts)
     };
     let mut plans = Vec::with_capacity(workers);
     let mut parts = Vec::with_capacity(workers);
