@@ -446,8 +446,10 @@ pub fn preview(
 /// leaf, the camera's, which every worker holds ([`camera_leaf`]); the
 /// first leaf along the ray is the first other one. Its interval's work
 /// goes to the leaf with triangles the ray last left (or, before the
-/// first, the first it enters), and a crossing is counted between leaves
-/// with triangles, however much empty space lies between them.
+/// first, the first it enters), and the run of leaves with triangles it
+/// goes through is kept in the walks (a crossing between two of them,
+/// however much empty space lies between, is counted from there:
+/// [`Preview::crossings_beside`]).
 fn leafwise(
     tree: &Octree,
     accel: &dyn Geometry,

@@ -31,7 +31,7 @@ impl Preview {
     /// beside the `shared` ones that its rays enter (its shadow rays
     /// aside): whoever owns it holds the path from there, so the tile
     /// whose paths mostly enter one worker's leaves first is best started
-    /// by that worker (`tiles::affinity`). None for a path that meets
+    /// by that worker (`tiles::affinities`). None for a path that meets
     /// shared leaves only.
     pub fn first_leaves(&self, shared: &[bool]) -> Vec<Option<u32>> {
         let mut first = vec![None; self.pixels.len()];
@@ -140,16 +140,18 @@ mod tests {
     #[test]
     fn paths_are_followed_across_their_rays_and_past_shared_leaves() {
         let (s, a, b, c) = (0, 1, 2, 3);
-        let walks = vec![
-            // Path 0: the camera ray enters a, its shadow ray crosses
-            // into b; the bounce from a hits the shared leaf, whose shadow
-            // ray (the path still a's) reaches c; the next bounce enters b.
+        // Path 0: the camera ray enters a, its shadow ray crosses into b;
+        // the bounce from a hits the shared leaf, whose shadow ray (the
+        // path still a's) reaches c; the next bounce enters b.
+        let path0 = [
             s, a, WALK_END, a, b, SHADOW_END, a, s, WALK_END, s, c, SHADOW_END, s, b, WALK_END,
-            PATH_END, // Path 1: shared leaves only, but for its shadow ray into c.
-            s, WALK_END, s, c, SHADOW_END, s, WALK_END, PATH_END,
-            // Path 2: starts in c and stays there.
-            c, WALK_END, PATH_END,
+            PATH_END,
         ];
+        // Path 1: shared leaves only, but for its shadow ray into c.
+        let path1 = [s, WALK_END, s, c, SHADOW_END, s, WALK_END, PATH_END];
+        // Path 2: starts in c and stays there.
+        let path2 = [c, WALK_END, PATH_END];
+        let walks = [&path0[..], &path1, &path2].concat();
         let pv = Preview {
             cost: vec![0.0; 4],
             rays: 9,

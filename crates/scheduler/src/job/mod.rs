@@ -258,15 +258,22 @@ pub fn prepare(
         (shared, owner) = drawing.drawn(pv.as_ref())?;
         partition_s += t.elapsed().as_secs_f64();
     }
+    // Under random polling tiles go to whoever asks: a worker that has
+    // fetched a hot region's leaves renders its tiles, and the owner's
+    // queued work is handed to idle pollers. With affinity, a worker with
+    // no tiles of its own would live on forwarded and handed work alone.
+    let by_affinity = !replicated && workers >= 2 && !options.tuning.random_polling;
     // Each preview path's first leaf beside the shared ones, which the
     // tiles are handed out by.
-    let firsts: Vec<((u32, u32), Option<u32>)> = pv.as_ref().map_or_else(Vec::new, |pv| {
-        pv.pixels
+    let firsts: Vec<((u32, u32), Option<u32>)> = match pv.as_ref() {
+        Some(pv) if by_affinity => pv
+            .pixels
             .iter()
             .copied()
             .zip(pv.first_leaves(&shared))
-            .collect()
-    });
+            .collect(),
+        _ => Vec::new(),
+    };
     let (sampled, preview_rays) = match pv {
         Some(pv) => (pv.cost, decision_rays + pv.rays),
         None => (analytic.clone(), 0),
@@ -309,14 +316,10 @@ pub fn prepare(
         Vec::new()
     };
     let map = ProcessorMap::new(&tree, owner);
-    // Under random polling tiles go to whoever asks: a worker that has
-    // fetched a hot region's leaves renders its tiles, and the owner's
-    // queued work is handed to idle pollers. With affinity, a worker with
-    // no tiles of its own would live on forwarded and handed work alone.
-    let tile_affinity = if replicated || workers < 2 || options.tuning.random_polling {
-        vec![None; tiles.len()]
-    } else {
+    let tile_affinity = if by_affinity {
         crate::tiles::affinities(&scene.camera, &map, &shared, tiles, &firsts)
+    } else {
+        vec![None; tiles.len()]
     };
     let mut plans = Vec::with_capacity(workers);
     let mut parts = Vec::with_capacity(workers);
