@@ -102,6 +102,12 @@ pub struct Preview {
     /// [`SHADOW_END`] (its shadow ray), each path by [`PATH_END`]. What
     /// [`Preview::crossings_beside`] and [`Preview::first_leaves`] follow.
     pub walks: Vec<u32>,
+    /// Beside each entry of [`Preview::walks`] (0 beside the markers):
+    /// the work of that ray in that leaf and in the empty leaves it
+    /// crossed next, in [`Preview::cost`]'s units. Whoever holds the path
+    /// there does it, so the work in a leaf every worker holds is charged
+    /// to the leaf that holds the path ([`Preview::charged`]).
+    pub walk_costs: Vec<u32>,
     /// The pixel of each path, in the order of [`Preview::walks`].
     pub pixels: Vec<(u32, u32)>,
 }
@@ -120,6 +126,7 @@ struct Tally {
     rays: u64,
     steps: u64,
     walks: Vec<u32>,
+    walk_costs: Vec<u32>,
     pixels: Vec<(u32, u32)>,
 }
 
@@ -130,7 +137,24 @@ impl Tally {
             rays: 0,
             steps: 0,
             walks: Vec::new(),
+            walk_costs: Vec::new(),
             pixels: Vec::new(),
+        }
+    }
+
+    /// Ends a ray's run, a path's, or adds leaf `l` to the run.
+    fn push_walk(&mut self, l: u32) {
+        self.walks.push(l);
+        self.walk_costs.push(0);
+    }
+
+    /// Adds `c` to leaf `l`'s cost and, where `l` is the walks' entry
+    /// `at`, to that entry's.
+    fn charge(&mut self, l: u32, at: Option<usize>, c: u64) {
+        self.cost[l as usize] += c;
+        if let Some(i) = at.filter(|&i| self.walks[i] == l) {
+            let w = &mut self.walk_costs[i];
+            *w = w.saturating_add(c.min(u32::MAX as u64) as u32);
         }
     }
     fn merge(mut self, o: Tally) -> Tally {
@@ -140,6 +164,7 @@ impl Tally {
         self.rays += o.rays;
         self.steps += o.steps;
         self.walks.extend(o.walks);
+        self.walk_costs.extend(o.walk_costs);
         self.pixels.extend(o.pixels);
         self
     }
@@ -384,15 +409,19 @@ pub fn preview(
                     let mut q = PathRay::camera(cam.ray(x, y, key.get2d(DIM_PIXEL)), key);
                     for bounce in 0..=bounces {
                         t.rays += 1;
+                        let run = t.walks.len();
                         let (found, first) =
                             leafwise(tree, accel, &q.ray, f32::INFINITY, false, shared, &mut t);
+                        // The ray's first entry in the walks, and its last
+                        // (before its end marker): where it started and hit.
+                        let entries = (run < t.walks.len()).then(|| (run, t.walks.len() - 2));
                         if let Some(l) = first.filter(|_| bounce == 0) {
-                            t.cost[l as usize] += ORIGIN_COST;
+                            t.charge(l, entries.map(|e| e.0), ORIGIN_COST);
                         }
                         let Some((hit, leaf)) = found else {
                             break;
                         };
-                        t.cost[leaf as usize] += VERTEX_COST;
+                        t.charge(leaf, entries.map(|e| e.1), VERTEX_COST);
                         let i = hit.tri as usize;
                         let mat = &scene.materials[scene.tri_material[i] as usize];
                         let s = shade(
@@ -417,7 +446,7 @@ pub fn preview(
                             None => break,
                         }
                     }
-                    t.walks.push(PATH_END);
+                    t.push_walk(PATH_END);
                     t.pixels.push((x, y));
                 }
                 t
@@ -431,6 +460,7 @@ pub fn preview(
         paths: w as u64 * h as u64,
         crossings: HashMap::new(),
         walks: t.walks,
+        walk_costs: t.walk_costs,
         pixels: t.pixels,
     };
     pv.crossings = pv.crossings_beside(&[]);
@@ -476,11 +506,12 @@ fn leafwise(
         let held = !everyones && !tree.leaves[leaf as usize].tris.is_empty();
         if held {
             match prev.replace(leaf) {
-                Some(p) if p != leaf => t.walks.push(leaf),
+                Some(p) if p != leaf => t.push_walk(leaf),
                 Some(_) => {}
                 None => {
-                    t.cost[leaf as usize] += std::mem::take(&mut unowned);
-                    t.walks.push(leaf);
+                    t.push_walk(leaf);
+                    let c = std::mem::take(&mut unowned);
+                    t.charge(leaf, Some(t.walks.len() - 1), c);
                 }
             }
         }
@@ -492,7 +523,7 @@ fn leafwise(
         };
         let steps = st.bvh_nodes + st.tri_tests;
         match prev {
-            Some(p) => t.cost[p as usize] += steps,
+            Some(p) => t.charge(p, Some(t.walks.len() - 1), steps),
             None => unowned += steps,
         }
         t.steps += steps;
@@ -507,7 +538,7 @@ fn leafwise(
     // A ray that stayed in one leaf is kept too: a path's first leaf may
     // be the only one its camera ray enters.
     if t.walks.len() > run {
-        t.walks.push(if any { SHADOW_END } else { WALK_END });
+        t.push_walk(if any { SHADOW_END } else { WALK_END });
     }
     if let Some(l) = last.filter(|_| unowned > 0) {
         t.cost[l as usize] += unowned;
@@ -710,7 +741,8 @@ mod tests {
     /// A leaf without triangles is crossed by whoever holds the ray: the
     /// preview counts crossings between leaves with triangles only, and
     /// charges empty leaves no BVH work beyond what no leaf with triangles
-    /// could take (a ray that meets none).
+    /// could take (a ray that meets none). The walks carry each leaf's
+    /// work entry by entry.
     #[test]
     fn crossings_skip_empty_leaves() {
         let Cornell {
@@ -740,6 +772,20 @@ mod tests {
         );
         let all: f64 = (0..empty.len()).map(bvh).sum();
         assert_eq!(all as u64, pv.steps);
+        // Every leaf with triangles (the camera's aside, which no walk
+        // enters) has its cost in its walks' entries, to the unit.
+        let camera = camera_leaf(&tree, &scene.camera);
+        let mut walked = vec![0u64; empty.len()];
+        assert_eq!(pv.walk_costs.len(), pv.walks.len());
+        for (&l, &c) in pv.walks.iter().zip(&pv.walk_costs) {
+            match walked.get_mut(l as usize) {
+                Some(w) => *w += c as u64,
+                None => assert_eq!(c, 0, "a marker carries work"),
+            }
+        }
+        for l in (0..empty.len()).filter(|&l| !empty[l] && Some(l as u32) != camera) {
+            assert_eq!(walked[l], pv.cost[l] as u64, "leaf {l}");
+        }
     }
 
     /// Rent or buy for the whole scene: buying pays once the predicted

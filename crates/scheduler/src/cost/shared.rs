@@ -19,9 +19,9 @@ impl Preview {
     /// counted: its tile goes to that leaf's owner ([`Preview::first_leaves`]).
     pub fn crossings_beside(&self, shared: &[bool]) -> HashMap<(u32, u32), u32> {
         let mut out: HashMap<(u32, u32), u32> = HashMap::new();
-        self.follow(shared, |_, from, into, _| {
-            if let Some(p) = from.filter(|&p| p != into) {
-                *out.entry((p, into)).or_default() += 1;
+        self.follow(shared, |e| {
+            if let Some(p) = e.held.filter(|&p| !e.shared && p != e.leaf) {
+                *out.entry((p, e.leaf)).or_default() += 1;
             }
         });
         out
@@ -35,48 +35,100 @@ impl Preview {
     /// shared leaves only.
     pub fn first_leaves(&self, shared: &[bool]) -> Vec<Option<u32>> {
         let mut first = vec![None; self.pixels.len()];
-        self.follow(shared, |path, _, into, shadow| {
-            if !shadow && let Some(f) = first.get_mut(path) {
-                f.get_or_insert(into);
+        self.follow(shared, |e| {
+            if !e.shadow
+                && !e.shared
+                && let Some(f) = first.get_mut(e.path)
+            {
+                f.get_or_insert(e.leaf);
             }
         });
         first
     }
 
+    /// The leaf costs the partition balances once the `shared` leaves are
+    /// every worker's: the work a path does in a shared leaf is charged to
+    /// the leaf that holds it there ([`Preview::crossings_beside`]), or,
+    /// before it enters one, to its first leaf
+    /// ([`Preview::first_leaves`]), whose owner starts it. That is the
+    /// worker that does it, where the shared leaves' own costs would say
+    /// no one does. The work of a path that meets shared leaves only is
+    /// left out: whichever worker starts its tile does it.
+    pub fn charged(&self, shared: &[bool]) -> Vec<f64> {
+        let mut cost: Vec<f64> = self
+            .cost
+            .iter()
+            .zip(shared.iter().chain(std::iter::repeat(&false)))
+            .map(|(&c, &s)| if s { 0.0 } else { c })
+            .collect();
+        let first = self.first_leaves(shared);
+        self.follow(shared, |e| {
+            let to = e.held.or(first.get(e.path).copied().flatten());
+            if let Some(to) = to.filter(|_| e.shared) {
+                cost[to as usize] += self.walk_costs.get(e.at).copied().unwrap_or(0) as f64;
+            }
+        });
+        cost
+    }
+
     /// Follows every path's rays through [`Preview::walks`], calling `f`
-    /// with the path's index, the leaf that held it before (None before
-    /// its first), each leaf beside the `shared` ones that a ray enters,
-    /// and whether that ray is a shadow ray.
-    fn follow(&self, shared: &[bool], mut f: impl FnMut(usize, Option<u32>, u32, bool)) {
-        let mut run: Vec<(Option<u32>, u32)> = Vec::new();
-        let (mut path, mut prev, mut before) = (0usize, None, None);
-        for &l in &self.walks {
+    /// with each leaf a ray enters ([`Entered`]), ray by ray.
+    fn follow(&self, shared: &[bool], mut f: impl FnMut(Entered)) {
+        // A ray's entries (index, leaf, the leaf holding the path before),
+        // until its end marker says what kind of ray it was.
+        let mut run: Vec<(usize, u32, Option<u32>)> = Vec::new();
+        let (mut path, mut held, mut before) = (0usize, None, None);
+        for (at, &l) in self.walks.iter().enumerate() {
             match l {
                 WALK_END | SHADOW_END => {
                     let shadow = l == SHADOW_END;
-                    for &(p, x) in &run {
-                        f(path, p, x, shadow);
+                    for &(at, leaf, h) in &run {
+                        let shared = shared.get(leaf as usize).copied().unwrap_or(false);
+                        f(Entered {
+                            path,
+                            held: h,
+                            leaf,
+                            at,
+                            shadow,
+                            shared,
+                        });
                     }
                     run.clear();
                     // A shadow ray leaves the path with the leaf it had.
                     if shadow {
-                        prev = before;
+                        held = before;
                     } else {
-                        before = prev;
+                        before = held;
                     }
                 }
                 PATH_END => {
-                    (path, prev, before) = (path + 1, None, None);
+                    (path, held, before) = (path + 1, None, None);
                     run.clear();
                 }
-                _ if shared.get(l as usize).copied().unwrap_or(false) => {}
                 _ => {
-                    run.push((prev, l));
-                    prev = Some(l);
+                    run.push((at, l, held));
+                    if !shared.get(l as usize).copied().unwrap_or(false) {
+                        held = Some(l);
+                    }
                 }
             }
         }
     }
+}
+
+/// A leaf a preview ray entered, as [`Preview::follow`] sees it.
+struct Entered {
+    /// The path's index, in the order of [`Preview::pixels`].
+    path: usize,
+    /// The last leaf beside the shared ones that the path entered before
+    /// (None before its first): whoever holds it holds the path.
+    held: Option<u32>,
+    leaf: u32,
+    /// Its index in [`Preview::walks`].
+    at: usize,
+    shadow: bool,
+    /// Whether `leaf` is one of the shared ones.
+    shared: bool,
 }
 
 /// Crossings into or out of each of `n` leaves.
@@ -147,18 +199,24 @@ mod tests {
             s, a, WALK_END, a, b, SHADOW_END, a, s, WALK_END, s, c, SHADOW_END, s, b, WALK_END,
             PATH_END,
         ];
-        // Path 1: shared leaves only, but for its shadow ray into c.
-        let path1 = [s, WALK_END, s, c, SHADOW_END, s, WALK_END, PATH_END];
+        // Path 1: shared leaves only, but for its shadow ray into c, which
+        // crosses a shared leaf again beyond it.
+        let path1 = [s, WALK_END, s, c, s, SHADOW_END, s, WALK_END, PATH_END];
         // Path 2: starts in c and stays there.
         let path2 = [c, WALK_END, PATH_END];
         let walks = [&path0[..], &path1, &path2].concat();
+        // Each entry's work: distinct bits on path 0, so that a sum shows
+        // which entries were charged.
+        let costs0 = [1, 2, 0, 4, 8, 0, 16, 32, 0, 64, 128, 0, 256, 512, 0, 0];
+        let costs1 = [1000, 0, 1000, 0, 700, 0, 1000, 0, 0];
         let pv = Preview {
-            cost: vec![0.0; 4],
-            rays: 9,
+            cost: vec![5000.0, 10.0, 20.0, 30.0],
+            rays: 10,
             steps: 0,
             paths: 3,
             crossings: HashMap::new(),
             walks,
+            walk_costs: [&costs0[..], &costs1, &[0, 0, 0]].concat(),
             pixels: vec![(0, 0), (1, 0), (2, 0)],
         };
         let shared = [true, false, false, false];
@@ -173,11 +231,22 @@ mod tests {
             ((a, b), 1),
             ((a, s), 1),
             ((s, c), 2),
+            ((c, s), 1),
             ((s, b), 1),
         ]
         .into();
         assert_eq!(all, want);
         assert_eq!(pv.first_leaves(&[]), [Some(s), Some(s), Some(c)]);
+        // Path 0's work in the shared leaf goes to a, which holds it there
+        // (its camera ray's, before it entered a, to a as its first leaf;
+        // its last bounce's too, the shadow ray into c having left it
+        // with a). Path 1's goes to c only where its shadow ray held it;
+        // the rest of its work, with no leaf to hold it, to no one.
+        assert_eq!(
+            pv.charged(&shared),
+            [0.0, 10.0 + 1.0 + 32.0 + 64.0 + 256.0, 20.0, 30.0 + 700.0]
+        );
+        assert_eq!(pv.charged(&[]), pv.cost);
     }
 
     /// On a real preview: with nothing shared the walks give the
@@ -205,6 +274,17 @@ mod tests {
             joined += c - before;
         }
         assert!(joined > 0, "no crossing went through leaf {s}");
+        // The shared leaf's own cost is gone, and part of it (the work of
+        // paths that held a leaf beside it) is charged to other leaves.
+        let all: f64 = pv.cost.iter().sum();
+        let own = pv.cost[s as usize];
+        let charged: f64 = pv.charged(&shared).iter().sum();
+        let moved = charged - (all - own);
+        assert!(
+            moved > 0.0 && moved <= own,
+            "{moved} of leaf {s}'s {own} charged elsewhere"
+        );
+        assert_eq!(pv.charged(&vec![false; n]), pv.cost);
     }
 
     /// Leaves are shared by crossings per triangle, best first, as many

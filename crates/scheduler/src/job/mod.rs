@@ -274,9 +274,13 @@ pub fn prepare(
             .collect(),
         _ => Vec::new(),
     };
+    // What the regions balanced: the shared leaves' work charged to the
+    // leaves that hold the paths there (every leaf its own when the whole
+    // scene is replicated below).
     let (sampled, preview_rays) = match pv {
-        Some(pv) => (pv.cost, decision_rays + pv.rays),
-        None => (analytic.clone(), 0),
+        Some(pv) if replicated => (pv.cost, decision_rays + pv.rays),
+        Some(pv) => (pv.charged(&shared), decision_rays + pv.rays),
+        None => (regions::unshared(&analytic, &shared), 0),
     };
     let leaf_ids: Vec<Vec<u32>> = tree
         .leaves
@@ -394,7 +398,7 @@ pub fn prepare(
         member_cores: members.iter().map(|m| m.cores).collect(),
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
         analytic_share: cost::shares(&regions::unshared(&analytic, &shared), &map.owner, workers),
-        sampled_share: cost::shares(&regions::unshared(&sampled, &shared), &map.owner, workers),
+        sampled_share: cost::shares(&sampled, &map.owner, workers),
         preview_rays,
         leaves: tree.leaves.len() as u32,
         max_inflight: crate::tiles::inflight(&tile_affinity, workers, options.tuning.max_inflight)

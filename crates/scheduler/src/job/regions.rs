@@ -54,15 +54,16 @@ impl Draw<'_> {
         shared
     }
 
-    /// Each leaf's owner, the shared ones' costs and references left out:
-    /// whoever holds a ray traces those, and every worker holds them
-    /// beside its region, within its cap.
+    /// Each leaf's owner, the shared ones' references left out (every
+    /// worker holds them beside its region, within its cap) and their
+    /// work charged to the leaves that hold the paths there
+    /// ([`cost::Preview::charged`]): whoever holds a ray traces it.
     pub fn regions(
         &self,
         pv: Option<&cost::Preview>,
         shared: &[bool],
     ) -> Result<Vec<WorkerId>, String> {
-        let chosen = unshared(pv.map_or(self.analytic, |pv| &pv.cost), shared);
+        let chosen = pv.map_or_else(|| unshared(self.analytic, shared), |pv| pv.charged(shared));
         // Regions grow along the crossings that remain once the shared
         // leaves are passed over: a ray from one leaf through shared ones
         // into another is forwarded between those two.
@@ -110,9 +111,10 @@ impl Draw<'_> {
     }
 }
 
-/// The costs the partition balances (and the report's predicted shares
-/// are of): the shared leaves' left out, since each worker traces there
-/// what its own rays bring.
+/// The analytic costs the partition balances where there is no preview
+/// (and the report's analytic shares): the shared leaves' left out, since
+/// each worker traces there what its own rays bring, which without the
+/// preview's paths cannot be placed.
 pub(super) fn unshared(c: &[f64], shared: &[bool]) -> Vec<f64> {
     c.iter()
         .zip(shared)
