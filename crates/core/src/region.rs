@@ -63,13 +63,6 @@ impl<L: Copy + PartialEq> Route<L> {
         Self::from_collapsed(tree.collapse(label))
     }
 
-    /// The route over `label` where the leaves `free` accepts (those
-    /// without triangles) take any label, and `fill` where they stand
-    /// apart ([`Octree::collapse_free`]).
-    pub fn new_free(tree: &Octree, label: &[L], free: impl Fn(usize) -> bool, fill: L) -> Self {
-        Self::from_collapsed(tree.collapse_free(label, free, fill))
-    }
-
     fn from_collapsed((tree, labels): (Octree, Vec<L>)) -> Self {
         let boxes = tree.leaves.iter().map(|l| l.bounds).collect();
         Self {

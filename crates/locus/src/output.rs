@@ -132,6 +132,20 @@ pub(crate) fn write_farm_result(
             f.shared_leaves, f.shared_refs, f.triangles
         );
     }
+    let k = &f.totals.forwards;
+    if k.total() > 0 {
+        let predicted = f.prediction.forwards_per_path.map_or(String::new(), |p| {
+            format!(" (the preview predicted {p:.3})")
+        });
+        let [b1, b2, b3, b4] = k.bounces;
+        println!(
+            "  forwarded {} queries, {:.3} a sample{predicted}: camera rays {}, bounces after 1 / 2 / 3 / 4+ vertices {b1} / {b2} / {b3} / {b4}, shadow rays {}",
+            k.total(),
+            k.total() as f64 / f.totals.trace.samples.max(1) as f64,
+            k.camera,
+            k.shadow
+        );
+    }
     if f.totals.shared_parts > 0 {
         println!(
             "  BVH parts built once for this process's workers: {} taken from another worker's build",

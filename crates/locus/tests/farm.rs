@@ -58,8 +58,17 @@ fn farm_matches_single_machine_bit_for_bit() {
                 let r = rep.prediction.sampled_r;
                 assert_eq!(r.is_some(), workers >= 3, "{workers} workers: {r:?}");
                 assert!(r.is_none_or(|r| (-1.0..=1.0).contains(&r)), "{r:?}");
+                // Every forward is counted by its kind, worker by worker;
+                // the preview predicts them wherever a partition placed
+                // the work.
+                for w in &rep.workers {
+                    assert_eq!(w.stats.forwards.total(), w.stats.forwarded_out);
+                }
+                let predicted = rep.prediction.forwards_per_path;
+                assert_eq!(predicted.is_some(), workers > 1, "{predicted:?}");
                 if workers > 1 {
                     assert!(rep.totals.forwarded_out > 0, "rays crossed regions");
+                    assert!(predicted.is_some_and(|p| p > 0.0), "{predicted:?}");
                     let sent: u64 = rep.workers.iter().flat_map(|w| &w.stats.peers).map(|p| p.bytes_sent).sum();
                     let recv: u64 = rep.workers.iter().flat_map(|w| &w.stats.peers).map(|p| p.bytes_recv).sum();
                     assert_eq!(sent, recv, "every byte sent is received");

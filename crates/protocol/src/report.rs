@@ -2,8 +2,52 @@
 //! happened) and the job's derived figures.
 
 use locus_core::dircache::CacheMemory;
+use locus_core::path::Query;
 use locus_core::stats::TraceStats;
 use serde::{Deserialize, Serialize};
+
+/// Queries forwarded to peers, by what they ask: which of a path's rays
+/// leave a worker's region says where a partition or a tile's placement
+/// costs (a camera ray forwarded is a tile started away from where its
+/// paths go; a bounce, a border its paths cross).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ForwardKinds {
+    /// Camera rays.
+    pub camera: u64,
+    /// A path's later rays (directional-cache segments too), by the path
+    /// vertices before them: 1, 2, 3, and 4 or more.
+    pub bounces: [u64; 4],
+    /// Shadow rays.
+    pub shadow: u64,
+}
+
+impl ForwardKinds {
+    /// Counts query `q`, forwarded.
+    pub fn count(&mut self, q: &Query) {
+        match q {
+            Query::Path(p) | Query::Segment(p) if p.depth == 0 => self.camera += 1,
+            Query::Path(p) | Query::Segment(p) => {
+                self.bounces[(p.depth as usize).min(4) - 1] += 1;
+            }
+            Query::Shadow(_) => self.shadow += 1,
+        }
+    }
+
+    /// Every query counted.
+    pub fn total(&self) -> u64 {
+        self.camera + self.bounces.iter().sum::<u64>() + self.shadow
+    }
+}
+
+impl std::ops::AddAssign for ForwardKinds {
+    fn add_assign(&mut self, o: Self) {
+        self.camera += o.camera;
+        for (a, b) in self.bounces.iter_mut().zip(o.bounces) {
+            *a += b;
+        }
+        self.shadow += o.shadow;
+    }
+}
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PeerTraffic {
@@ -19,6 +63,8 @@ pub struct WorkerStats {
     pub trace: TraceStats,
     /// Trace items sent to a peer.
     pub forwarded_out: u64,
+    /// The same, by what they ask.
+    pub forwards: ForwardKinds,
     /// Trace items received from peers.
     pub queries_in: u64,
     /// Answers sent to peers.
@@ -103,6 +149,7 @@ impl std::ops::AddAssign<&WorkerStats> for WorkerStats {
     fn add_assign(&mut self, o: &WorkerStats) {
         self.trace += o.trace;
         self.forwarded_out += o.forwarded_out;
+        self.forwards += o.forwards;
         self.queries_in += o.queries_in;
         self.answers_out += o.answers_out;
         self.busy_s += o.busy_s;
@@ -195,6 +242,13 @@ pub struct Prediction {
     pub sampled_r: Option<f64>,
     /// Work counted by the sampled predictor's preview.
     pub preview_rays: u64,
+    /// The queries a camera sample's path forwards, as the preview counts
+    /// them under the partition (its crossings between two workers' leaves
+    /// beside the shared ones, each tile started where its paths go
+    /// first), against which the farm's counted forwards a sample tell how
+    /// well the partition was predicted. None without a preview or with
+    /// the scene replicated.
+    pub forwards_per_path: Option<f64>,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -295,4 +349,41 @@ pub struct Recovery {
     pub aborted: locus_core::stats::TraceStats,
     /// Reports of aborted attempts received.
     pub aborted_reports: u32,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use locus_core::geometry::Ray;
+    use locus_core::integrator::{PathRay, ShadowRay};
+    use locus_core::sampler::SampleKey;
+
+    /// Each query goes to its kind's count, bounces by the vertices before
+    /// them (the deepest count together), and the counts add up.
+    #[test]
+    fn forwards_are_counted_by_kind_and_depth() {
+        let ray = Ray::new(glam::Vec3::ZERO, glam::Vec3::X);
+        let path = |depth| {
+            let mut p = PathRay::camera(ray, SampleKey::independent(0, 0, 1));
+            p.depth = depth;
+            p
+        };
+        let mut k = ForwardKinds::default();
+        for d in [0, 1, 1, 2, 3, 4, 7, 12] {
+            k.count(&Query::Path(path(d)));
+        }
+        k.count(&Query::Segment(path(2)));
+        k.count(&Query::Shadow(ShadowRay { ray, t_max: 1.0 }));
+        let want = ForwardKinds {
+            camera: 1,
+            bounces: [2, 2, 1, 3],
+            shadow: 1,
+        };
+        assert_eq!(k, want);
+        assert_eq!(k.total(), 10);
+        let mut sum = k;
+        sum += want;
+        assert_eq!(sum.bounces, [4, 4, 2, 6]);
+        assert_eq!(sum.total(), 20);
+    }
 }

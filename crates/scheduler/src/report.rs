@@ -101,6 +101,7 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
             analytic_r: meaningful.then(|| cost::correlation(&prep.analytic_share, &measured)),
             sampled_r: meaningful.then(|| cost::correlation(&prep.sampled_share, &measured)),
             preview_rays: prep.preview_rays,
+            forwards_per_path: prep.forwards_per_path,
         },
         workers: stats
             .iter()

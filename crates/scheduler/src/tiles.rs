@@ -68,6 +68,27 @@ pub fn affinity(
         .flatten()
 }
 
+/// The tile holding a pixel, by index into `tiles` (a grid of tiles, as
+/// [`crate::film`] cuts the image), if any does.
+pub fn locator(tiles: &[Tile]) -> impl Fn(u32, u32) -> Option<usize> + '_ {
+    let size = tiles
+        .iter()
+        .map(|t| (t.x1 - t.x0).max(t.y1 - t.y0))
+        .max()
+        .unwrap_or(1)
+        .max(1);
+    let cell: std::collections::HashMap<(u32, u32), usize> = tiles
+        .iter()
+        .enumerate()
+        .map(|(i, t)| ((t.x0 / size, t.y0 / size), i))
+        .collect();
+    move |x, y| {
+        let &i = cell.get(&(x / size, y / size))?;
+        let t = &tiles[i];
+        ((t.x0..t.x1).contains(&x) && (t.y0..t.y1).contains(&y)).then_some(i)
+    }
+}
+
 /// Each tile's affinity: the owner that most of the preview paths in it
 /// (`firsts`: each path's pixel and the first leaf beside the shared ones
 /// that it entered) reach first, the lowest such worker on a tie; where
@@ -81,29 +102,10 @@ pub fn affinities(
 ) -> Vec<Option<WorkerId>> {
     use rayon::prelude::*;
     let workers = map.owner.iter().map(|&o| o as usize + 1).max().unwrap_or(1);
-    // Tiles are a grid: a pixel's tile is found by its cell.
-    let size = tiles
-        .iter()
-        .map(|t| (t.x1 - t.x0).max(t.y1 - t.y0))
-        .max()
-        .unwrap_or(1)
-        .max(1);
-    let cell: std::collections::HashMap<(u32, u32), usize> = tiles
-        .iter()
-        .enumerate()
-        .map(|(i, t)| ((t.x0 / size, t.y0 / size), i))
-        .collect();
+    let tile_of = locator(tiles);
     let mut votes = vec![0u32; tiles.len() * workers];
     for &((x, y), leaf) in firsts {
-        let Some(&i) = cell.get(&(x / size, y / size)) else {
-            continue;
-        };
-        let t = &tiles[i];
-        let inside = (t.x0..t.x1).contains(&x) && (t.y0..t.y1).contains(&y);
-        if let Some(o) = leaf
-            .and_then(|l| map.owner.get(l as usize))
-            .filter(|_| inside)
-        {
+        if let Some((i, o)) = tile_of(x, y).zip(leaf.and_then(|l| map.owner.get(l as usize))) {
             votes[i * workers + *o as usize] += 1;
         }
     }

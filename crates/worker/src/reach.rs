@@ -50,9 +50,8 @@ impl Reach {
     /// The snapshot for parts `accel` holding the leaves marked in `local`,
     /// and `pending` fetched leaves. With `per_leaf` remote leaves keep
     /// their identity (a fetch policy asks for them by leaf). A leaf with
-    /// no triangles (`leaf_tris`) is anyone's: it joins its neighbours'
-    /// route node, or is local where it stands apart, so a ray crosses
-    /// empty space between regions without a forward, and no empty leaf is
+    /// no triangles (`leaf_tris`) is local on every worker, so a ray
+    /// crosses empty space without a forward, and no empty leaf is
     /// fetched.
     pub fn new(
         tree: &Octree,
@@ -85,7 +84,18 @@ impl Reach {
             .iter()
             .enumerate()
             .all(|(l, &x)| x == Label::Local || free(l));
-        let mut route = Route::new_free(tree, &label, free, Label::Local);
+        // An empty leaf is local everywhere, never a peer's: merged into a
+        // neighbour's route node, as it once was, the empty space beside
+        // another worker's detail was that worker's, and a ray bouncing
+        // off a shared wall through it was forwarded there without
+        // meeting a triangle of its (on the room with 2 workers, a third
+        // of the forwards and four in five of the camera rays').
+        for (l, x) in label.iter_mut().enumerate() {
+            if free(l) && !matches!(x, Label::Pending(_)) {
+                *x = Label::Local;
+            }
+        }
+        let mut route = Route::new(tree, &label);
         // Grown boxes spare most walks; they are worth their cost on a
         // route that will be traced many times (not one that changes with
         // every fetched leaf) and not too large to grow quickly.
@@ -388,5 +398,73 @@ mod tests {
             );
             assert!(!r.all_local && r.route.leaves() > 1, "per leaf: {per_leaf}");
         }
+    }
+
+    /// Empty space beside another worker's triangles is local too: a ray
+    /// through any empty leaf meets only local labels there, where the
+    /// route once merged such a leaf into the neighbouring owner's node
+    /// and forwarded rays that crossed it.
+    #[test]
+    fn empty_space_beside_a_peers_triangles_is_not_the_peers() {
+        // A floor, its far half another worker's, and the air above it.
+        let tris: Vec<[Vec3; 3]> = (0..200)
+            .map(|i| {
+                let p = Vec3::new((i % 20) as f32, 0.0, (i / 20) as f32);
+                [p, p + Vec3::X * 0.9, p + Vec3::Z * 0.9]
+            })
+            .chain(std::iter::once([
+                Vec3::new(0.0, 8.0, 0.0),
+                Vec3::new(0.5, 8.0, 0.0),
+                Vec3::new(0.0, 8.0, 0.5),
+            ]))
+            .collect();
+        let oct = Octree::build(
+            &tris,
+            OctreeParams {
+                max_leaf_tris: 8,
+                max_depth: 6,
+            },
+        );
+        let leaf_tris: Vec<u32> = oct.leaves.iter().map(|l| l.tris.len() as u32).collect();
+        let far = |l: usize| oct.leaves[l].bounds.center().x > 10.0;
+        // Empty leaves go with the side they stand over, as a partition
+        // may hand them out.
+        let owner: Vec<WorkerId> = (0..oct.leaves.len()).map(|l| u16::from(far(l))).collect();
+        let local: Vec<bool> = owner.iter().map(|&o| o == 0).collect();
+        let own: Vec<(u32, &[u32])> = (0..oct.leaves.len())
+            .filter(|&l| local[l])
+            .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
+            .collect();
+        let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
+        let parts = locus_core::accel_set::build_parts(&own, 1000, 20.0, BuildQuality::Full, &tri);
+        let r = Reach::new(
+            &oct,
+            &owner,
+            &leaf_tris,
+            &local,
+            AccelSet::from_parts(parts),
+            Vec::new(),
+            false,
+        );
+        assert!(!r.all_local, "the far half of the floor is the peer's");
+        let mut empty_far = 0;
+        for l in (0..oct.leaves.len()).filter(|&l| leaf_tris[l] == 0) {
+            let b = oct.leaves[l].bounds;
+            empty_far += usize::from(far(l));
+            // Along x through the leaf's centre, from its face to its face.
+            let c = b.center();
+            let ray = locus_core::geometry::Ray::new(Vec3::new(b.min.x, c.y, c.z), Vec3::X);
+            let len = b.max.x - b.min.x;
+            let _ = r.route.walk(&ray, 0.0, len, 0.0, |label, ta, tb| {
+                if tb > 0.01 * len && ta < 0.99 * len {
+                    assert_eq!(label, Label::Local, "empty leaf {l} on [{ta}, {tb}]");
+                }
+                std::ops::ControlFlow::Continue(())
+            });
+        }
+        assert!(
+            empty_far > 0,
+            "the test needs empty leaves over the peer's half"
+        );
     }
 }

@@ -20,11 +20,10 @@ impl Octree {
 
     /// [`Self::collapse`] where the leaves `free` accepts take any label: a
     /// subtree merges when its other leaves carry one label, and takes that
-    /// label; a subtree of free leaves alone takes `fill`. Leaves without
-    /// triangles are free on a farm (nothing in them can be hit, so whoever
-    /// holds a ray may cross them): merged into a neighbour's node they make
-    /// no route node of their own, and where they stand apart they are
-    /// crossed here, never forwarded.
+    /// label; a subtree of free leaves alone takes `fill`. A farm's route
+    /// once made its empty leaves free this way; it now labels them local
+    /// on every worker (`locus_worker::reach`), since merged into a
+    /// neighbour's node they took that neighbour's owner.
     pub fn collapse_free<L: Copy + PartialEq>(
         &self,
         label: &[L],

@@ -323,15 +323,22 @@ pub fn buying_pays(
     if paths == 0 {
         return false;
     }
-    let cut: u64 = crossings
-        .iter()
-        .filter(|((a, b), _)| owner.get(*a as usize) != owner.get(*b as usize))
-        .map(|(_, &c)| c as u64)
-        .sum();
-    let rent = cut as f64 * (samples as f64 / paths as f64) * TYPICAL_FORWARD_BYTES as f64;
+    let rent = cut(crossings, owner) as f64
+        * (samples as f64 / paths as f64)
+        * TYPICAL_FORWARD_BYTES as f64;
     // Each worker lacks everything but its own references.
     let buy = (workers.saturating_sub(1) as u64 * scene_bytes) as f64;
     rent >= buy
+}
+
+/// The crossings between two workers' leaves under the partition `owner`:
+/// the queries it forwards, as the preview counts them.
+pub fn cut(crossings: &HashMap<(u32, u32), u32>, owner: &[WorkerId]) -> u64 {
+    crossings
+        .iter()
+        .filter(|((a, b), _)| owner.get(*a as usize) != owner.get(*b as usize))
+        .map(|(_, &c)| c as u64)
+        .sum()
 }
 
 /// How well each prediction matches the per-leaf cost of the real

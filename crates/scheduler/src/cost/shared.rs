@@ -4,6 +4,7 @@
 //! which regions are grown (`job::regions`).
 
 use super::{PATH_END, Preview, SHADOW_END, WALK_END};
+use locus_core::region::WorkerId;
 use std::collections::HashMap;
 
 impl Preview {
@@ -15,11 +16,14 @@ impl Preview {
     /// goes on across its rays: a path from leaf `a` through shared leaves,
     /// or off a shared surface and on, into leaf `b` crosses from `a` into
     /// `b`. A shadow ray branches off its path and leaves it where it was.
-    /// Where a path first enters a leaf that is not shared no crossing is
-    /// counted: its tile goes to that leaf's owner ([`Preview::first_leaves`]).
+    /// Until a path enters a leaf that is not shared, its first such leaf
+    /// holds it: its tile goes to that leaf's owner
+    /// ([`Preview::first_leaves`]), so entering it is no crossing, and a
+    /// shadow ray from a shared surface before it into another leaf is.
     pub fn crossings_beside(&self, shared: &[bool]) -> HashMap<(u32, u32), u32> {
         let mut out: HashMap<(u32, u32), u32> = HashMap::new();
-        self.follow(shared, |e| {
+        let first = self.first_leaves(shared);
+        self.follow(shared, &first, |e| {
             if let Some(p) = e.held.filter(|&p| !e.shared && p != e.leaf) {
                 *out.entry((p, e.leaf)).or_default() += 1;
             }
@@ -35,7 +39,7 @@ impl Preview {
     /// shared leaves only.
     pub fn first_leaves(&self, shared: &[bool]) -> Vec<Option<u32>> {
         let mut first = vec![None; self.pixels.len()];
-        self.follow(shared, |e| {
+        self.follow(shared, &[], |e| {
             if !e.shadow
                 && !e.shared
                 && let Some(f) = first.get_mut(e.path)
@@ -46,11 +50,37 @@ impl Preview {
         first
     }
 
+    /// The queries the farm forwards for the preview's paths, predicted:
+    /// each path started by the worker `starts` names (its tile's; where
+    /// none, the owner of its first leaf), then held by the owner of the
+    /// last leaf beside the `shared` ones it entered, a shadow ray
+    /// branching off; a ray entering a leaf of another worker than the
+    /// holder's is one forward. Against [`Preview::crossings_beside`] this
+    /// counts a path whose tile went elsewhere than its first leaf: the
+    /// tile's owner forwards it there (a tile has one owner for paths that
+    /// scatter).
+    pub fn forwards_from(
+        &self,
+        shared: &[bool],
+        owner: &[WorkerId],
+        starts: &[Option<WorkerId>],
+    ) -> u64 {
+        let own = |l: u32| owner.get(l as usize).copied();
+        let mut n = 0;
+        self.follow(shared, &[], |e| {
+            let start = || starts.get(e.path).copied().flatten();
+            let from = e.held.map_or_else(start, own);
+            if !e.shared && from.is_some_and(|w| Some(w) != own(e.leaf)) {
+                n += 1;
+            }
+        });
+        n
+    }
+
     /// The leaf costs the partition balances once the `shared` leaves are
     /// every worker's: the work a path does in a shared leaf is charged to
-    /// the leaf that holds it there ([`Preview::crossings_beside`]), or,
-    /// before it enters one, to its first leaf
-    /// ([`Preview::first_leaves`]), whose owner starts it. That is the
+    /// the leaf that holds it there ([`Preview::crossings_beside`]: before
+    /// it enters one, its first leaf, whose owner starts it). That is the
     /// worker that does it, where the shared leaves' own costs would say
     /// no one does. The work of a path that meets shared leaves only is
     /// left out: whichever worker starts its tile does it.
@@ -62,9 +92,8 @@ impl Preview {
             .map(|(&c, &s)| if s { 0.0 } else { c })
             .collect();
         let first = self.first_leaves(shared);
-        self.follow(shared, |e| {
-            let to = e.held.or(first.get(e.path).copied().flatten());
-            if let Some(to) = to.filter(|_| e.shared) {
+        self.follow(shared, &first, |e| {
+            if let Some(to) = e.held.filter(|_| e.shared) {
                 cost[to as usize] += self.walk_costs.get(e.at).copied().unwrap_or(0) as f64;
             }
         });
@@ -72,12 +101,15 @@ impl Preview {
     }
 
     /// Follows every path's rays through [`Preview::walks`], calling `f`
-    /// with each leaf a ray enters ([`Entered`]), ray by ray.
-    fn follow(&self, shared: &[bool], mut f: impl FnMut(Entered)) {
+    /// with each leaf a ray enters ([`Entered`]), ray by ray. Until a path
+    /// enters a leaf beside the `shared` ones, the leaf holding it is its
+    /// entry in `first` (none where `first` has none).
+    fn follow(&self, shared: &[bool], first: &[Option<u32>], mut f: impl FnMut(Entered)) {
         // A ray's entries (index, leaf, the leaf holding the path before),
         // until its end marker says what kind of ray it was.
         let mut run: Vec<(usize, u32, Option<u32>)> = Vec::new();
-        let (mut path, mut held, mut before) = (0usize, None, None);
+        let start = |path: usize| first.get(path).copied().flatten();
+        let (mut path, mut held, mut before) = (0usize, start(0), start(0));
         for (at, &l) in self.walks.iter().enumerate() {
             match l {
                 WALK_END | SHADOW_END => {
@@ -102,7 +134,8 @@ impl Preview {
                     }
                 }
                 PATH_END => {
-                    (path, held, before) = (path + 1, None, None);
+                    path += 1;
+                    (held, before) = (start(path), start(path));
                     run.clear();
                 }
                 _ => {
@@ -121,7 +154,8 @@ struct Entered {
     /// The path's index, in the order of [`Preview::pixels`].
     path: usize,
     /// The last leaf beside the shared ones that the path entered before
-    /// (None before its first): whoever holds it holds the path.
+    /// (before its first, that one where the caller gave it, else None):
+    /// whoever holds it holds the path.
     held: Option<u32>,
     leaf: u32,
     /// Its index in [`Preview::walks`].
@@ -204,25 +238,30 @@ mod tests {
         let path1 = [s, WALK_END, s, c, s, SHADOW_END, s, WALK_END, PATH_END];
         // Path 2: starts in c and stays there.
         let path2 = [c, WALK_END, PATH_END];
-        let walks = [&path0[..], &path1, &path2].concat();
+        // Path 3: the camera ray hits the shared leaf, whose shadow ray
+        // enters b before the first bounce enters c, its first leaf: c
+        // holds it from the start, so the shadow ray crosses from c.
+        let path3 = [s, WALK_END, s, b, SHADOW_END, s, c, WALK_END, PATH_END];
+        let walks = [&path0[..], &path1, &path2, &path3].concat();
         // Each entry's work: distinct bits on path 0, so that a sum shows
         // which entries were charged.
         let costs0 = [1, 2, 0, 4, 8, 0, 16, 32, 0, 64, 128, 0, 256, 512, 0, 0];
         let costs1 = [1000, 0, 1000, 0, 700, 0, 1000, 0, 0];
         let pv = Preview {
             cost: vec![5000.0, 10.0, 20.0, 30.0],
-            rays: 10,
+            rays: 13,
             steps: 0,
-            paths: 3,
+            paths: 4,
             crossings: HashMap::new(),
             walks,
-            walk_costs: [&costs0[..], &costs1, &[0, 0, 0]].concat(),
-            pixels: vec![(0, 0), (1, 0), (2, 0)],
+            walk_costs: [&costs0[..], &costs1, &[0; 3], &[0; 9]].concat(),
+            pixels: vec![(0, 0), (1, 0), (2, 0), (3, 0)],
         };
         let shared = [true, false, false, false];
         let beside = pv.crossings_beside(&shared);
-        assert_eq!(beside, [((a, b), 2), ((a, c), 1)].into());
-        assert_eq!(pv.first_leaves(&shared), [Some(a), None, Some(c)]);
+        assert_eq!(beside, [((a, b), 2), ((a, c), 1), ((c, b), 1)].into());
+        let first = [Some(a), None, Some(c), Some(c)];
+        assert_eq!(pv.first_leaves(&shared), first);
         // With nothing shared every change of leaf is a crossing, ray
         // after ray.
         let all = pv.crossings_beside(&[]);
@@ -230,13 +269,14 @@ mod tests {
             ((s, a), 1),
             ((a, b), 1),
             ((a, s), 1),
-            ((s, c), 2),
+            ((s, c), 3),
             ((c, s), 1),
-            ((s, b), 1),
+            ((s, b), 2),
         ]
         .into();
         assert_eq!(all, want);
-        assert_eq!(pv.first_leaves(&[]), [Some(s), Some(s), Some(c)]);
+        let first = [Some(s), Some(s), Some(c), Some(s)];
+        assert_eq!(pv.first_leaves(&[]), first);
         // Path 0's work in the shared leaf goes to a, which holds it there
         // (its camera ray's, before it entered a, to a as its first leaf;
         // its last bounce's too, the shadow ray into c having left it
@@ -247,6 +287,17 @@ mod tests {
             [0.0, 10.0 + 1.0 + 32.0 + 64.0 + 256.0, 20.0, 30.0 + 700.0]
         );
         assert_eq!(pv.charged(&[]), pv.cost);
+        // Worker by worker (a on worker 0, b and c on 1): path 0 started on
+        // worker 1 forwards its camera ray into a, then its shadow ray
+        // into b, the next into c and its last bounce into b; path 1's
+        // shadow ray into c is forwarded only when a worker started it;
+        // path 3 started on worker 0 forwards its shadow ray into b and
+        // its bounce into c.
+        let owner = [0, 0, 1, 1];
+        let starts = [Some(1), None, Some(1), Some(0)];
+        assert_eq!(pv.forwards_from(&shared, &owner, &starts), 4 + 2);
+        let on_0 = [Some(0); 4];
+        assert_eq!(pv.forwards_from(&shared, &owner, &on_0), 3 + 1 + 1 + 2);
     }
 
     /// On a real preview: with nothing shared the walks give the
@@ -285,6 +336,21 @@ mod tests {
             "{moved} of leaf {s}'s {own} charged elsewhere"
         );
         assert_eq!(pv.charged(&vec![false; n]), pv.cost);
+        // Each path started by its first leaf's owner forwards what the
+        // crossings between two workers' leaves count.
+        let owner: Vec<WorkerId> = (0..n).map(|l| (l % 3) as WorkerId).collect();
+        let starts: Vec<Option<WorkerId>> = pv
+            .first_leaves(&shared)
+            .iter()
+            .map(|f| f.map(|l| owner[l as usize]))
+            .collect();
+        let forwards = pv.forwards_from(&shared, &owner, &starts);
+        assert!(forwards > 0);
+        assert_eq!(forwards, crate::cost::cut(&beside, &owner));
+        // Started by one worker, whatever their first leaves, they forward
+        // more.
+        let one = vec![Some(0); starts.len()];
+        assert!(pv.forwards_from(&shared, &owner, &one) > forwards);
     }
 
     /// Leaves are shared by crossings per triangle, best first, as many

@@ -58,10 +58,15 @@ pub struct Prepared {
     /// Each worker's threads.
     pub member_cores: Vec<u32>,
     /// Each worker's share of the predicted cost, as the partition
-    /// balanced it: the camera's shared leaf counts for no one.
+    /// balanced it: the analytic costs with the shared leaves counting for
+    /// no one, the sampled ones with their work charged to the leaves that
+    /// hold the paths there ([`cost::Preview::charged`]).
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
     pub preview_rays: u64,
+    /// The queries the preview predicts a path forwards under the
+    /// partition; none without a preview or with the scene replicated.
+    pub forwards_per_path: Option<f64>,
     pub leaves: u32,
     pub timings: PrepTimings,
     /// Seconds the scheduler spent building a replicated region's BVH
@@ -277,8 +282,8 @@ pub fn prepare(
     // What the regions balanced: the shared leaves' work charged to the
     // leaves that hold the paths there (every leaf its own when the whole
     // scene is replicated below).
-    let (sampled, preview_rays) = match pv {
-        Some(pv) if replicated => (pv.cost, decision_rays + pv.rays),
+    let (sampled, preview_rays) = match pv.as_ref() {
+        Some(pv) if replicated => (pv.cost.clone(), decision_rays + pv.rays),
         Some(pv) => (pv.charged(&shared), decision_rays + pv.rays),
         None => (regions::unshared(&analytic, &shared), 0),
     };
@@ -325,6 +330,22 @@ pub fn prepare(
     } else {
         vec![None; tiles.len()]
     };
+    // The queries a path forwards, predicted from the preview's paths with
+    // each started by its tile's worker.
+    let forwards_per_path = pv
+        .as_ref()
+        .filter(|pv| by_affinity && pv.paths > 0)
+        .map(|pv| {
+            let tile_of = crate::tiles::locator(tiles);
+            let starts: Vec<Option<WorkerId>> = pv
+                .pixels
+                .iter()
+                .map(|&(x, y)| tile_of(x, y).and_then(|t| tile_affinity[t]))
+                .collect();
+            pv.forwards_from(&shared, &map.owner, &starts) as f64 / pv.paths as f64
+        });
+    // Nothing below needs the preview's walks, which are large.
+    drop(pv);
     let mut plans = Vec::with_capacity(workers);
     let mut parts = Vec::with_capacity(workers);
     let mut region_triangles = Vec::with_capacity(workers);
@@ -400,6 +421,7 @@ pub fn prepare(
         analytic_share: cost::shares(&regions::unshared(&analytic, &shared), &map.owner, workers),
         sampled_share: cost::shares(&sampled, &map.owner, workers),
         preview_rays,
+        forwards_per_path,
         leaves: tree.leaves.len() as u32,
         max_inflight: crate::tiles::inflight(&tile_affinity, workers, options.tuning.max_inflight)
             .into_iter()

@@ -14,6 +14,7 @@ use locus_core::render::pixel_pass;
 use locus_core::stats::TraceStats;
 use locus_protocol::control::{TileAssignment, TileResult};
 use locus_protocol::rays::{Packet, RayItem, ReplyTo};
+use locus_protocol::report::ForwardKinds;
 use std::cell::Cell;
 use std::sync::Arc;
 
@@ -88,8 +89,8 @@ pub struct Sends {
     pub open: Vec<(Packet, usize)>,
     /// Packets of `limit` items, in the order they filled.
     pub full: Vec<(WorkerId, Packet, usize)>,
-    /// Queries forwarded, and answers sent.
-    pub forwards: u64,
+    /// Queries forwarded (by kind), and answers sent.
+    pub forwards: ForwardKinds,
     pub answers: u64,
     limit: usize,
 }
@@ -264,7 +265,7 @@ pub fn trace_batch(
                 query,
                 resume,
             } if to != me => {
-                b.sends.forwards += 1;
+                b.sends.forwards.count(&query);
                 let reply = w.reply;
                 b.sends.push(
                     to,

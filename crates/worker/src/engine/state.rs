@@ -316,7 +316,8 @@ impl<'a> Engine<'a> {
         self.stats.fetched_leaf_traces += b.fetched_leaf_traces;
         self.crossings += b.fetched_leaf_traces;
         self.cpu_s += b.cpu_s;
-        self.stats.forwarded_out += b.sends.forwards;
+        self.stats.forwarded_out += b.sends.forwards.total();
+        self.stats.forwards += b.sends.forwards;
         self.stats.answers_out += b.sends.answers;
         for (to, packet, n) in &b.sends.full {
             self.outbox.push_encoded(*to, packet, *n, self.now)?;
@@ -452,6 +453,7 @@ impl<'a> Engine<'a> {
         let leaf = match dest {
             Dest::Peer(to) => {
                 self.stats.forwarded_out += 1;
+                self.stats.forwards.count(&query);
                 let item = RayItem::Trace {
                     query,
                     resume,
