@@ -246,8 +246,9 @@ pub struct Prediction {
     /// them under the partition (its crossings between two workers' leaves
     /// beside the shared ones, each tile started where its paths go
     /// first), against which the farm's counted forwards a sample tell how
-    /// well the partition was predicted. None without a preview or with
-    /// the scene replicated.
+    /// well the partition was predicted. None without a preview, with the
+    /// scene replicated, or under random polling (tiles go to whoever
+    /// asks, so no worker is known to start a path).
     pub forwards_per_path: Option<f64>,
 }
 

@@ -157,6 +157,7 @@ impl Tally {
             *w = w.saturating_add(c.min(u32::MAX as u64) as u32);
         }
     }
+
     fn merge(mut self, o: Tally) -> Tally {
         for (x, y) in self.cost.iter_mut().zip(o.cost) {
             *x += y;
@@ -332,7 +333,9 @@ pub fn buying_pays(
 }
 
 /// The crossings between two workers' leaves under the partition `owner`:
-/// the queries it forwards, as the preview counts them.
+/// the queries it forwards if every path is started by the owner of its
+/// first leaf. A tile has one owner for paths whose first leaves scatter,
+/// and [`Preview::forwards_from`] counts what that adds.
 pub fn cut(crossings: &HashMap<(u32, u32), u32>, owner: &[WorkerId]) -> u64 {
     crossings
         .iter()

@@ -65,7 +65,9 @@ pub struct Prepared {
     pub sampled_share: Vec<f64>,
     pub preview_rays: u64,
     /// The queries the preview predicts a path forwards under the
-    /// partition; none without a preview or with the scene replicated.
+    /// partition and the tiles' affinities; none without a preview, with
+    /// the scene replicated, or under random polling (tiles go to whoever
+    /// asks).
     pub forwards_per_path: Option<f64>,
     pub leaves: u32,
     pub timings: PrepTimings,
