@@ -344,37 +344,58 @@ mod tests {
         assert!(hits > 1000);
     }
 
-    /// Empty space is anyone's: a worker that holds every leaf with
-    /// triangles traces as one machine does, whoever owns the empty ones,
-    /// and is never sent to fetch them.
-    #[test]
-    fn empty_leaves_of_others_are_local() {
-        let tris: Vec<[Vec3; 3]> = (0..200)
+    /// A floor of 200 triangles, 20 by 10, in the plane y = 0.
+    fn floor() -> Vec<[Vec3; 3]> {
+        (0..200)
             .map(|i| {
                 let p = Vec3::new((i % 20) as f32, 0.0, (i / 20) as f32);
                 [p, p + Vec3::X * 0.9, p + Vec3::Z * 0.9]
             })
-            .collect();
+            .collect()
+    }
+
+    /// The octree of the reach tests over `tris`, and its leaves' triangle
+    /// counts.
+    fn octree_of(tris: &[[Vec3; 3]]) -> (Octree, Vec<u32>) {
         let oct = Octree::build(
-            &tris,
+            tris,
             OctreeParams {
                 max_leaf_tris: 8,
                 max_depth: 6,
             },
         );
-        let leaf_tris: Vec<u32> = oct.leaves.iter().map(|l| l.tris.len() as u32).collect();
+        let leaf_tris = oct.leaves.iter().map(|l| l.tris.len() as u32).collect();
+        (oct, leaf_tris)
+    }
+
+    /// BVH parts over the `local` leaves' triangles.
+    fn local_parts(
+        oct: &Octree,
+        tris: &[[Vec3; 3]],
+        local: &[bool],
+    ) -> Vec<Arc<locus_core::accel_set::Part>> {
+        let own: Vec<(u32, &[u32])> = (0..oct.leaves.len())
+            .filter(|&l| local[l])
+            .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
+            .collect();
+        let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
+        locus_core::accel_set::build_parts(&own, 1000, 20.0, BuildQuality::Full, &tri)
+    }
+
+    /// Empty space is anyone's: a worker that holds every leaf with
+    /// triangles traces as one machine does, whoever owns the empty ones,
+    /// and is never sent to fetch them.
+    #[test]
+    fn empty_leaves_of_others_are_local() {
+        let tris = floor();
+        let (oct, leaf_tris) = octree_of(&tris);
         assert!(
             leaf_tris.contains(&0),
             "the floor leaves empty space above it"
         );
         let owner: Vec<WorkerId> = leaf_tris.iter().map(|&n| u16::from(n == 0)).collect();
         let local: Vec<bool> = owner.iter().map(|&o| o == 0).collect();
-        let own: Vec<(u32, &[u32])> = (0..oct.leaves.len())
-            .filter(|&l| local[l])
-            .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
-            .collect();
-        let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
-        let parts = locus_core::accel_set::build_parts(&own, 1000, 20.0, BuildQuality::Full, &tri);
+        let parts = local_parts(&oct, &tris, &local);
         for per_leaf in [false, true] {
             let r = Reach::new(
                 &oct,
@@ -407,36 +428,21 @@ mod tests {
     #[test]
     fn empty_space_beside_a_peers_triangles_is_not_the_peers() {
         // A floor, its far half another worker's, and the air above it.
-        let tris: Vec<[Vec3; 3]> = (0..200)
-            .map(|i| {
-                let p = Vec3::new((i % 20) as f32, 0.0, (i / 20) as f32);
-                [p, p + Vec3::X * 0.9, p + Vec3::Z * 0.9]
-            })
+        let tris: Vec<[Vec3; 3]> = floor()
+            .into_iter()
             .chain(std::iter::once([
                 Vec3::new(0.0, 8.0, 0.0),
                 Vec3::new(0.5, 8.0, 0.0),
                 Vec3::new(0.0, 8.0, 0.5),
             ]))
             .collect();
-        let oct = Octree::build(
-            &tris,
-            OctreeParams {
-                max_leaf_tris: 8,
-                max_depth: 6,
-            },
-        );
-        let leaf_tris: Vec<u32> = oct.leaves.iter().map(|l| l.tris.len() as u32).collect();
+        let (oct, leaf_tris) = octree_of(&tris);
         let far = |l: usize| oct.leaves[l].bounds.center().x > 10.0;
         // Empty leaves go with the side they stand over, as a partition
         // may hand them out.
         let owner: Vec<WorkerId> = (0..oct.leaves.len()).map(|l| u16::from(far(l))).collect();
         let local: Vec<bool> = owner.iter().map(|&o| o == 0).collect();
-        let own: Vec<(u32, &[u32])> = (0..oct.leaves.len())
-            .filter(|&l| local[l])
-            .map(|l| (l as u32, oct.leaves[l].tris.as_slice()))
-            .collect();
-        let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
-        let parts = locus_core::accel_set::build_parts(&own, 1000, 20.0, BuildQuality::Full, &tri);
+        let parts = local_parts(&oct, &tris, &local);
         let r = Reach::new(
             &oct,
             &owner,

@@ -234,7 +234,7 @@ pub fn prepare(
         shared_percent: options.tuning.shared_percent,
     };
     let t_part = Instant::now();
-    let (mut shared, mut owner) = drawing.drawn(pv.as_ref())?;
+    let mut drawn = drawing.drawn(pv.as_ref())?;
     let mut partition_s = t_part.elapsed().as_secs_f64();
     let samples =
         scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
@@ -248,7 +248,7 @@ pub fn prepare(
         })
     };
     let replicated = replicate_now
-        || (options.fetch == FetchPolicy::Adaptive && fits_everywhere && buys(&pv, &owner));
+        || (options.fetch == FetchPolicy::Adaptive && fits_everywhere && buys(&pv, &drawn.owner));
     // Every ray a preview traced is counted, the decision's too.
     let mut decision_rays = 0;
     if decide_first && !replicated {
@@ -262,9 +262,14 @@ pub fn prepare(
         ));
         preview_s += t.elapsed().as_secs_f64();
         let t = Instant::now();
-        (shared, owner) = drawing.drawn(pv.as_ref())?;
+        drawn = drawing.drawn(pv.as_ref())?;
         partition_s += t.elapsed().as_secs_f64();
     }
+    let regions::Drawn {
+        mut shared,
+        owner,
+        balanced,
+    } = drawn;
     // Under random polling tiles go to whoever asks: a worker that has
     // fetched a hot region's leaves renders its tiles, and the owner's
     // queued work is handed to idle pollers. With affinity, a worker with
@@ -281,14 +286,14 @@ pub fn prepare(
             .collect(),
         _ => Vec::new(),
     };
-    // What the regions balanced: the shared leaves' work charged to the
-    // leaves that hold the paths there (every leaf its own when the whole
-    // scene is replicated below).
-    let (sampled, preview_rays) = match pv.as_ref() {
-        Some(pv) if replicated => (pv.cost.clone(), decision_rays + pv.rays),
-        Some(pv) => (pv.charged(&shared), decision_rays + pv.rays),
-        None => (regions::unshared(&analytic, &shared), 0),
+    // What the regions balanced (the shared leaves' work charged to the
+    // leaves that hold the paths there), or, with the whole scene
+    // replicated below, every leaf's own.
+    let sampled = match pv.as_ref() {
+        Some(pv) if replicated => pv.cost.clone(),
+        _ => balanced,
     };
+    let preview_rays = pv.as_ref().map_or(0, |pv| decision_rays + pv.rays);
     let leaf_ids: Vec<Vec<u32>> = tree
         .leaves
         .iter()

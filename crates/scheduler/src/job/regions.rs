@@ -54,7 +54,8 @@ impl Draw<'_> {
         shared
     }
 
-    /// Each leaf's owner, the shared ones' references left out (every
+    /// Each leaf's owner, and the leaf costs it balanced: the shared ones'
+    /// references left out (every
     /// worker holds them beside its region, within its cap) and their
     /// work charged to the leaves that hold the paths there
     /// ([`cost::Preview::charged`]): whoever holds a ray traces it.
@@ -62,7 +63,7 @@ impl Draw<'_> {
         &self,
         pv: Option<&cost::Preview>,
         shared: &[bool],
-    ) -> Result<Vec<WorkerId>, String> {
+    ) -> Result<(Vec<WorkerId>, Vec<f64>), String> {
         let chosen = pv.map_or_else(|| unshared(self.analytic, shared), |pv| pv.charged(shared));
         // Regions grow along the crossings that remain once the shared
         // leaves are passed over: a ray from one leaf through shared ones
@@ -87,28 +88,48 @@ impl Draw<'_> {
             caps: &caps,
             refs: &refs,
         };
-        match self.partitioner {
+        let owner = match self.partitioner {
             Partitioner::RegionGrowing => {
                 let graph = partition::LeafGraph::new(self.tree, &crossings);
                 partition::region_growing(self.tree, &graph, &chosen, &lim)
             }
             Partitioner::Morton => partition::morton(&chosen, &lim),
-        }
+        }?;
+        Ok((owner, chosen))
     }
 
     /// The shared leaves and the regions beside them, or, where the
     /// budgets cannot hold both, the regions with the camera's leaf
-    /// alone shared.
-    pub fn drawn(&self, pv: Option<&cost::Preview>) -> Result<(Vec<bool>, Vec<WorkerId>), String> {
+    /// alone shared; with the leaf costs the regions balanced.
+    pub fn drawn(&self, pv: Option<&cost::Preview>) -> Result<Drawn, String> {
         let shared = self.pick_shared(pv);
-        match self.regions(pv, &shared) {
-            Ok(owner) => Ok((shared, owner)),
+        let (owner, balanced) = match self.regions(pv, &shared) {
+            Ok(r) => r,
             Err(_) => {
                 let shared = self.camera_only();
-                self.regions(pv, &shared).map(|owner| (shared, owner))
+                let (owner, balanced) = self.regions(pv, &shared)?;
+                return Ok(Drawn {
+                    shared,
+                    owner,
+                    balanced,
+                });
             }
-        }
+        };
+        Ok(Drawn {
+            shared,
+            owner,
+            balanced,
+        })
     }
+}
+
+/// A job's regions as [`Draw::drawn`] draws them.
+pub(super) struct Drawn {
+    /// Per leaf, whether every worker holds it.
+    pub shared: Vec<bool>,
+    pub owner: Vec<WorkerId>,
+    /// The leaf costs the regions balanced.
+    pub balanced: Vec<f64>,
 }
 
 /// The analytic costs the partition balances where there is no preview
