@@ -39,7 +39,7 @@ use std::collections::HashMap;
 
 mod shared;
 mod tracing;
-pub use shared::shared_leaves;
+pub use shared::{shared_leaves, traffic};
 pub use tracing::preview;
 
 /// What the preview traces through: one BVH, or a set built in parts.

@@ -77,6 +77,52 @@ impl Preview {
         n
     }
 
+    /// Per leaf, the forwards that sharing it would save (or, for a
+    /// shared one, that unsharing it would add) with the other leaves'
+    /// sharing and the `owner`s as they are, each path started by the
+    /// worker `starts` names. A ray that enters leaf `l` of another worker
+    /// than its holder `h` is forwarded there, and its path or ray then
+    /// goes on with `l`'s owner; with `l` shared it stays with `h`. So the
+    /// entry saves its own forward, and at the next leaf `m` beside `l`
+    /// and the shared ones that the path enters, a forward where `m`'s
+    /// owner is not `l`'s and costs one where it is not `h`. A shadow ray
+    /// off the path before `m` settles the same at its own first such
+    /// leaf, without the entry's own forward.
+    pub fn share_values(
+        &self,
+        shared: &[bool],
+        owner: &[WorkerId],
+        starts: &[Option<WorkerId>],
+    ) -> Vec<i64> {
+        let own = |l: u32| owner.get(l as usize).copied();
+        let mut worth = Worth {
+            value: vec![0; owner.len()],
+            owner,
+            on_path: Vec::new(),
+            on_ray: Vec::new(),
+        };
+        let (mut path, mut last_at) = (usize::MAX, usize::MAX);
+        self.follow(shared, &[], |e| {
+            if e.path != path {
+                worth.end_path();
+                path = e.path;
+            }
+            // A ray's entries are consecutive in the walks.
+            if e.at != last_at.wrapping_add(1) {
+                worth.end_ray();
+            }
+            last_at = e.at;
+            let holder = e
+                .held
+                .map_or_else(|| starts.get(e.path).copied().flatten(), own);
+            if let Some(h) = holder {
+                worth.enter(&e, h);
+            }
+        });
+        worth.end_path();
+        worth.value
+    }
+
     /// The leaf costs the partition balances once the `shared` leaves are
     /// every worker's: the work a path does in a shared leaf is charged to
     /// the leaf that holds it there ([`Preview::crossings_beside`]: before
@@ -149,6 +195,97 @@ impl Preview {
     }
 }
 
+/// [`Preview::share_values`] as it follows the walks: each leaf's worth
+/// so far, and the entries waiting for the next leaf that settles them.
+struct Worth<'a> {
+    value: Vec<i64>,
+    owner: &'a [WorkerId],
+    /// Entries into a leaf of another worker than the path's holder:
+    /// (leaf, holder, whether the current shadow ray has settled it).
+    on_path: Vec<(u32, WorkerId, bool)>,
+    /// The same for the current shadow ray: (leaf, holder).
+    on_ray: Vec<(u32, WorkerId)>,
+}
+
+impl Worth<'_> {
+    fn own(&self, l: u32) -> Option<WorkerId> {
+        self.owner.get(l as usize).copied()
+    }
+
+    fn add(&mut self, l: u32, d: i64) {
+        if let Some(v) = self.value.get_mut(l as usize) {
+            *v += d;
+        }
+    }
+
+    /// What an entry into `l` with holder `h` saves at the next leaf,
+    /// owned by `x`: a forward there where `x` is not `l`'s owner, less
+    /// one where `x` is not `h`.
+    fn settle(&self, l: u32, h: WorkerId, x: Option<WorkerId>) -> i64 {
+        i64::from(x != self.own(l)) - i64::from(x != Some(h))
+    }
+
+    /// A path (or a shadow ray) that ends leaves nothing more to settle:
+    /// its entries save their own forwards.
+    fn end_path(&mut self) {
+        self.end_ray();
+        for (l, _, _) in std::mem::take(&mut self.on_path) {
+            self.add(l, 1);
+        }
+    }
+
+    fn end_ray(&mut self) {
+        for (l, _) in std::mem::take(&mut self.on_ray) {
+            self.add(l, 1);
+        }
+        self.on_path.iter_mut().for_each(|p| p.2 = false);
+    }
+
+    /// A ray held by worker `h` enters `e.leaf`.
+    fn enter(&mut self, e: &Entered, h: WorkerId) {
+        if !e.shared {
+            let x = self.own(e.leaf);
+            if e.shadow {
+                for (l, hh) in std::mem::take(&mut self.on_ray) {
+                    if l == e.leaf {
+                        self.on_ray.push((l, hh));
+                    } else {
+                        self.add(l, 1 + self.settle(l, hh, x));
+                    }
+                }
+                // A shadow ray off a path settles the path's entries at
+                // its own first leaf beside them, without their forwards.
+                for i in 0..self.on_path.len() {
+                    let (l, hh, done) = self.on_path[i];
+                    if !done && l != e.leaf {
+                        self.add(l, self.settle(l, hh, x));
+                        self.on_path[i].2 = true;
+                    }
+                }
+            } else {
+                for (l, hh, done) in std::mem::take(&mut self.on_path) {
+                    if l == e.leaf {
+                        self.on_path.push((l, hh, done));
+                    } else {
+                        self.add(l, 1 + self.settle(l, hh, x));
+                    }
+                }
+            }
+        }
+        // A shadow ray into a leaf its path waits in would find that
+        // leaf's owner holding it either way: the path's entry counts.
+        let waiting = |l: u32, v: &[(u32, WorkerId, bool)]| v.iter().any(|p| p.0 == l);
+        if Some(h) == self.own(e.leaf) || waiting(e.leaf, &self.on_path) {
+            return;
+        }
+        if !e.shadow {
+            self.on_path.push((e.leaf, h, false));
+        } else if !self.on_ray.iter().any(|p| p.0 == e.leaf) {
+            self.on_ray.push((e.leaf, h));
+        }
+    }
+}
+
 /// A leaf a preview ray entered, as [`Preview::follow`] sees it.
 struct Entered {
     /// The path's index, in the order of [`Preview::pixels`].
@@ -166,7 +303,7 @@ struct Entered {
 }
 
 /// Crossings into or out of each of `n` leaves.
-fn traffic(crossings: &HashMap<(u32, u32), u32>, n: usize) -> Vec<u64> {
+pub fn traffic(crossings: &HashMap<(u32, u32), u32>, n: usize) -> Vec<u64> {
     let mut t = vec![0u64; n];
     for (&(a, b), &c) in crossings {
         t[a as usize] += c as u64;
@@ -177,29 +314,25 @@ fn traffic(crossings: &HashMap<(u32, u32), u32>, n: usize) -> Vec<u64> {
 
 /// Leaves worth giving every worker beside its region (beside those
 /// `shared` already), holding at most `most` triangle references in all:
-/// those the preview's paths cross into or out of most often per
-/// triangle they hold. Paper 000's hybrid scheduling in the partition's
-/// terms: a ray is never forwarded into a leaf every worker holds, so the
+/// those with the most `traffic` per triangle they hold (the preview's
+/// crossings into or out of each, [`traffic`], before there are regions;
+/// the forwards sharing each would save, [`Preview::share_values`], once
+/// there are). Paper 000's hybrid scheduling in the partition's terms: a ray is never forwarded into a leaf every worker holds, so the
 /// few triangles that most rays meet (walls, floors, a room's large
 /// surfaces) are traced by whoever holds the ray, demand-driven, and only
 /// the detailed rest is data-parallel. On the room with 2 workers, a
 /// tenth of the triangles shared cut forwarded queries from 0.275 to
 /// 0.066 a ray, on the conference room from 0.251 to 0.039 (the README's
 /// "Shared leaves").
-pub fn shared_leaves(
-    refs: &[u64],
-    crossings: &HashMap<(u32, u32), u32>,
-    shared: &[bool],
-    most: u64,
-) -> Vec<u32> {
-    let traffic = traffic(crossings, refs.len());
+pub fn shared_leaves(refs: &[u64], traffic: &[u64], shared: &[bool], most: u64) -> Vec<u32> {
+    let traffic = |l: usize| traffic.get(l).copied().unwrap_or(0);
     let mut order: Vec<u32> = (0..refs.len() as u32)
-        .filter(|&l| !shared[l as usize] && traffic[l as usize] > 0)
+        .filter(|&l| !shared[l as usize] && traffic(l as usize) > 0)
         .collect();
     // Per triangle, with a few more counted than a leaf holds, so that a
     // leaf of one or two triangles that a handful of rays cross does not
     // outrank a wall every path meets.
-    let score = |l: u32| traffic[l as usize] as f64 / (refs[l as usize] + 16) as f64;
+    let score = |l: u32| traffic(l as usize) as f64 / (refs[l as usize] + 16) as f64;
     order.sort_by(|&a, &b| score(b).total_cmp(&score(a)).then(a.cmp(&b)));
     let mut used = 0;
     let mut out = Vec::new();
@@ -353,6 +486,51 @@ mod tests {
         assert!(pv.forwards_from(&shared, &owner, &one) > forwards);
     }
 
+    /// A leaf's worth in sharing is what toggling it alone does to the
+    /// forwards predicted, leaf by leaf on a real preview (brute force:
+    /// [`Preview::forwards_from`] with the leaf shared or not), for
+    /// several sets of shared leaves, owners and tile starts.
+    #[test]
+    fn share_values_are_what_toggling_one_leaf_saves() {
+        let Cornell { tree, pv, .. } = cornell_preview(8, 4);
+        let n = tree.leaves.len();
+        let through = traffic(&pv.crossings, n);
+        let mut busiest: Vec<usize> = (0..n).collect();
+        busiest.sort_by_key(|&l| std::cmp::Reverse(through[l]));
+        let mut checked = 0;
+        for (workers, shared_count, start) in [(2, 0, None), (3, 2, Some(1)), (4, 5, None)] {
+            let owner: Vec<WorkerId> = (0..n)
+                .map(|l| ((l * 7 / 3) % workers) as WorkerId)
+                .collect();
+            let mut shared = vec![false; n];
+            for &l in &busiest[..shared_count] {
+                shared[l] = true;
+            }
+            // Each path started by the given worker, or by the owner of
+            // its pixel's column's leaf, some worker either way.
+            let starts: Vec<Option<WorkerId>> = pv
+                .pixels
+                .iter()
+                .map(|&(x, _)| Some(start.unwrap_or((x as usize % workers) as WorkerId)))
+                .collect();
+            let values = pv.share_values(&shared, &owner, &starts);
+            let base = pv.forwards_from(&shared, &owner, &starts) as i64;
+            for l in 0..n {
+                let mut toggled = shared.clone();
+                toggled[l] = !toggled[l];
+                let after = pv.forwards_from(&toggled, &owner, &starts) as i64;
+                let saved = if shared[l] {
+                    after - base
+                } else {
+                    base - after
+                };
+                assert_eq!(values[l], saved, "leaf {l} of {n}, {workers} workers");
+                checked += u64::from(saved != 0);
+            }
+        }
+        assert!(checked > 10, "only {checked} leaves whose sharing matters");
+    }
+
     /// Leaves are shared by crossings per triangle, best first, as many
     /// as fit in `most` references; none already shared is picked again.
     #[test]
@@ -369,6 +547,7 @@ mod tests {
         // Crossings per (triangle + 16): leaf 2 155/26, leaf 0 150/26,
         // leaf 1 201/1016, leaf 4 5/66, leaf 5 1/20; leaf 3 is crossed by none.
         let none = [false; 6];
+        let crossings = traffic(&crossings, 6);
         assert_eq!(shared_leaves(&refs, &crossings, &none, 20), vec![2, 0]);
         // Leaves 1 and 4 do not fit beside leaves 2 and 0; leaf 5, smaller
         // and crossed less, still does.

@@ -232,6 +232,7 @@ pub fn prepare(
             .flatten(),
         partitioner: options.partitioner,
         shared_percent: options.tuning.shared_percent,
+        view: (workers >= 2 && !options.tuning.random_polling).then_some((&scene.camera, tiles)),
     };
     let t_part = Instant::now();
     let mut drawn = drawing.drawn(pv.as_ref())?;
@@ -269,23 +270,23 @@ pub fn prepare(
         mut shared,
         owner,
         balanced,
+        judged,
     } = drawn;
     // Under random polling tiles go to whoever asks: a worker that has
     // fetched a hot region's leaves renders its tiles, and the owner's
     // queued work is handed to idle pollers. With affinity, a worker with
     // no tiles of its own would live on forwarded and handed work alone.
     let by_affinity = !replicated && workers >= 2 && !options.tuning.random_polling;
-    // Each preview path's first leaf beside the shared ones, which the
-    // tiles are handed out by.
-    let firsts: Vec<((u32, u32), Option<u32>)> = match pv.as_ref() {
-        Some(pv) if by_affinity => pv
-            .pixels
-            .iter()
-            .copied()
-            .zip(pv.first_leaves(&shared))
-            .collect(),
-        _ => Vec::new(),
-    };
+    // Where each tile goes, by where the preview's paths in it go first
+    // beside the shared leaves, and so which worker starts each path; and
+    // the queries a path forwards, predicted from the preview's paths with
+    // each started by its tile's worker.
+    let judged = judged.filter(|_| by_affinity);
+    let forwards_per_path = pv
+        .as_ref()
+        .zip(judged.as_ref())
+        .filter(|(pv, _)| pv.paths > 0)
+        .map(|(pv, j)| j.forwards as f64 / pv.paths as f64);
     // What the regions balanced (the shared leaves' work charged to the
     // leaves that hold the paths there), or, with the whole scene
     // replicated below, every leaf's own.
@@ -332,25 +333,12 @@ pub fn prepare(
         Vec::new()
     };
     let map = ProcessorMap::new(&tree, owner);
-    let tile_affinity = if by_affinity {
-        crate::tiles::affinities(&scene.camera, &map, &shared, tiles, &firsts)
-    } else {
-        vec![None; tiles.len()]
+    let tile_affinity = match judged {
+        Some(j) => j.starts.tiles,
+        // Without a preview, by the camera's rays alone.
+        None if by_affinity => crate::tiles::affinities(&scene.camera, &map, &shared, tiles, &[]),
+        None => vec![None; tiles.len()],
     };
-    // The queries a path forwards, predicted from the preview's paths with
-    // each started by its tile's worker.
-    let forwards_per_path = pv
-        .as_ref()
-        .filter(|pv| by_affinity && pv.paths > 0)
-        .map(|pv| {
-            let tile_of = crate::tiles::locator(tiles);
-            let starts: Vec<Option<WorkerId>> = pv
-                .pixels
-                .iter()
-                .map(|&(x, y)| tile_of(x, y).and_then(|t| tile_affinity[t]))
-                .collect();
-            pv.forwards_from(&shared, &map.owner, &starts) as f64 / pv.paths as f64
-        });
     // Nothing below needs the preview's walks, which are large.
     drop(pv);
     let mut plans = Vec::with_capacity(workers);

@@ -6,7 +6,9 @@
 
 use crate::{cost, partition};
 use locus_core::octree::Octree;
-use locus_core::region::WorkerId;
+use locus_core::region::{ProcessorMap, WorkerId};
+use locus_core::render::Tile;
+use locus_core::scene::Camera;
 use locus_protocol::submit::Partitioner;
 use std::collections::HashMap;
 
@@ -26,6 +28,17 @@ pub(super) struct Draw<'a> {
     pub partitioner: Partitioner,
     /// `Tuning::shared_percent`.
     pub shared_percent: u32,
+    /// Where tiles go by affinity (`tiles::affinities`), the camera and
+    /// the tiles: each path starts with its tile's worker, which the
+    /// forwards predicted for a choice of shared leaves depend on.
+    pub view: Option<(&'a Camera, &'a [Tile])>,
+}
+
+/// Per tile, the worker it goes to; per preview path, the worker that
+/// starts it (its tile's).
+pub(super) struct Starts {
+    pub tiles: Vec<Option<WorkerId>>,
+    pub paths: Vec<Option<WorkerId>>,
 }
 
 impl Draw<'_> {
@@ -43,15 +56,54 @@ impl Draw<'_> {
     /// share asked for and half of the smallest cap, so that regions
     /// keep room beside them.
     fn pick_shared(&self, pv: Option<&cost::Preview>) -> Vec<bool> {
+        let shared = self.camera_only();
+        match pv.filter(|_| self.targets.len() > 1) {
+            Some(pv) => self.share(&cost::traffic(&pv.crossings, self.refs.len())),
+            None => shared,
+        }
+    }
+
+    /// The camera's leaf and the leaves with the most `traffic` per
+    /// triangle ([`cost::shared_leaves`]) that fit in at most the share
+    /// asked for and half of the smallest cap.
+    fn share(&self, traffic: &[u64]) -> Vec<bool> {
         let mut shared = self.camera_only();
-        if let Some(pv) = pv.filter(|_| self.targets.len() > 1) {
-            let room = self.caps.iter().flatten().min().map_or(u64::MAX, |c| c / 2);
-            let most = (self.all_refs * self.shared_percent.min(100) as u64 / 100).min(room);
-            for l in cost::shared_leaves(self.refs, &pv.crossings, &shared, most) {
-                shared[l as usize] = true;
-            }
+        let room = self.caps.iter().flatten().min().map_or(u64::MAX, |c| c / 2);
+        let most = (self.all_refs * self.shared_percent.min(100) as u64 / 100).min(room);
+        for l in cost::shared_leaves(self.refs, traffic, &shared, most) {
+            shared[l as usize] = true;
         }
         shared
+    }
+
+    /// Which worker each tile goes to and so which starts each preview
+    /// path, under these `shared` leaves and `owner`s
+    /// (`tiles::affinities`); None without tiles by affinity.
+    pub fn starts(
+        &self,
+        pv: &cost::Preview,
+        shared: &[bool],
+        owner: &[WorkerId],
+    ) -> Option<Starts> {
+        let (camera, tiles) = self.view?;
+        let map = ProcessorMap::new(self.tree, owner.to_vec());
+        let firsts: Vec<((u32, u32), Option<u32>)> = pv
+            .pixels
+            .iter()
+            .copied()
+            .zip(pv.first_leaves(shared))
+            .collect();
+        let by_tile = crate::tiles::affinities(camera, &map, shared, tiles, &firsts);
+        let tile_of = crate::tiles::locator(tiles);
+        let paths = pv
+            .pixels
+            .iter()
+            .map(|&(x, y)| tile_of(x, y).and_then(|t| by_tile[t]))
+            .collect();
+        Some(Starts {
+            tiles: by_tile,
+            paths,
+        })
     }
 
     /// Each leaf's owner, and the leaf costs it balanced: the shared ones'
@@ -101,27 +153,82 @@ impl Draw<'_> {
     /// The shared leaves and the regions beside them, or, where the
     /// budgets cannot hold both, the regions with the camera's leaf
     /// alone shared; with the leaf costs the regions balanced.
+    ///
+    /// Where tiles go by affinity, the shared leaves are then picked
+    /// again. The first pick, by the preview's crossings, cannot tell a
+    /// border between two workers from one inside a region, where
+    /// crossings cost nothing. So each leaf's worth in sharing under the
+    /// regions drawn is counted ([`cost::Preview::share_values`]), the
+    /// leaves are picked again by it and the regions drawn again beside
+    /// them, up to [`REPICKS`] times while the forwards predicted fall
+    /// ([`cost::Preview::forwards_from`], each path started by its tile's
+    /// worker).
     pub fn drawn(&self, pv: Option<&cost::Preview>) -> Result<Drawn, String> {
         let shared = self.pick_shared(pv);
-        let (owner, balanced) = match self.regions(pv, &shared) {
-            Ok(r) => r,
+        let mut best = match self.regions(pv, &shared) {
+            Ok(r) => self.judged(pv, shared, r),
             Err(_) => {
                 let shared = self.camera_only();
-                let (owner, balanced) = self.regions(pv, &shared)?;
-                return Ok(Drawn {
-                    shared,
-                    owner,
-                    balanced,
-                });
+                let r = self.regions(pv, &shared)?;
+                return Ok(self.judged(pv, shared, r));
             }
         };
-        Ok(Drawn {
+        for round in 0..REPICKS {
+            let (Some(pv), Some(j)) = (pv, &best.judged) else {
+                break;
+            };
+            let worth: Vec<u64> = j.values.iter().map(|&v| v.max(0) as u64).collect();
+            let shared = self.share(&worth);
+            let Ok(r) = self.regions(Some(pv), &shared) else {
+                break;
+            };
+            let next = self.judged(Some(pv), shared, r);
+            let (before, after) = (
+                j.forwards,
+                next.judged.as_ref().map_or(u64::MAX, |n| n.forwards),
+            );
+            tracing::debug!(
+                round,
+                before,
+                after,
+                "shared leaves picked again by their worth"
+            );
+            if after >= before {
+                break;
+            }
+            best = next;
+        }
+        Ok(best)
+    }
+
+    /// `shared` leaves and the regions beside them, with the forwards
+    /// they are predicted to cost where tiles go by affinity.
+    fn judged(
+        &self,
+        pv: Option<&cost::Preview>,
+        shared: Vec<bool>,
+        (owner, balanced): (Vec<WorkerId>, Vec<f64>),
+    ) -> Drawn {
+        let judged = pv.filter(|_| self.targets.len() > 1).and_then(|pv| {
+            let starts = self.starts(pv, &shared, &owner)?;
+            Some(Judged {
+                forwards: pv.forwards_from(&shared, &owner, &starts.paths),
+                values: pv.share_values(&shared, &owner, &starts.paths),
+                starts,
+            })
+        });
+        Drawn {
             shared,
             owner,
             balanced,
-        })
+            judged,
+        }
     }
 }
+
+/// How many times the shared leaves are picked again by their worth
+/// under the regions drawn beside the last pick.
+const REPICKS: usize = 4;
 
 /// A job's regions as [`Draw::drawn`] draws them.
 pub(super) struct Drawn {
@@ -130,6 +237,18 @@ pub(super) struct Drawn {
     pub owner: Vec<WorkerId>,
     /// The leaf costs the regions balanced.
     pub balanced: Vec<f64>,
+    /// Where tiles go by affinity and the preview ran: the tiles' and
+    /// paths' workers and the forwards predicted.
+    pub judged: Option<Judged>,
+}
+
+/// What a drawing of the regions is predicted to cost in forwards.
+pub(super) struct Judged {
+    pub starts: Starts,
+    /// Queries the preview's paths forward ([`cost::Preview::forwards_from`]).
+    pub forwards: u64,
+    /// Each leaf's worth in sharing ([`cost::Preview::share_values`]).
+    values: Vec<i64>,
 }
 
 /// The analytic costs the partition balances where there is no preview
@@ -141,4 +260,86 @@ pub(super) fn unshared(c: &[f64], shared: &[bool]) -> Vec<f64> {
         .zip(shared)
         .map(|(&c, &s)| if s { 0.0 } else { c })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use locus_core::light::LightSet;
+
+    /// Where tiles go by affinity, the shared leaves picked again by their
+    /// worth are kept only where the preview predicts fewer forwards than
+    /// with the crossings' pick, within the same share of the references;
+    /// without tiles by affinity the crossings' pick stands. The forwards
+    /// a drawing is judged by are the preview's paths started by their
+    /// tiles' workers.
+    #[test]
+    fn shared_leaves_picked_again_only_where_they_forward_less() {
+        let scene = crate::cornell_box();
+        let tiles = locus_core::render::tiles(
+            scene.camera.width,
+            scene.camera.height,
+            16,
+            locus_core::render::TileOrder::Scanline,
+        );
+        let lights = LightSet::build(&scene);
+        let mut checked = 0;
+        for workers in [2usize, 3, 4] {
+            let tree = super::super::octree_for(&scene, workers);
+            let refs: Vec<u64> = tree.leaves.iter().map(|l| l.tris.len() as u64).collect();
+            let all_refs: u64 = refs.iter().sum();
+            let pv = cost::sampled_in_parts(&scene, &tree, &lights, cost::FULL_PREVIEW);
+            let analytic = cost::analytic(&tree);
+            let targets = vec![1.0 / workers as f64; workers];
+            let caps = vec![None; workers];
+            let mut draw = Draw {
+                tree: &tree,
+                refs: &refs,
+                all_refs,
+                targets: &targets,
+                caps: &caps,
+                analytic: &analytic,
+                camera: cost::camera_leaf(&tree, &scene.camera),
+                partitioner: Partitioner::RegionGrowing,
+                shared_percent: 10,
+                view: Some((&scene.camera, &tiles)),
+            };
+            let crossings = draw.pick_shared(Some(&pv));
+            let first = draw.judged(
+                Some(&pv),
+                crossings.clone(),
+                draw.regions(Some(&pv), &crossings).expect("regions"),
+            );
+            let before = first.judged.as_ref().expect("judged").forwards;
+            let drawn = draw.drawn(Some(&pv)).expect("drawn");
+            let j = drawn.judged.as_ref().expect("judged");
+            assert!(j.forwards <= before, "{workers}: {} > {before}", j.forwards);
+            if drawn.shared != crossings {
+                assert!(j.forwards < before);
+                checked += 1;
+            }
+            let held: u64 = (0..refs.len())
+                .filter(|&l| drawn.shared[l] && Some(l as u32) != draw.camera)
+                .map(|l| refs[l])
+                .sum();
+            assert!(held <= all_refs / 10, "{held} of {all_refs}");
+            let tile_of = crate::tiles::locator(&tiles);
+            let starts: Vec<Option<WorkerId>> = pv
+                .pixels
+                .iter()
+                .map(|&(x, y)| tile_of(x, y).and_then(|t| j.starts.tiles[t]))
+                .collect();
+            assert_eq!(starts, j.starts.paths);
+            assert_eq!(
+                j.forwards,
+                pv.forwards_from(&drawn.shared, &drawn.owner, &starts)
+            );
+            draw.view = None;
+            let plain = draw.drawn(Some(&pv)).expect("drawn");
+            assert_eq!(plain.shared, crossings);
+            assert_eq!(plain.owner, first.owner);
+            assert!(plain.judged.is_none());
+        }
+        assert!(checked > 0, "no farm size picked its shared leaves again");
+    }
 }
