@@ -1,7 +1,9 @@
 //! What every worker holds beside its region: the leaves a preview's rays
-//! cross most per triangle ([`shared_leaves`]), and the crossings that are
-//! left once those are passed over ([`Preview::crossings_beside`]), along
-//! which regions are grown (`job::regions`).
+//! cross most per triangle, or that save the most forwards once there are
+//! regions ([`shared_leaves`], [`Preview::share_values`]), and the
+//! crossings that are left once those are passed over
+//! ([`Preview::crossings_beside`]), along which regions are grown
+//! (`job::regions`).
 
 use super::{PATH_END, Preview, SHADOW_END, WALK_END};
 use locus_core::region::WorkerId;
@@ -317,10 +319,11 @@ pub fn traffic(crossings: &HashMap<(u32, u32), u32>, n: usize) -> Vec<u64> {
 /// those with the most `traffic` per triangle they hold (the preview's
 /// crossings into or out of each, [`traffic`], before there are regions;
 /// the forwards sharing each would save, [`Preview::share_values`], once
-/// there are). Paper 000's hybrid scheduling in the partition's terms: a ray is never forwarded into a leaf every worker holds, so the
-/// few triangles that most rays meet (walls, floors, a room's large
-/// surfaces) are traced by whoever holds the ray, demand-driven, and only
-/// the detailed rest is data-parallel. On the room with 2 workers, a
+/// there are). Paper 000's hybrid scheduling in the partition's terms: a
+/// ray is never forwarded into a leaf every worker holds, so the few
+/// triangles that most rays meet (walls, floors, a room's large surfaces)
+/// are traced by whoever holds the ray, demand-driven, and only the
+/// detailed rest is data-parallel. On the room with 2 workers, a
 /// tenth of the triangles shared cut forwarded queries from 0.275 to
 /// 0.066 a ray, on the conference room from 0.251 to 0.039 (the README's
 /// "Shared leaves").

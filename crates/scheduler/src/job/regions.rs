@@ -2,7 +2,10 @@
 //! camera's, [`cost::camera_leaf`], and those [`cost::shared_leaves`]
 //! picks from the preview's crossings), and the partition of the rest
 //! among the workers within what their memory caps leave beside the
-//! shared leaves.
+//! shared leaves. Where tiles go by affinity, the shared leaves are then
+//! picked again by the forwards each saves under those regions
+//! ([`cost::Preview::share_values`]) while the forwards predicted fall
+//! ([`Draw::drawn`]).
 
 use crate::{cost, partition};
 use locus_core::octree::Octree;
@@ -56,10 +59,9 @@ impl Draw<'_> {
     /// share asked for and half of the smallest cap, so that regions
     /// keep room beside them.
     fn pick_shared(&self, pv: Option<&cost::Preview>) -> Vec<bool> {
-        let shared = self.camera_only();
         match pv.filter(|_| self.targets.len() > 1) {
             Some(pv) => self.share(&cost::traffic(&pv.crossings, self.refs.len())),
-            None => shared,
+            None => self.camera_only(),
         }
     }
 
