@@ -21,7 +21,8 @@
 //! tiles in flight at any moment are spread over the image.
 
 use crate::film::Unit;
-use locus_core::region::{ProcessorMap, WorkerId};
+use locus_core::octree::Octree;
+use locus_core::region::WorkerId;
 use locus_core::render::Tile;
 use locus_core::scene::Camera;
 use std::collections::VecDeque;
@@ -30,9 +31,11 @@ use std::collections::VecDeque;
 /// centre and its four corners; the centre's wins a tie), or None when
 /// most of them miss the scene. The `shared` leaves (which every worker
 /// holds: `cost::camera_leaf`, `cost::shared_leaves`) are passed over.
+/// `owner` gives each of `tree`'s leaves its worker.
 pub fn affinity(
     camera: &Camera,
-    map: &ProcessorMap,
+    tree: &Octree,
+    owner: &[WorkerId],
     shared: &[bool],
     t: &Tile,
 ) -> Option<WorkerId> {
@@ -49,11 +52,11 @@ pub fn affinity(
         .map(|&(x, y)| {
             let ray = camera.ray(x, y, [0.5, 0.5]);
             let mut first = None;
-            let _ = map.tree.walk(&ray, 0.0, f32::INFINITY, |leaf, _, _| {
+            let _ = tree.walk(&ray, 0.0, f32::INFINITY, |leaf, _, _| {
                 if shared.get(leaf as usize).copied().unwrap_or(false) {
                     return std::ops::ControlFlow::Continue(());
                 }
-                first = map.owner.get(leaf as usize).copied();
+                first = owner.get(leaf as usize).copied();
                 std::ops::ControlFlow::Break(())
             });
             first
@@ -95,17 +98,18 @@ pub fn locator(tiles: &[Tile]) -> impl Fn(u32, u32) -> Option<usize> + '_ {
 /// none of a tile's preview paths reached such a leaf, [`affinity`].
 pub fn affinities(
     camera: &Camera,
-    map: &ProcessorMap,
+    tree: &Octree,
+    owner: &[WorkerId],
     shared: &[bool],
     tiles: &[Tile],
     firsts: &[((u32, u32), Option<u32>)],
 ) -> Vec<Option<WorkerId>> {
     use rayon::prelude::*;
-    let workers = map.owner.iter().map(|&o| o as usize + 1).max().unwrap_or(1);
+    let workers = owner.iter().map(|&o| o as usize + 1).max().unwrap_or(1);
     let tile_of = locator(tiles);
     let mut votes = vec![0u32; tiles.len() * workers];
     for &((x, y), leaf) in firsts {
-        if let Some((i, o)) = tile_of(x, y).zip(leaf.and_then(|l| map.owner.get(l as usize))) {
+        if let Some((i, o)) = tile_of(x, y).zip(leaf.and_then(|l| owner.get(l as usize))) {
             votes[i * workers + *o as usize] += 1;
         }
     }
@@ -117,7 +121,7 @@ pub fn affinities(
             // The first of the most voted (max_by_key keeps the last).
             match (0..workers).rev().max_by_key(|&w| v[w]) {
                 Some(w) if v[w] > 0 => Some(w as WorkerId),
-                _ => affinity(camera, map, shared, t),
+                _ => affinity(camera, tree, owner, shared, t),
             }
         })
         .collect()
@@ -266,6 +270,7 @@ impl TileQueue {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use locus_core::region::ProcessorMap;
 
     fn tiles(q: &mut TileQueue, w: usize, n: usize) -> Vec<(u32, u32)> {
         (0..n)
@@ -399,14 +404,23 @@ mod tests {
             x1: x0 + 8,
             y1: y0 + 8,
         };
-        assert_eq!(affinity(&camera, &map, &[], &tile(0, 0)), Some(0));
-        assert_eq!(affinity(&camera, &map, &[], &tile(24, 24)), Some(0));
+        assert_eq!(
+            affinity(&camera, &map.tree, &map.owner, &[], &tile(0, 0)),
+            Some(0)
+        );
+        assert_eq!(
+            affinity(&camera, &map.tree, &map.owner, &[], &tile(24, 24)),
+            Some(0)
+        );
         // Looking away from the scene: no affinity.
         let away = Camera {
             look_at: Vec3::new(-5.0, 40.0, 0.0),
             ..camera
         };
-        assert_eq!(affinity(&away, &map, &[], &tile(8, 8)), None);
+        assert_eq!(
+            affinity(&away, &map.tree, &map.owner, &[], &tile(8, 8)),
+            None
+        );
 
         // With the preview's paths: a tile goes to the owner most of its
         // paths reach first, whatever its camera rays meet first; on a tie
@@ -430,18 +444,24 @@ mod tests {
             ((16, 0), None),
             // Tile (24, 24): its own camera rays decide.
         ];
-        let a = affinities(&camera, &map, &[], &grid, &firsts);
+        let a = affinities(&camera, &map.tree, &map.owner, &[], &grid, &firsts);
         assert_eq!(a.len(), 16);
         assert_eq!(a[0], Some(1));
         assert_eq!(a[1], Some(0));
-        assert_eq!(a[2], affinity(&camera, &map, &[], &grid[2]));
+        assert_eq!(
+            a[2],
+            affinity(&camera, &map.tree, &map.owner, &[], &grid[2])
+        );
         assert_eq!(a[15], Some(0));
         // Every tile without paths, by its camera rays.
         let by_rays: Vec<_> = grid
             .iter()
-            .map(|t| affinity(&camera, &map, &[], t))
+            .map(|t| affinity(&camera, &map.tree, &map.owner, &[], t))
             .collect();
-        assert_eq!(affinities(&camera, &map, &[], &grid, &[]), by_rays);
+        assert_eq!(
+            affinities(&camera, &map.tree, &map.owner, &[], &grid, &[]),
+            by_rays
+        );
     }
 
     /// A camera inside the scene: its rays all start in its leaf, whose
@@ -487,10 +507,16 @@ mod tests {
             x1: 24,
             y1: 24,
         };
-        assert_eq!(affinity(&camera, &map, &[], &tile), Some(0));
+        assert_eq!(
+            affinity(&camera, &map.tree, &map.owner, &[], &tile),
+            Some(0)
+        );
         let mut shared = vec![false; tree.leaves.len()];
         shared[cam as usize] = true;
-        assert_eq!(affinity(&camera, &map, &shared, &tile), Some(1));
+        assert_eq!(
+            affinity(&camera, &map.tree, &map.owner, &shared, &tile),
+            Some(1)
+        );
     }
 
     /// The queue counts the samples it holds, through hand-outs and

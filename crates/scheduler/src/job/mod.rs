@@ -235,7 +235,18 @@ pub fn prepare(
         view: (workers >= 2 && !options.tuning.random_polling).then_some((&scene.camera, tiles)),
     };
     let t_part = Instant::now();
-    let mut drawn = drawing.drawn(pv.as_ref())?;
+    // Regions drawn only to decide whether to buy are drawn again from the
+    // full preview if the job rents: the shared leaves are not picked
+    // again for them.
+    let mut drawn = if decide_first {
+        regions::Draw {
+            view: None,
+            ..drawing
+        }
+        .drawn(pv.as_ref())?
+    } else {
+        drawing.drawn(pv.as_ref())?
+    };
     let mut partition_s = t_part.elapsed().as_secs_f64();
     let samples =
         scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
@@ -336,7 +347,9 @@ pub fn prepare(
     let tile_affinity = match judged {
         Some(j) => j.starts.tiles,
         // Without a preview, by the camera's rays alone.
-        None if by_affinity => crate::tiles::affinities(&scene.camera, &map, &shared, tiles, &[]),
+        None if by_affinity => {
+            crate::tiles::affinities(&scene.camera, &tree, &map.owner, &shared, tiles, &[])
+        }
         None => vec![None; tiles.len()],
     };
     // Nothing below needs the preview's walks, which are large.

@@ -9,7 +9,7 @@
 
 use crate::{cost, partition};
 use locus_core::octree::Octree;
-use locus_core::region::{ProcessorMap, WorkerId};
+use locus_core::region::WorkerId;
 use locus_core::render::Tile;
 use locus_core::scene::Camera;
 use locus_protocol::submit::Partitioner;
@@ -88,14 +88,13 @@ impl Draw<'_> {
         owner: &[WorkerId],
     ) -> Option<Starts> {
         let (camera, tiles) = self.view?;
-        let map = ProcessorMap::new(self.tree, owner.to_vec());
         let firsts: Vec<((u32, u32), Option<u32>)> = pv
             .pixels
             .iter()
             .copied()
             .zip(pv.first_leaves(shared))
             .collect();
-        let by_tile = crate::tiles::affinities(camera, &map, shared, tiles, &firsts);
+        let by_tile = crate::tiles::affinities(camera, self.tree, owner, shared, tiles, &firsts);
         let tile_of = crate::tiles::locator(tiles);
         let paths = pv
             .pixels
