@@ -113,7 +113,14 @@ impl LeafGraph {
                 e.1 += 0.5 * w;
             }
         }
-        for (&(a, b), &c) in crossings {
+        // In a fixed order: a border's weight sums its crossings both
+        // ways onto its area's share, and floating-point sums in the
+        // map's own order (seeded afresh for every map) drew different
+        // regions for the same job from one run to the next.
+        let mut crossings: Vec<((u32, u32), u32)> =
+            crossings.iter().map(|(&k, &c)| (k, c)).collect();
+        crossings.sort_unstable();
+        for ((a, b), c) in crossings {
             if (a as usize) < n && (b as usize) < n && a != b {
                 let c = c as f64;
                 let e = edges[a as usize].entry(b).or_default();
@@ -648,6 +655,56 @@ mod tests {
             for x in s {
                 assert!((x - 1.0 / w as f64).abs() <= biggest + 1e-9);
             }
+        }
+    }
+
+    /// The same crossings give the same graph, to the bit, and the same
+    /// regions, whatever order the map holding them iterates in (every
+    /// `HashMap` is seeded afresh): a border's weight sums crossings both
+    /// ways onto a fractional area share, which rounds differently in
+    /// another order.
+    #[test]
+    fn the_same_crossings_draw_the_same_regions() {
+        let t = tree();
+        let nb = t.face_neighbours();
+        let mut list = Vec::new();
+        for (a, ns) in nb.iter().enumerate() {
+            for &b in ns {
+                let (a, b) = (a as u32, b);
+                // Both ways, of unequal and uneven counts.
+                list.push(((a, b), 1 + (a * 7919 + b * 104_729) % 100_003));
+            }
+        }
+        let cost = crate::cost::analytic(&t);
+        let refs: Vec<u64> = t.leaves.iter().map(|l| l.tris.len() as u64).collect();
+        let (targets, caps) = even(4);
+        let lim = Limits {
+            targets: &targets,
+            caps: &caps,
+            refs: &refs,
+        };
+        let bits = |g: &LeafGraph| -> Vec<(u32, u64, u64)> {
+            g.edges
+                .iter()
+                .zip(&g.out)
+                .flat_map(|(e, o)| {
+                    e.iter()
+                        .zip(o)
+                        .map(|(&(b, w), o)| (b, w.to_bits(), o.to_bits()))
+                })
+                .collect()
+        };
+        let first = LeafGraph::new(&t, &list.iter().copied().collect());
+        let owner = region_growing(&t, &first, &cost, &lim).unwrap();
+        for i in 0..32 {
+            let map: HashMap<(u32, u32), u32> = list.iter().copied().collect();
+            let g = LeafGraph::new(&t, &map);
+            assert_eq!(bits(&g), bits(&first), "map {i}");
+            assert_eq!(
+                region_growing(&t, &g, &cost, &lim).unwrap(),
+                owner,
+                "map {i}"
+            );
         }
     }
 }
