@@ -100,7 +100,8 @@ impl Actor {
             &prep.tile_affinity,
             a.members.len(),
             j.film.sizes(),
-        );
+        )
+        .with_votes(prep.tile_votes.clone());
         info!(
             job = j.id,
             run,

@@ -52,6 +52,16 @@ impl Preview {
         first
     }
 
+    /// Each path's pixel beside its [`Preview::first_leaves`]: what tiles
+    /// vote by (`tiles::votes`, `tiles::affinities`).
+    pub fn pixel_firsts(&self, shared: &[bool]) -> Vec<((u32, u32), Option<u32>)> {
+        self.pixels
+            .iter()
+            .copied()
+            .zip(self.first_leaves(shared))
+            .collect()
+    }
+
     /// The queries the farm forwards for the preview's paths, predicted:
     /// each path started by the worker `starts` names (its tile's; where
     /// none, the owner of its first leaf), then held by the owner of the

@@ -45,6 +45,11 @@ pub struct Prepared {
     /// Per tile, the worker its camera rays meet first ([`crate::tiles`]);
     /// none when the scene is replicated.
     pub tile_affinity: Vec<Option<WorkerId>>,
+    /// Per tile and worker, the preview paths in the tile that the worker
+    /// starts without forwarding them ([`crate::tiles::votes`]), by which
+    /// a worker out of tiles picks another's; empty without a preview or
+    /// tiles by affinity.
+    pub tile_votes: Vec<u32>,
     /// The leaves every worker holds as its own, ascending: the camera's
     /// ([`cost::camera_leaf`]) and those [`cost::shared_leaves`] picks
     /// ([`Self::map_for`]).
@@ -352,6 +357,12 @@ pub fn prepare(
         }
         None => vec![None; tiles.len()],
     };
+    let tile_votes = match (&pv, by_affinity) {
+        (Some(pv), true) => {
+            crate::tiles::votes(&map.owner, tiles, &pv.pixel_firsts(&shared), workers)
+        }
+        _ => Vec::new(),
+    };
     // Nothing below needs the preview's walks, which are large.
     drop(pv);
     let mut plans = Vec::with_capacity(workers);
@@ -440,6 +451,7 @@ pub fn prepare(
             .collect(),
         map,
         tile_affinity,
+        tile_votes,
         own_leaves,
         parts,
         replicated,

@@ -88,12 +88,7 @@ impl Draw<'_> {
         owner: &[WorkerId],
     ) -> Option<Starts> {
         let (camera, tiles) = self.view?;
-        let firsts: Vec<((u32, u32), Option<u32>)> = pv
-            .pixels
-            .iter()
-            .copied()
-            .zip(pv.first_leaves(shared))
-            .collect();
+        let firsts = pv.pixel_firsts(shared);
         let by_tile = crate::tiles::affinities(camera, self.tree, owner, shared, tiles, &firsts);
         let tile_of = crate::tiles::locator(tiles);
         let paths = pv
