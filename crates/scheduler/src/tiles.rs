@@ -179,6 +179,10 @@ pub fn inflight(affinity: &[Option<WorkerId>], workers: usize, max_inflight: u32
         .collect()
 }
 
+/// How many of another worker's tile passes a worker out of tiles chooses
+/// among ([`TileQueue::taken_from`]).
+const TAKE_WINDOW: usize = 256;
+
 /// Tile passes waiting to be handed out: one queue per worker and one for
 /// tiles of no worker in particular.
 pub struct TileQueue {
@@ -244,13 +248,14 @@ impl TileQueue {
     }
 
     /// Where worker `w` takes a tile pass from worker `v`'s queue: of its
-    /// earliest pass, the one whose tile has the most preview paths that
-    /// `w` starts without forwarding them (the first such on a tie). The
-    /// front of `v`'s queue is the tile `v`'s paths reach most surely;
-    /// taken from there, a tile's camera rays were mostly forwarded back
-    /// to `v` (on the room at 2 workers, a run whose workers took many of
-    /// each other's tiles forwarded 67,811 camera rays where others
-    /// forwarded about 20,000).
+    /// earliest pass (of its first [`TAKE_WINDOW`]), the one whose tile
+    /// has the most preview paths that `w` starts without forwarding them
+    /// (the first such on a tie). Every tile in `v`'s queue is one whose
+    /// paths mostly reach `v`'s leaves first, so the camera rays of
+    /// whichever is taken are mostly forwarded back to `v`; some less so
+    /// than others (on the room at 2 workers, a run whose workers took
+    /// many of each other's tiles forwarded 67,811 camera rays where
+    /// others forwarded about 12,000 to 23,000).
     fn taken_from(&self, v: usize, w: usize) -> Option<usize> {
         let q = &self.own[v];
         let pass = q.front()?.pass;
@@ -260,7 +265,11 @@ impl TileQueue {
             false => None,
         };
         let mut best = 0;
-        for (i, u) in q.iter().enumerate().take_while(|(_, u)| u.pass == pass) {
+        // Within the first few of the pass (the queue keeps the job's
+        // shuffled order, so they are spread over the image): a worker
+        // asking again and again scans no whole queue of a large image.
+        let window = q.iter().take(TAKE_WINDOW).enumerate();
+        for (i, u) in window.take_while(|(_, u)| u.pass == pass) {
             if votes(u) > votes(&q[best]) {
                 best = i;
             }
@@ -377,8 +386,9 @@ mod tests {
 
     /// A worker out of tiles takes, of the busiest worker's earliest
     /// pass, the tile with the most preview paths it starts without
-    /// forwarding them (the first on a tie), never one of a later pass;
-    /// without votes, the front. The votes follow the paths' first leaves.
+    /// forwarding them (the first on a tie) among the first
+    /// [`TAKE_WINDOW`], never one of a later pass; without votes, the
+    /// front. The votes follow the paths' first leaves.
     #[test]
     fn a_worker_out_of_tiles_takes_the_tile_it_forwards_least_of() {
         // Four tiles in a row, each of 4x1 pixels; leaves 0-3, leaf l
@@ -415,6 +425,15 @@ mod tests {
         assert_eq!(tiles(&mut q, 1, 2), [(2, 0), (1, 1)]);
         let mut plain = TileQueue::new(order(), &aff, 2, Sizes::default());
         assert_eq!(tiles(&mut plain, 1, 2), [(0, 0), (1, 0)]);
+        // Only the first TAKE_WINDOW of a pass are looked at.
+        let n = TAKE_WINDOW as u32 + 1;
+        let aff = vec![Some(0); n as usize];
+        let mut votes = vec![0; 2 * n as usize];
+        votes[2 * (n as usize - 2) + 1] = 1;
+        votes[2 * (n as usize - 1) + 1] = 5;
+        let order = (0..n).map(|tile| Unit { tile, pass: 0 });
+        let mut q = TileQueue::new(order, &aff, 2, Sizes::default()).with_votes(votes);
+        assert_eq!(tiles(&mut q, 1, 1), [(n - 2, 0)]);
     }
 
     #[test]
