@@ -94,28 +94,27 @@ pub fn locator(tiles: &[Tile]) -> impl Fn(u32, u32) -> Option<usize> + '_ {
     }
 }
 
-/// Each tile's affinity: the owner that most of the preview paths in it
-/// (`firsts`: each path's pixel and the first leaf beside the shared ones
-/// that it entered) reach first, the lowest such worker on a tie; where
-/// none of a tile's preview paths reached such a leaf, [`affinity`].
+/// Each tile's affinity: of `workers`, the one that most of the preview
+/// paths in it reach first beside the shared leaves (its [`votes`];
+/// empty where there is no preview), the lowest such worker on a tie;
+/// where none of a tile's preview paths reached such a leaf, [`affinity`].
 pub fn affinities(
     camera: &Camera,
     tree: &Octree,
     owner: &[WorkerId],
     shared: &[bool],
     tiles: &[Tile],
-    firsts: &[((u32, u32), Option<u32>)],
+    votes: &[u32],
+    workers: usize,
 ) -> Vec<Option<WorkerId>> {
     use rayon::prelude::*;
-    let workers = owner.iter().map(|&o| o as usize + 1).max().unwrap_or(1);
-    let votes = votes(owner, tiles, firsts, workers);
     tiles
         .par_iter()
         .enumerate()
         .map(|(i, t)| {
-            let v = &votes[i * workers..(i + 1) * workers];
+            let v = votes.get(i * workers..(i + 1) * workers).unwrap_or(&[]);
             // The first of the most voted (max_by_key keeps the last).
-            match (0..workers).rev().max_by_key(|&w| v[w]) {
+            match (0..v.len()).rev().max_by_key(|&w| v[w]) {
                 Some(w) if v[w] > 0 => Some(w as WorkerId),
                 _ => affinity(camera, tree, owner, shared, t),
             }
@@ -124,9 +123,10 @@ pub fn affinities(
 }
 
 /// Per tile and worker (`tile * workers + worker`), the preview paths in
-/// the tile (`firsts`, as [`affinities`] takes them) whose first leaf
-/// beside the shared ones that worker owns: how many of the tile's paths
-/// each worker would start without forwarding them.
+/// the tile (`firsts`: each path's pixel and the first leaf beside the
+/// shared ones that it entered, `cost::Preview::pixel_firsts`) whose
+/// first leaf that worker owns: how many of the tile's paths each worker
+/// would start without forwarding them.
 pub fn votes(
     owner: &[WorkerId],
     tiles: &[Tile],
@@ -562,7 +562,9 @@ mod tests {
             ((16, 0), None),
             // Tile (24, 24): its own camera rays decide.
         ];
-        let a = affinities(&camera, &map.tree, &map.owner, &[], &grid, &firsts);
+        let workers = map.owner.iter().map(|&o| o as usize + 1).max().unwrap_or(1);
+        let v = votes(&map.owner, &grid, &firsts, workers);
+        let a = affinities(&camera, &map.tree, &map.owner, &[], &grid, &v, workers);
         assert_eq!(a.len(), 16);
         assert_eq!(a[0], Some(1));
         assert_eq!(a[1], Some(0));
@@ -577,7 +579,7 @@ mod tests {
             .map(|t| affinity(&camera, &map.tree, &map.owner, &[], t))
             .collect();
         assert_eq!(
-            affinities(&camera, &map.tree, &map.owner, &[], &grid, &[]),
+            affinities(&camera, &map.tree, &map.owner, &[], &grid, &[], workers),
             by_rays
         );
     }

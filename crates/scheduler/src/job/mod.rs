@@ -349,19 +349,22 @@ pub fn prepare(
         Vec::new()
     };
     let map = ProcessorMap::new(&tree, owner);
-    let tile_affinity = match judged {
-        Some(j) => j.starts.tiles,
+    let (tile_affinity, tile_votes) = match judged {
+        Some(j) => (j.starts.tiles, j.starts.votes),
         // Without a preview, by the camera's rays alone.
-        None if by_affinity => {
-            crate::tiles::affinities(&scene.camera, &tree, &map.owner, &shared, tiles, &[])
-        }
-        None => vec![None; tiles.len()],
-    };
-    let tile_votes = match (&pv, by_affinity) {
-        (Some(pv), true) => {
-            crate::tiles::votes(&map.owner, tiles, &pv.pixel_firsts(&shared), workers)
-        }
-        _ => Vec::new(),
+        None if by_affinity => (
+            crate::tiles::affinities(
+                &scene.camera,
+                &tree,
+                &map.owner,
+                &shared,
+                tiles,
+                &[],
+                workers,
+            ),
+            Vec::new(),
+        ),
+        None => (vec![None; tiles.len()], Vec::new()),
     };
     // Nothing below needs the preview's walks, which are large.
     drop(pv);

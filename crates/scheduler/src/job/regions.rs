@@ -42,6 +42,8 @@ pub(super) struct Draw<'a> {
 pub(super) struct Starts {
     pub tiles: Vec<Option<WorkerId>>,
     pub paths: Vec<Option<WorkerId>>,
+    /// Per tile and worker, the tile's votes ([`crate::tiles::votes`]).
+    pub votes: Vec<u32>,
 }
 
 impl Draw<'_> {
@@ -88,8 +90,10 @@ impl Draw<'_> {
         owner: &[WorkerId],
     ) -> Option<Starts> {
         let (camera, tiles) = self.view?;
-        let firsts = pv.pixel_firsts(shared);
-        let by_tile = crate::tiles::affinities(camera, self.tree, owner, shared, tiles, &firsts);
+        let workers = self.targets.len();
+        let votes = crate::tiles::votes(owner, tiles, &pv.pixel_firsts(shared), workers);
+        let by_tile =
+            crate::tiles::affinities(camera, self.tree, owner, shared, tiles, &votes, workers);
         let tile_of = crate::tiles::locator(tiles);
         let paths = pv
             .pixels
@@ -99,6 +103,7 @@ impl Draw<'_> {
         Some(Starts {
             tiles: by_tile,
             paths,
+            votes,
         })
     }
 
