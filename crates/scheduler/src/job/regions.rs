@@ -117,11 +117,14 @@ impl Draw<'_> {
         pv: Option<&cost::Preview>,
         shared: &[bool],
     ) -> Result<(Vec<WorkerId>, Vec<f64>), String> {
-        let chosen = pv.map_or_else(|| unshared(self.analytic, shared), |pv| pv.charged(shared));
         // Regions grow along the crossings that remain once the shared
         // leaves are passed over: a ray from one leaf through shared ones
-        // into another is forwarded between those two.
-        let crossings = pv.map_or_else(HashMap::new, |pv| pv.crossings_beside(shared));
+        // into another is forwarded between those two. Both follow every
+        // preview path, each on its own, so they are counted side by side.
+        let (chosen, crossings) = match pv {
+            Some(pv) => rayon::join(|| pv.charged(shared), || pv.crossings_beside(shared)),
+            None => (unshared(self.analytic, shared), HashMap::new()),
+        };
         // The camera's leaf has always counted towards its nominal owner.
         let beside = |l: usize| shared[l] && Some(l as u32) != self.camera;
         let extra: u64 = (0..self.refs.len())
@@ -212,9 +215,13 @@ impl Draw<'_> {
     ) -> Drawn {
         let judged = pv.filter(|_| self.targets.len() > 1).and_then(|pv| {
             let starts = self.starts(pv, &shared, &owner)?;
+            let (forwards, values) = rayon::join(
+                || pv.forwards_from(&shared, &owner, &starts.paths),
+                || pv.share_values(&shared, &owner, &starts.paths),
+            );
             Some(Judged {
-                forwards: pv.forwards_from(&shared, &owner, &starts.paths),
-                values: pv.share_values(&shared, &owner, &starts.paths),
+                forwards,
+                values,
                 starts,
             })
         });

@@ -229,35 +229,74 @@ pub fn region_growing(
     cost: &[f64],
     lim: &Limits,
 ) -> Result<Vec<u16>, String> {
+    use rayon::prelude::*;
+    // Every unit size is drawn on its own, so the sizes are drawn side by
+    // side (on two cores the room's partition phase took 0.27 s, most of
+    // it here and in the preview's counts); the choice among them then
+    // goes through them in their order, as one after the other would.
+    let drawn: Vec<Result<Candidate, String>> = UNIT_SIZES
+        .par_iter()
+        .map(|&size| candidate(tree, graph, cost, lim, size))
+        .collect();
+    choose(drawn)
+}
+
+/// One unit size's partition with its two scores.
+struct Candidate {
+    /// [`walk_cost`].
+    walk: f64,
+    /// [`busiest_load`].
+    busiest: f64,
+    owner: Vec<u16>,
+}
+
+/// Region growing at one unit size ([`UNIT_SIZES`]), scored.
+fn candidate(
+    tree: &Octree,
+    graph: &LeafGraph,
+    cost: &[f64],
+    lim: &Limits,
+    size: f64,
+) -> Result<Candidate, String> {
+    let units = Units::new(tree, graph, cost, lim, size);
+    let ulim = Limits {
+        targets: lim.targets,
+        caps: lim.caps,
+        refs: &units.refs,
+    };
+    let owner = partition_units(&units.centers, &units.graph, &units.cost, &ulim)?;
+    let owner: Vec<u16> = units.group.iter().map(|&g| owner[g as usize]).collect();
+    // The route is collapsed once for both scores.
+    let steps = route_steps(tree, graph, &owner);
+    Ok(Candidate {
+        walk: walk_cost(graph, &owner, steps),
+        busiest: busiest_load(graph, cost, lim, &owner, steps),
+        owner,
+    })
+}
+
+/// The shortest walk of the candidates, unless another's busiest worker
+/// is predicted done clearly sooner ([`BALANCE_GAIN`]); ties go to the
+/// earlier unit size. Without any candidate, the last one's error.
+fn choose(drawn: Vec<Result<Candidate, String>>) -> Result<Vec<u16>, String> {
     // The shortest walk, and the soonest done busiest worker, each with
     // its busiest worker's predicted load.
     let mut shortest: Option<(f64, f64, Vec<u16>)> = None;
     let mut soonest: Option<(f64, Vec<u16>)> = None;
     let mut last_err = None;
-    for size in UNIT_SIZES {
-        let units = Units::new(tree, graph, cost, lim, size);
-        let ulim = Limits {
-            targets: lim.targets,
-            caps: lim.caps,
-            refs: &units.refs,
-        };
-        let owner = match partition_units(&units.centers, &units.graph, &units.cost, &ulim) {
-            Ok(o) => o,
+    for c in drawn {
+        let c = match c {
+            Ok(c) => c,
             Err(e) => {
                 last_err = Some(e);
                 continue;
             }
         };
-        let owner: Vec<u16> = units.group.iter().map(|&g| owner[g as usize]).collect();
-        // The route is collapsed once for both scores.
-        let steps = route_steps(tree, graph, &owner);
-        let walk = walk_cost(graph, &owner, steps);
-        let busiest = busiest_load(graph, cost, lim, &owner, steps);
-        if soonest.as_ref().is_none_or(|(b, _)| busiest < *b) {
-            soonest = Some((busiest, owner.clone()));
+        if soonest.as_ref().is_none_or(|(b, _)| c.busiest < *b) {
+            soonest = Some((c.busiest, c.owner.clone()));
         }
-        if shortest.as_ref().is_none_or(|(w, _, _)| walk < *w) {
-            shortest = Some((walk, busiest, owner));
+        if shortest.as_ref().is_none_or(|(w, _, _)| c.walk < *w) {
+            shortest = Some((c.walk, c.busiest, c.owner));
         }
     }
     match (shortest, soonest) {
@@ -704,6 +743,65 @@ mod tests {
                 region_growing(&t, &g, &cost, &lim).unwrap(),
                 owner,
                 "map {i}"
+            );
+        }
+    }
+
+    /// The unit sizes' candidates are chosen among in their order: the
+    /// shortest walk (the earlier of equal ones), unless another's busiest
+    /// worker is predicted done more than [`BALANCE_GAIN`] sooner; failed
+    /// sizes are passed over, and with none left the last error is said.
+    #[test]
+    fn candidates_are_chosen_in_order_of_unit_size() {
+        let c = |walk: f64, busiest: f64, tag: u16| -> Result<Candidate, String> {
+            Ok(Candidate {
+                walk,
+                busiest,
+                owner: vec![tag],
+            })
+        };
+        let err = |e: &str| -> Result<Candidate, String> { Err(e.into()) };
+        // Equal walks: the earlier size.
+        assert_eq!(choose(vec![c(5.0, 1.0, 1), c(5.0, 1.0, 2)]), Ok(vec![1]));
+        // The shorter walk, wherever it stands, past an error.
+        assert_eq!(
+            choose(vec![c(5.0, 1.0, 1), err("a"), c(4.0, 1.0, 3)]),
+            Ok(vec![3])
+        );
+        // A busiest worker done 2% sooner does not outweigh a shorter walk;
+        // 5% sooner does (the earliest of the soonest).
+        assert_eq!(choose(vec![c(4.0, 1.0, 1), c(9.0, 0.98, 2)]), Ok(vec![1]));
+        assert_eq!(
+            choose(vec![c(4.0, 1.0, 1), c(9.0, 0.95, 2), c(8.0, 0.95, 3)]),
+            Ok(vec![2])
+        );
+        assert_eq!(choose(vec![err("a"), err("b")]), Err("b".into()));
+        assert_eq!(choose(Vec::new()), Err("no partition".into()));
+    }
+
+    /// Drawn side by side, the sizes give what drawing them one after the
+    /// other gives, at every farm size.
+    #[test]
+    fn sizes_drawn_side_by_side_give_the_sequential_choice() {
+        let t = tree();
+        let graph = LeafGraph::new(&t, &HashMap::new());
+        let cost = crate::cost::analytic(&t);
+        let refs: Vec<u64> = t.leaves.iter().map(|l| l.tris.len() as u64).collect();
+        for w in [2usize, 3, 5, 8] {
+            let (targets, caps) = even(w);
+            let lim = Limits {
+                targets: &targets,
+                caps: &caps,
+                refs: &refs,
+            };
+            let one_by_one = UNIT_SIZES
+                .iter()
+                .map(|&size| candidate(&t, &graph, &cost, &lim, size))
+                .collect();
+            assert_eq!(
+                region_growing(&t, &graph, &cost, &lim),
+                choose(one_by_one),
+                "{w} workers"
             );
         }
     }
