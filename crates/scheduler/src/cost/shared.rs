@@ -23,9 +23,18 @@ impl Preview {
     /// ([`Preview::first_leaves`]), so entering it is no crossing, and a
     /// shadow ray from a shared surface before it into another leaf is.
     pub fn crossings_beside(&self, shared: &[bool]) -> HashMap<(u32, u32), u32> {
+        self.crossings_beside_from(shared, &self.first_leaves(shared))
+    }
+
+    /// [`Preview::crossings_beside`] with the paths' first leaves beside
+    /// the `shared` ones already known ([`Preview::first_leaves`]).
+    pub fn crossings_beside_from(
+        &self,
+        shared: &[bool],
+        first: &[Option<u32>],
+    ) -> HashMap<(u32, u32), u32> {
         let mut out: HashMap<(u32, u32), u32> = HashMap::new();
-        let first = self.first_leaves(shared);
-        self.follow(shared, &first, |e| {
+        self.follow(shared, first, |e| {
             if let Some(p) = e.held.filter(|&p| !e.shared && p != e.leaf) {
                 *out.entry((p, e.leaf)).or_default() += 1;
             }
@@ -143,14 +152,19 @@ impl Preview {
     /// no one does. The work of a path that meets shared leaves only is
     /// left out: whichever worker starts its tile does it.
     pub fn charged(&self, shared: &[bool]) -> Vec<f64> {
+        self.charged_from(shared, &self.first_leaves(shared))
+    }
+
+    /// [`Preview::charged`] with the paths' first leaves beside the
+    /// `shared` ones already known ([`Preview::first_leaves`]).
+    pub fn charged_from(&self, shared: &[bool], first: &[Option<u32>]) -> Vec<f64> {
         let mut cost: Vec<f64> = self
             .cost
             .iter()
             .zip(shared.iter().chain(std::iter::repeat(&false)))
             .map(|(&c, &s)| if s { 0.0 } else { c })
             .collect();
-        let first = self.first_leaves(shared);
-        self.follow(shared, &first, |e| {
+        self.follow(shared, first, |e| {
             if let Some(to) = e.held.filter(|_| e.shared) {
                 cost[to as usize] += self.walk_costs.get(e.at).copied().unwrap_or(0) as f64;
             }

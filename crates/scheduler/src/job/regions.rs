@@ -120,9 +120,16 @@ impl Draw<'_> {
         // Regions grow along the crossings that remain once the shared
         // leaves are passed over: a ray from one leaf through shared ones
         // into another is forwarded between those two. Both follow every
-        // preview path, each on its own, so they are counted side by side.
+        // preview path, each on its own, so they are counted side by side,
+        // from the paths' first leaves found once for both.
         let (chosen, crossings) = match pv {
-            Some(pv) => rayon::join(|| pv.charged(shared), || pv.crossings_beside(shared)),
+            Some(pv) => {
+                let first = pv.first_leaves(shared);
+                rayon::join(
+                    || pv.charged_from(shared, &first),
+                    || pv.crossings_beside_from(shared, &first),
+                )
+            }
             None => (unshared(self.analytic, shared), HashMap::new()),
         };
         // The camera's leaf has always counted towards its nominal owner.
