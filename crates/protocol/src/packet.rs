@@ -199,6 +199,11 @@ impl Packet {
         self.bytes.is_empty()
     }
 
+    /// Drops the items and keeps the room they took, for the next ones.
+    pub fn clear(&mut self) {
+        self.bytes.clear();
+    }
+
     /// The packet of `items`, in order.
     pub fn from_items<'a>(items: impl IntoIterator<Item = &'a RayItem>) -> Self {
         let mut p = Self::default();

@@ -63,18 +63,40 @@ pub struct TileDone {
 }
 
 impl Batch {
-    /// An empty batch with room for `items` items.
-    fn new(job: &EngineJob, items: usize) -> Self {
-        Self {
-            items: Vec::with_capacity(items),
-            // About one pending vertex per item; growing by doubling copies.
-            chain: Vec::with_capacity(items),
-            stats: TraceStats::default(),
-            fetched_leaf_traces: 0,
-            cpu_s: 0.0,
-            misrouted: None,
-            sends: Sends::new(job.workers, job.setup.tuning.packet_size as usize),
-        }
+    /// An empty batch with room for `items` items: `spare` emptied where
+    /// there is one (a batch applied earlier, [`Batch::spare`]), else a new
+    /// one. A batch's chain outgrows its items (a path traced here leaves
+    /// a vertex waiting for each ray it forwards), and each growth copies
+    /// the whole chain: taking a spare keeps the room an earlier batch grew
+    /// to.
+    fn new(job: &EngineJob, items: usize, spare: Option<Box<Batch>>) -> Box<Self> {
+        let Some(mut b) = spare else {
+            return Box::new(Self {
+                items: Vec::with_capacity(items),
+                chain: Vec::with_capacity(items),
+                stats: TraceStats::default(),
+                fetched_leaf_traces: 0,
+                cpu_s: 0.0,
+                misrouted: None,
+                sends: Sends::new(job.workers, job.setup.tuning.packet_size as usize),
+            });
+        };
+        b.items.reserve(items);
+        b.chain.reserve(items);
+        b
+    }
+
+    /// This batch emptied, its vectors' room kept, once the engine has
+    /// applied it: for [`trace_batch`] to fill again.
+    pub fn spare(mut self: Box<Self>) -> Box<Self> {
+        self.items.clear();
+        self.chain.clear();
+        self.stats = TraceStats::default();
+        self.fetched_leaf_traces = 0;
+        self.cpu_s = 0.0;
+        self.misrouted = None;
+        self.sends.clear();
+        self
     }
 }
 
@@ -103,6 +125,17 @@ impl Sends {
             limit: limit.max(1),
             ..Self::default()
         }
+    }
+
+    /// Empty, its open packets' room kept (full packets were handed on).
+    fn clear(&mut self) {
+        for (p, n) in &mut self.open {
+            p.clear();
+            *n = 0;
+        }
+        self.full.clear();
+        self.forwards = ForwardKinds::default();
+        self.answers = 0;
     }
 
     fn push(&mut self, to: WorkerId, item: &RayItem) {
@@ -229,16 +262,18 @@ impl Tracer for ItemTracer<'_> {
     }
 }
 
-/// Traces a batch of work through `reach`.
+/// Traces a batch of work through `reach`, into `spare` where the engine
+/// had one ([`Batch::spare`]).
 pub fn trace_batch(
     job: &EngineJob,
     reach: &Reach,
     work: impl ExactSizeIterator<Item = Work>,
-) -> Batch {
+    spare: Option<Box<Batch>>,
+) -> Box<Batch> {
     let cpu0 = sys::thread_cpu_s();
     let kernel = job.kernel();
     let me = job.setup.me;
-    let mut b = Batch::new(job, work.len());
+    let mut b = Batch::new(job, work.len(), spare);
     for w in work {
         let tracer = ItemTracer {
             job,
@@ -383,5 +418,61 @@ mod tests {
         );
         let open: Vec<_> = s.open.iter().map(|(p, n)| (answers(p), *n)).collect();
         assert_eq!(open, [(vec![], 0), (vec![14], 1), (vec![], 0)]);
+    }
+
+    /// A batch handed back for reuse holds nothing of what it carried (no
+    /// item, vertex, packet or count would reach the next batch's engine
+    /// twice) and keeps the room its vectors grew to.
+    #[test]
+    fn a_spare_batch_is_empty_and_keeps_its_room() {
+        let answer = Answer::Visible(true);
+        let reply = ReplyTo { worker: 0, slot: 7 };
+        let vertex = ChainVertex {
+            vertex: locus_core::integrator::ShadedVertex {
+                emitted: glam::Vec3::ZERO,
+                nee: glam::Vec3::ZERO,
+                scale: glam::Vec3::ONE,
+            },
+            shadow: locus_core::path::Child::Done(true),
+            next: locus_core::path::Child::Deeper,
+            update: None,
+        };
+        let mut sends = Sends::new(2, 2);
+        for k in 0..3 {
+            sends.push(1, &RayItem::Answer { to: k, answer });
+        }
+        sends.answers = 3;
+        sends.forwards.shadow = 2;
+        let b = Box::new(Batch {
+            items: vec![(reply, Outcome::Answer(answer), None); 100],
+            chain: vec![vertex; 300],
+            stats: TraceStats {
+                camera_rays: 5,
+                ..Default::default()
+            },
+            fetched_leaf_traces: 4,
+            cpu_s: 1.5,
+            misrouted: Some(1),
+            sends,
+        });
+        let s = b.spare();
+        assert!(s.items.is_empty() && s.items.capacity() >= 100);
+        assert!(s.chain.is_empty() && s.chain.capacity() >= 300);
+        assert_eq!(s.stats, TraceStats::default());
+        assert_eq!(
+            (s.fetched_leaf_traces, s.cpu_s, s.misrouted),
+            (0, 0.0, None)
+        );
+        assert!(s.sends.full.is_empty());
+        assert!(s.sends.open.iter().all(|(p, n)| p.is_empty() && *n == 0));
+        assert_eq!(s.sends.open.len(), 2);
+        assert_eq!((s.sends.answers, s.sends.forwards.total()), (0, 0));
+        // It fills its packets as a new one does.
+        let mut s = s;
+        for k in 10..13 {
+            s.sends.push(1, &RayItem::Answer { to: k, answer });
+        }
+        assert_eq!(answers(&s.sends.full[0].1), [10, 11]);
+        assert_eq!(answers(&s.sends.open[1].0), [12]);
     }
 }

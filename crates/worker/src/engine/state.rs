@@ -30,6 +30,12 @@ pub(super) const LOCAL_INFLIGHT_PER_THREAD: usize = 2 * super::BATCH;
 /// a load from memory to land while the items between are applied.
 const AHEAD: usize = 16;
 
+/// Emptied batches an engine keeps for the pool to fill again: as many as
+/// it has out at once on a pool of three threads (two each, and one);
+/// beyond that a batch is freed. Each holds the room its largest fill
+/// grew to, a few hundred kilobytes at [`super::BATCH`] items.
+pub(super) const SPARE_BATCHES: usize = 7;
+
 /// A worker that has heard nothing for this long while work is pending
 /// says what it waits for.
 pub(super) const STALL_REPORT: Duration = Duration::from_secs(5);
@@ -50,6 +56,12 @@ pub(super) struct Engine<'a> {
     pub(super) stats: WorkerStats,
     pub(super) effects: Vec<Effect>,
     pub(super) children: Vec<(Dest, Query, Resume, ReplyTo)>,
+    /// Batches applied and emptied, for the next ones to fill
+    /// ([`Batch::spare`]): at most [`SPARE_BATCHES`]. Kept in their boxes,
+    /// in which they travel back as events, so a reused batch allocates
+    /// nothing at all.
+    #[allow(clippy::vec_box)]
+    pub(super) spares: Vec<Box<Batch>>,
     pub(super) traffic: Arc<crate::peers::Traffic>,
     /// Packets received from each peer.
     pub(super) received: Vec<u64>,
@@ -143,6 +155,7 @@ impl<'a> Engine<'a> {
             },
             effects: Vec::new(),
             children: Vec::new(),
+            spares: Vec::new(),
             traffic: links.traffic.clone(),
             received: vec![0; job.workers],
             reach,
@@ -308,7 +321,15 @@ impl<'a> Engine<'a> {
     }
 
     /// Applies a traced batch.
-    pub(super) fn apply(&mut self, b: Batch) -> Result<(), EngineError> {
+    pub(super) fn apply(&mut self, b: Box<Batch>) -> Result<(), EngineError> {
+        self.apply_items(&b)?;
+        if self.spares.len() < SPARE_BATCHES {
+            self.spares.push(b.spare());
+        }
+        Ok(())
+    }
+
+    fn apply_items(&mut self, b: &Batch) -> Result<(), EngineError> {
         if let Some(from) = b.misrouted {
             return Err(EngineError::Misrouted { from });
         }

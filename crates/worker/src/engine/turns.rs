@@ -113,11 +113,12 @@ impl Turns<'_> {
             let share = e.work.len().div_ceil(target + 1 - self.out);
             let take = share.clamp(MIN_BATCH, BATCH).min(e.work.len());
             let batch = e.work.take(take);
+            let spare = e.spares.pop();
             let (job, reach, tx) = (e.job, e.reach.clone(), e.events.clone());
             scope.spawn(move |_| {
-                let b = trace_batch(job, &reach, batch.into_iter());
+                let b = trace_batch(job, &reach, batch.into_iter(), spare);
                 // A closed inbox means the job is over.
-                let _ = tx.send(Event::Traced(Box::new(b)));
+                let _ = tx.send(Event::Traced(b));
             });
             self.out += 1;
         }
@@ -144,7 +145,8 @@ impl Turns<'_> {
         }
         if !e.work.is_empty() {
             let batch = e.work.take(e.work.len().min(INLINE_BATCH));
-            let mut b = trace_batch(e.job, &e.reach, batch.into_iter());
+            let spare = e.spares.pop();
+            let mut b = trace_batch(e.job, &e.reach, batch.into_iter(), spare);
             b.cpu_s = 0.0;
             e.now = Instant::now();
             e.apply(b)?;
@@ -226,7 +228,7 @@ impl Turns<'_> {
             match ev {
                 Event::Traced(b) => {
                     self.out -= 1;
-                    e.apply(*b)?;
+                    e.apply(b)?;
                 }
                 Event::Tile(t) => {
                     self.out -= 1;
