@@ -30,12 +30,6 @@ pub(super) const LOCAL_INFLIGHT_PER_THREAD: usize = 2 * super::BATCH;
 /// a load from memory to land while the items between are applied.
 const AHEAD: usize = 16;
 
-/// Emptied batches an engine keeps for the pool to fill again: as many as
-/// it has out at once on a pool of three threads (two each, and one);
-/// beyond that a batch is freed. Each holds the room its largest fill
-/// grew to, a few hundred kilobytes at [`super::BATCH`] items.
-pub(super) const SPARE_BATCHES: usize = 7;
-
 /// A worker that has heard nothing for this long while work is pending
 /// says what it waits for.
 pub(super) const STALL_REPORT: Duration = Duration::from_secs(5);
@@ -57,7 +51,7 @@ pub(super) struct Engine<'a> {
     pub(super) effects: Vec<Effect>,
     pub(super) children: Vec<(Dest, Query, Resume, ReplyTo)>,
     /// Batches applied and emptied, for the next ones to fill
-    /// ([`Batch::spare`]): at most [`SPARE_BATCHES`]. Kept in their boxes,
+    /// ([`Batch::spare`]): at most [`Engine::spare_batches`]. Kept in their boxes,
     /// in which they travel back as events, so a reused batch allocates
     /// nothing at all.
     #[allow(clippy::vec_box)]
@@ -323,10 +317,19 @@ impl<'a> Engine<'a> {
     /// Applies a traced batch.
     pub(super) fn apply(&mut self, b: Box<Batch>) -> Result<(), EngineError> {
         self.apply_items(&b)?;
-        if self.spares.len() < SPARE_BATCHES {
+        if self.spares.len() < self.spare_batches() {
             self.spares.push(b.spare());
         }
         Ok(())
+    }
+
+    /// How many emptied batches to keep: as many as the pool has out at
+    /// once (two a thread, and one), so that reuse never holds more than
+    /// the batches in flight held. Each keeps the room its largest fill
+    /// grew to: a few megabytes at [`super::BATCH`] items (248 bytes a
+    /// chain vertex, 112 an item).
+    fn spare_batches(&self) -> usize {
+        2 * self.threads + 1
     }
 
     fn apply_items(&mut self, b: &Batch) -> Result<(), EngineError> {
