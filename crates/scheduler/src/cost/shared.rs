@@ -61,13 +61,14 @@ impl Preview {
         first
     }
 
-    /// Each path's pixel beside its [`Preview::first_leaves`]: what tiles
-    /// vote by (`tiles::votes`, `tiles::affinities`).
-    pub fn pixel_firsts(&self, shared: &[bool]) -> Vec<((u32, u32), Option<u32>)> {
+    /// Each path's pixel beside its first leaf (`first`, from
+    /// [`Preview::first_leaves`]): what tiles vote by (`tiles::votes`,
+    /// `tiles::affinities`).
+    pub fn pixel_firsts(&self, first: &[Option<u32>]) -> Vec<((u32, u32), Option<u32>)> {
         self.pixels
             .iter()
             .copied()
-            .zip(self.first_leaves(shared))
+            .zip(first.iter().copied())
             .collect()
     }
 

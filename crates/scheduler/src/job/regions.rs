@@ -87,11 +87,12 @@ impl Draw<'_> {
         &self,
         pv: &cost::Preview,
         shared: &[bool],
+        first: &[Option<u32>],
         owner: &[WorkerId],
     ) -> Option<Starts> {
         let (camera, tiles) = self.view?;
         let workers = self.targets.len();
-        let votes = crate::tiles::votes(owner, tiles, &pv.pixel_firsts(shared), workers);
+        let votes = crate::tiles::votes(owner, tiles, &pv.pixel_firsts(first), workers);
         let by_tile =
             crate::tiles::affinities(camera, self.tree, owner, shared, tiles, &votes, workers);
         let tile_of = crate::tiles::locator(tiles);
@@ -112,25 +113,19 @@ impl Draw<'_> {
     /// worker holds them beside its region, within its cap) and their
     /// work charged to the leaves that hold the paths there
     /// ([`cost::Preview::charged`]): whoever holds a ray traces it.
-    pub fn regions(
-        &self,
-        pv: Option<&cost::Preview>,
-        shared: &[bool],
-    ) -> Result<(Vec<WorkerId>, Vec<f64>), String> {
+    pub fn regions(&self, pv: Option<&cost::Preview>, shared: &[bool]) -> Result<Regions, String> {
         // Regions grow along the crossings that remain once the shared
         // leaves are passed over: a ray from one leaf through shared ones
         // into another is forwarded between those two. Both follow every
         // preview path, each on its own, so they are counted side by side,
         // from the paths' first leaves found once for both.
-        let (chosen, crossings) = match pv {
-            Some(pv) => {
-                let first = pv.first_leaves(shared);
-                rayon::join(
-                    || pv.charged_from(shared, &first),
-                    || pv.crossings_beside_from(shared, &first),
-                )
-            }
-            None => (unshared(self.analytic, shared), HashMap::new()),
+        let first = pv.map(|pv| pv.first_leaves(shared));
+        let (chosen, crossings) = match (pv, &first) {
+            (Some(pv), Some(first)) => rayon::join(
+                || pv.charged_from(shared, first),
+                || pv.crossings_beside_from(shared, first),
+            ),
+            _ => (unshared(self.analytic, shared), HashMap::new()),
         };
         // The camera's leaf has always counted towards its nominal owner.
         let beside = |l: usize| shared[l] && Some(l as u32) != self.camera;
@@ -158,7 +153,11 @@ impl Draw<'_> {
             }
             Partitioner::Morton => partition::morton(&chosen, &lim),
         }?;
-        Ok((owner, chosen))
+        Ok(Regions {
+            owner,
+            balanced: chosen,
+            first,
+        })
     }
 
     /// The shared leaves and the regions beside them, or, where the
@@ -214,14 +213,14 @@ impl Draw<'_> {
 
     /// `shared` leaves and the regions beside them, with the forwards
     /// they are predicted to cost where tiles go by affinity.
-    fn judged(
-        &self,
-        pv: Option<&cost::Preview>,
-        shared: Vec<bool>,
-        (owner, balanced): (Vec<WorkerId>, Vec<f64>),
-    ) -> Drawn {
+    fn judged(&self, pv: Option<&cost::Preview>, shared: Vec<bool>, r: Regions) -> Drawn {
+        let Regions {
+            owner,
+            balanced,
+            first,
+        } = r;
         let judged = pv.filter(|_| self.targets.len() > 1).and_then(|pv| {
-            let starts = self.starts(pv, &shared, &owner)?;
+            let starts = self.starts(pv, &shared, first.as_deref()?, &owner)?;
             let (forwards, values) = rayon::join(
                 || pv.forwards_from(&shared, &owner, &starts.paths),
                 || pv.share_values(&shared, &owner, &starts.paths),
@@ -244,6 +243,19 @@ impl Draw<'_> {
 /// How many times the shared leaves are picked again by their worth
 /// under the regions drawn beside the last pick.
 const REPICKS: usize = 4;
+
+/// One drawing of the regions beside a set of shared leaves
+/// ([`Draw::regions`]).
+pub(super) struct Regions {
+    pub owner: Vec<WorkerId>,
+    /// The leaf costs the regions balanced.
+    pub balanced: Vec<f64>,
+    /// Per preview path, its first leaf beside the shared ones
+    /// ([`cost::Preview::first_leaves`]), found once for the drawing and
+    /// then for where its tiles go ([`Draw::starts`]); None without a
+    /// preview.
+    pub first: Option<Vec<Option<u32>>>,
+}
 
 /// A job's regions as [`Draw::drawn`] draws them.
 pub(super) struct Drawn {
