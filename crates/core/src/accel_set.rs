@@ -27,6 +27,12 @@ pub struct Part {
     /// Octree leaves (ascending) this part was built from; empty when it
     /// was not built from leaves.
     pub leaves: Vec<u32>,
+    /// Whether a fetching worker may build this part again with fetched
+    /// leaves added (from its leaves' triangles): not once it is a
+    /// region's parts joined ([`join`]), which would build the whole
+    /// region again, and whose parts were cut by centroid, where a part
+    /// does not hold whole leaves.
+    pub mergeable: bool,
     /// The BVH's bounds, grown slightly so that the f32 slab test below is
     /// conservative.
     bounds: Bounds,
@@ -44,8 +50,16 @@ impl Part {
         Self {
             accel,
             leaves,
+            mergeable: true,
             bounds,
         }
+    }
+
+    /// This part, never to be built again with fetched leaves added
+    /// ([`Part::mergeable`]).
+    fn fixed(mut self) -> Self {
+        self.mergeable = false;
+        self
     }
 
     /// Entry and exit of the ray's segment `[t0, t1)` into the part's
@@ -73,7 +87,8 @@ pub struct SetHit {
 /// enters, with the same answers. A part that another holder shares (the
 /// embedded farm's workers share identical builds) is copied, every other
 /// one moved. The parts come back as they were when the joined tree would
-/// be too deep to walk.
+/// be too deep to walk. Either way, two or more parts that come through
+/// here are never built again by a merge ([`Part::mergeable`]).
 pub fn join(parts: Vec<Arc<Part>>) -> Vec<Arc<Part>> {
     if parts.len() < 2 {
         return parts;
@@ -90,12 +105,12 @@ pub fn join(parts: Vec<Arc<Part>>) -> Vec<Arc<Part>> {
             let mut all: Vec<u32> = leaves.into_iter().flatten().collect();
             all.sort_unstable();
             all.dedup();
-            vec![Arc::new(Part::new(one, all))]
+            vec![Arc::new(Part::new(one, all).fixed())]
         }
         Err(accels) => accels
             .into_iter()
             .zip(leaves)
-            .map(|(a, l)| Arc::new(Part::new(a, l)))
+            .map(|(a, l)| Arc::new(Part::new(a, l).fixed()))
             .collect(),
     }
 }
@@ -338,8 +353,9 @@ pub fn build_parts(
 /// touch: on the room's 324,928 triangles in 18 parts, joined, a ray
 /// visited 11.2 nodes and made 2.85 triangle tests against one BVH's
 /// 5.9 and 2.28; cut here, 7.4 and 2.31 (`examples/trace_parts.rs`).
-/// Leaf runs stay where parts must keep whole leaves: a fetching worker
-/// merges fetched leaves into the part whose run they fall in.
+/// Leaf runs stay where a region is not joined: a worker without a memory
+/// budget builds its region whole, and merges fetched leaves into the part
+/// whose run they fall in.
 pub fn cut_by_centroids(
     mut ids: Vec<u32>,
     centroid: &dyn Fn(u32) -> Vec3,

@@ -12,7 +12,8 @@
 //! does: [`merge`] rebuilds only the parts whose run of leaves (in leaf
 //! order, which is Morton order) the new leaves fall into, splitting a part
 //! that grows past the part size, so no build needs more memory than the
-//! worker's plan allows. With every leaf held, the route is a single local
+//! worker's plan allows. A region joined into one BVH is never rebuilt
+//! ([`Part::mergeable`]): fetched leaves then make parts of their own. With every leaf held, the route is a single local
 //! node and a worker traces exactly as one machine does.
 
 use crate::fetch::FetchedLeaf;
@@ -144,13 +145,25 @@ fn build_run(run: &[LeafSource], magnitude: f32) -> Arc<Part> {
     Arc::new(Part::new(Accel::from_set(set, magnitude), leaves))
 }
 
-/// Merges `new` leaves (ascending, none of them in `parts`) into `parts`
-/// (whose leaf runs ascend and do not overlap): a new leaf joins the part
-/// whose run it falls in, else the part before it, else the first. Parts
-/// that get no new leaf are kept as they are; the others are rebuilt, cut
-/// into runs of at most `max_part` triangles. `ids(leaf)` gives any
-/// involved leaf's triangle ids; a new leaf's triangles come from its own
-/// BVH. Returns the new parts and the triangles built.
+/// The part a fetched `leaf` joins in a merge: of the parts a merge may
+/// build again ([`Part::mergeable`], whose leaf runs ascend and do not
+/// overlap), the one whose run it falls in, else the one before it, else
+/// the first; None where no part may be built again (a region joined into
+/// one BVH), and the leaf starts a part of fetched leaves.
+pub fn merge_target(parts: &[Arc<Part>], leaf: u32) -> Option<usize> {
+    parts
+        .iter()
+        .rposition(|p| p.mergeable && p.leaves.first().is_some_and(|&first| first <= leaf))
+        .or_else(|| parts.iter().position(|p| p.mergeable))
+}
+
+/// Merges `new` leaves (ascending, none of them in `parts`) into `parts`:
+/// a new leaf joins its [`merge_target`]. Parts that get no new leaf are
+/// kept as they are; the others are rebuilt, cut into runs of at most
+/// `max_part` triangles, and leaves without a target make parts of their
+/// own after the rest. `ids(leaf)` gives any involved leaf's triangle ids;
+/// a new leaf's triangles come from its own BVH. Returns the new parts and
+/// the triangles built.
 pub fn merge(
     parts: &[Arc<Part>],
     new: &[Arc<FetchedLeaf>],
@@ -158,30 +171,15 @@ pub fn merge(
     max_part: usize,
     magnitude: f32,
 ) -> (Vec<Arc<Part>>, usize) {
-    if parts.is_empty() {
-        // A worker without a region: the new leaves are its first parts.
-        let sources: Vec<(Arc<[u32]>, &FetchedLeaf)> = new
-            .iter()
-            .map(|f| (Arc::from(f.ids.as_slice()), f.as_ref()))
-            .collect();
-        let run: Vec<LeafSource> = sources
-            .iter()
-            .map(|(i, f)| LeafSource {
-                leaf: f.leaf,
-                ids: i,
-                accel: &f.accel,
-            })
-            .collect();
-        return cut_run(&run, max_part, magnitude);
-    }
-    // Which part each new leaf joins.
+    // Which part each new leaf joins; those without one (a worker without
+    // a region, or whose region is joined) make parts of their own.
     let mut joins: Vec<Vec<&FetchedLeaf>> = vec![Vec::new(); parts.len()];
+    let mut alone: Vec<&FetchedLeaf> = Vec::new();
     for f in new {
-        let k = parts
-            .iter()
-            .rposition(|p| p.leaves.first().is_some_and(|&first| first <= f.leaf))
-            .unwrap_or(0);
-        joins[k].push(f);
+        match merge_target(parts, f.leaf) {
+            Some(k) => joins[k].push(f),
+            None => alone.push(f),
+        }
     }
     let mut out = Vec::with_capacity(parts.len());
     let mut built = 0;
@@ -209,6 +207,23 @@ pub fn merge(
             }))
             .collect();
         run.sort_by_key(|s| s.leaf);
+        let (mut parts, n) = cut_run(&run, max_part, magnitude);
+        built += n;
+        out.append(&mut parts);
+    }
+    if !alone.is_empty() {
+        let sources: Vec<(Arc<[u32]>, &FetchedLeaf)> = alone
+            .iter()
+            .map(|f| (Arc::from(f.ids.as_slice()), *f))
+            .collect();
+        let run: Vec<LeafSource> = sources
+            .iter()
+            .map(|(i, f)| LeafSource {
+                leaf: f.leaf,
+                ids: i,
+                accel: &f.accel,
+            })
+            .collect();
         let (mut parts, n) = cut_run(&run, max_part, magnitude);
         built += n;
         out.append(&mut parts);
@@ -253,9 +268,15 @@ mod tests {
 
     /// Merging fetched leaves into parts in any grouping gives the hits of
     /// one BVH over the same leaves, keeps untouched parts and respects the
-    /// part size.
+    /// part size; over a region joined into one BVH, the joined part is
+    /// kept as it is and the fetched leaves make parts of their own.
     #[test]
     fn merged_parts_answer_as_one_bvh() {
+        merge_rounds(false);
+        merge_rounds(true);
+    }
+
+    fn merge_rounds(joined: bool) {
         let tris: Vec<[Vec3; 3]> = (0..4000u64)
             .map(|i| {
                 let k = SampleKey::independent(i, 0, 3);
@@ -296,6 +317,12 @@ mod tests {
         let tri = |id: u32| (tris[id as usize], 0, locus_core::geometry::FLAT);
         let mut parts =
             locus_core::accel_set::build_parts(&own, 150, 12.0, BuildQuality::Full, &tri);
+        if joined {
+            parts = locus_core::accel_set::join(parts);
+            assert_eq!(parts.len(), 1);
+            assert!(!parts[0].mergeable);
+        }
+        let region = parts[0].clone();
         let first = parts.len();
         // Fetch the rest in two rounds.
         for round in [1u32, 2] {
@@ -310,8 +337,18 @@ mod tests {
                 .filter(|x| before.iter().any(|b| Arc::ptr_eq(b, x)))
                 .count();
             assert!(p.len() >= first && kept < p.len());
+            if joined {
+                // The joined region is kept, and no other part holds one
+                // of its leaves.
+                assert!(Arc::ptr_eq(&p[0], &region));
+                assert!(
+                    p[1..]
+                        .iter()
+                        .all(|x| x.mergeable && x.leaves.iter().all(|&l| l % 3 != 0))
+                );
+            }
             parts = p;
-            for x in &parts {
+            for x in parts.iter().filter(|x| x.mergeable) {
                 let own_ids: usize = x
                     .leaves
                     .iter()

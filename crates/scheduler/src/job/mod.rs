@@ -374,12 +374,11 @@ pub fn prepare(
     // Cut once per distinct (leaves held, part size, cut): on the room,
     // four of the five passes over 325,000 triangles' ids were repeats.
     let mut cut: HashMap<(usize, u32, bool), (Vec<PartRun>, u64)> = HashMap::new();
-    // A worker that will get no geometry after its region joins its parts
-    // into one BVH (`accel_set::join`): they are cut by centroid, tight
-    // and apart, rather than as runs of whole leaves, which a fetching
-    // worker needs to merge fetched leaves into.
-    let joins =
-        !replicated && options.fetch == FetchPolicy::Forward && !options.tuning.random_polling;
+    // A worker joins its region's parts into one BVH (`accel_set::join`),
+    // whatever comes to it later (fetched leaves make parts of their own):
+    // they are cut by centroid, tight and apart, rather than as runs of
+    // whole leaves.
+    let joins = !replicated;
     for (w, m) in members.iter().enumerate() {
         let held_leaves = if replicated {
             &everything

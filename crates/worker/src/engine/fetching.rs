@@ -5,7 +5,7 @@
 use super::state::Engine;
 use super::{EngineError, EngineJob, Event};
 use crate::fetch::FetchedLeaf;
-use crate::reach::{LeafSource, Reach, cut_run, merge};
+use crate::reach::{LeafSource, Reach, cut_run, merge, merge_target};
 use crate::sys;
 use locus_core::accel_set::{AccelSet, MAX_PARTS, Part};
 use locus_core::region::WorkerId;
@@ -103,16 +103,18 @@ impl Builder {
     }
 }
 
-/// Rebuilds every part into parts of at most `max_part` triangles.
+/// Rebuilds every part a merge may build ([`Part::mergeable`]) into parts
+/// of at most `max_part` triangles; the others are kept.
 fn merge_all(
     parts: &[Arc<Part>],
     ids: &dyn Fn(u32) -> Option<Arc<[u32]>>,
     max_part: usize,
     magnitude: f32,
 ) -> (Vec<Arc<Part>>, usize) {
-    let mut out = Vec::new();
+    let (mut out, rebuilt): (Vec<Arc<Part>>, Vec<Arc<Part>>) =
+        parts.iter().cloned().partition(|p| !p.mergeable);
     let mut built = 0;
-    for chunk in parts.chunks(2) {
+    for chunk in rebuilt.chunks(2) {
         // Pairs of neighbouring parts rebuilt as one halve the count.
         let leaves: Vec<(u32, Arc<[u32]>, &Part)> = chunk
             .iter()
@@ -323,23 +325,19 @@ impl<'a> Engine<'a> {
         let mut chosen = vec![false; self.pending.len()];
         let mut take = 0;
         for (i, f) in self.pending.iter().enumerate() {
-            let k = self
-                .parts
-                .iter()
-                .rposition(|p| p.leaves.first().is_some_and(|&l| l <= f.leaf))
-                .unwrap_or(0);
-            let joins = joined.get(k).is_some_and(|j| !j);
+            // A leaf without a part to join builds itself alone.
+            let k = merge_target(&self.parts, f.leaf);
+            let joins = k.is_some_and(|k| joined.get(k).is_some_and(|j| !j));
             let more = f.ids.len() as u64
-                + if joins {
-                    self.parts[k].accel.len() as u64
-                } else {
-                    0
+                + match k {
+                    Some(k) if joins => self.parts[k].accel.len() as u64,
+                    _ => 0,
                 };
             if budgeted && take > 0 && build + more > most {
                 continue;
             }
             build += more;
-            if joins {
+            if let (Some(k), true) = (k, joins) {
                 joined[k] = true;
             }
             chosen[i] = true;
