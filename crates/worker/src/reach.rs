@@ -13,8 +13,9 @@
 //! order, which is Morton order) the new leaves fall into, splitting a part
 //! that grows past the part size, so no build needs more memory than the
 //! worker's plan allows. A region joined into one BVH is never rebuilt
-//! ([`Part::mergeable`]): fetched leaves then make parts of their own. With every leaf held, the route is a single local
-//! node and a worker traces exactly as one machine does.
+//! ([`Part::mergeable`]): fetched leaves then make parts of their own.
+//! With every leaf held, the route is a single local node and a worker
+//! traces exactly as one machine does.
 
 use crate::fetch::FetchedLeaf;
 use locus_core::accel::Accel;
