@@ -35,6 +35,15 @@ pub struct FetchedLeaf {
 }
 
 impl FetchedLeaf {
+    /// This leaf as a merge takes it: its triangles from its own BVH.
+    pub fn source(&self) -> crate::reach::LeafSource<'_> {
+        crate::reach::LeafSource {
+            leaf: self.leaf,
+            ids: &self.ids,
+            accel: &self.accel,
+        }
+    }
+
     pub fn build(leaf: u32, geometry: TriangleSet, magnitude: f32) -> Self {
         let ids = geometry.ids.clone();
         let normals = !geometry.normals.is_empty();

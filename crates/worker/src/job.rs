@@ -185,7 +185,7 @@ impl Building {
     /// merge into parts of their own (`reach::merge`), each small enough to
     /// build again within the plan. Kept apart, a region's parts cost each
     /// ray a query for every part it entered: on the 4-million-triangle
-    /// room under `adaptive`, 18 to 20 parts a worker took a quarter more
+    /// room under `adaptive`, 18 to 24 parts a worker took a quarter more
     /// CPU than `forward`'s one joined BVH, with as many forwards.
     async fn join_parts(&mut self) -> anyhow::Result<()> {
         if self.parts.len() < 2 {

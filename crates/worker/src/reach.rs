@@ -201,11 +201,7 @@ pub fn merge(
                 ids: i,
                 accel: &p.accel,
             })
-            .chain(add.iter().map(|f| LeafSource {
-                leaf: f.leaf,
-                ids: &f.ids,
-                accel: &f.accel,
-            }))
+            .chain(add.iter().map(|f| f.source()))
             .collect();
         run.sort_by_key(|s| s.leaf);
         let (mut parts, n) = cut_run(&run, max_part, magnitude);
@@ -213,18 +209,7 @@ pub fn merge(
         out.append(&mut parts);
     }
     if !alone.is_empty() {
-        let sources: Vec<(Arc<[u32]>, &FetchedLeaf)> = alone
-            .iter()
-            .map(|f| (Arc::from(f.ids.as_slice()), *f))
-            .collect();
-        let run: Vec<LeafSource> = sources
-            .iter()
-            .map(|(i, f)| LeafSource {
-                leaf: f.leaf,
-                ids: i,
-                accel: &f.accel,
-            })
-            .collect();
+        let run: Vec<LeafSource> = alone.iter().map(|f| f.source()).collect();
         let (mut parts, n) = cut_run(&run, max_part, magnitude);
         built += n;
         out.append(&mut parts);

@@ -138,6 +138,24 @@ fn busiest_load_counts_cost_borders_and_shares() {
     assert!(load(&dealt) > h);
 }
 
+/// Region growing's and Morton's partitions of `t` under these shares,
+/// caps and references.
+fn both(
+    t: &Octree,
+    graph: &LeafGraph,
+    cost: &[f64],
+    refs: &[u64],
+    targets: &[f64],
+    caps: &[Option<u64>],
+) -> [Result<Vec<u16>, String>; 2] {
+    let lim = Limits {
+        targets,
+        caps,
+        refs,
+    };
+    [region_growing(t, graph, cost, &lim), morton(cost, &lim)]
+}
+
 /// Shares follow the cores, and no region passes its memory cap; a cap
 /// the scene cannot fit under is an error that says why.
 #[test]
@@ -148,43 +166,23 @@ fn shares_follow_cores_and_caps_hold() {
     let refs: Vec<u64> = t.leaves.iter().map(|l| l.tris.len() as u64).collect();
     let all: u64 = refs.iter().sum();
     let targets = [0.75, 0.25];
-    let caps = [None, None];
-    let lim = Limits {
-        targets: &targets,
-        caps: &caps,
-        refs: &refs,
-    };
-    for o in [
-        region_growing(&t, &graph, &cost, &lim).unwrap(),
-        morton(&cost, &lim).unwrap(),
-    ] {
-        let s = loads(&cost, &o, 2);
+    for o in both(&t, &graph, &cost, &refs, &targets, &[None, None]) {
+        let s = loads(&cost, &o.unwrap(), 2);
         assert!((s[0] - 0.75).abs() < 0.06, "{s:?}");
     }
     // Worker 0 may hold only 40% of the references: it gets no more,
     // and worker 1 takes the rest.
     let caps = [Some(all * 4 / 10), None];
-    let lim = Limits {
-        targets: &targets,
-        caps: &caps,
-        refs: &refs,
-    };
-    for o in [
-        region_growing(&t, &graph, &cost, &lim).unwrap(),
-        morton(&cost, &lim).unwrap(),
-    ] {
+    for o in both(&t, &graph, &cost, &refs, &targets, &caps) {
+        let o = o.unwrap();
         let held: u64 = (0..o.len()).filter(|&l| o[l] == 0).map(|l| refs[l]).sum();
         assert!(held <= all * 4 / 10);
     }
     let caps = [Some(all / 3), Some(all / 3)];
-    let lim = Limits {
-        targets: &targets,
-        caps: &caps,
-        refs: &refs,
-    };
-    let e = region_growing(&t, &graph, &cost, &lim).unwrap_err();
+    let [grown, chunks] = both(&t, &graph, &cost, &refs, &targets, &caps);
+    let e = grown.unwrap_err();
     assert!(e.contains("memory budgets"), "{e}");
-    assert!(morton(&cost, &lim).is_err());
+    assert!(chunks.is_err());
 }
 
 #[test]

@@ -325,19 +325,15 @@ impl<'a> Engine<'a> {
         let mut chosen = vec![false; self.pending.len()];
         let mut take = 0;
         for (i, f) in self.pending.iter().enumerate() {
-            // A leaf without a part to join builds itself alone.
-            let k = merge_target(&self.parts, f.leaf);
-            let joins = k.is_some_and(|k| joined.get(k).is_some_and(|j| !j));
-            let more = f.ids.len() as u64
-                + match k {
-                    Some(k) if joins => self.parts[k].accel.len() as u64,
-                    _ => 0,
-                };
+            // The part it joins, counted once; a leaf without one builds
+            // itself alone.
+            let k = merge_target(&self.parts, f.leaf).filter(|&k| !joined[k]);
+            let more = f.ids.len() as u64 + k.map_or(0, |k| self.parts[k].accel.len() as u64);
             if budgeted && take > 0 && build + more > most {
                 continue;
             }
             build += more;
-            if let (Some(k), true) = (k, joins) {
+            if let Some(k) = k {
                 joined[k] = true;
             }
             chosen[i] = true;
