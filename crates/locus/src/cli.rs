@@ -243,7 +243,9 @@ pub(crate) struct WorkerArgs {
     /// The scheduler's host:port.
     #[arg(long)]
     pub(crate) scheduler: Option<String>,
-    /// host:port for peer links (port 0 picks one).
+    /// host:port for peer links (port 0 picks one; default 0.0.0.0:0, every
+    /// interface on a free port, advertised as the address this worker
+    /// reaches the scheduler from).
     #[arg(long)]
     pub(crate) listen: Option<String>,
     /// Address peers should dial, if not the bound one.

@@ -268,8 +268,11 @@ fn sigterm(child: &std::process::Child) {
 }
 
 /// Scheduler, two workers and submit as separate processes, with the token
-/// from the environment, a flag and a config file; the image is identical to
-/// `locus render` on one machine, and SIGTERM stops the daemons cleanly.
+/// from the environment, a flag and a config file; one worker is given no
+/// listen address (it listens on every interface, and its peer dials it
+/// at the address it reaches the scheduler from). Under `forward`, so that
+/// rays cross between them, the image is identical to `locus render` on
+/// one machine, and SIGTERM stops the daemons cleanly.
 #[cfg(unix)]
 #[test]
 fn daemons_as_processes_match_single_machine() {
@@ -289,6 +292,8 @@ fn daemons_as_processes_match_single_machine() {
         "token = \"s3cret\"\n[worker]\nlisten = \"127.0.0.1:0\"\nthreads = 1\n",
     )
     .unwrap();
+    let unbound = d.join("unbound.toml");
+    std::fs::write(&unbound, "token = \"s3cret\"\n[worker]\nthreads = 1\n").unwrap();
     let mut sched = locus()
         .args(["scheduler", "--listen", "127.0.0.1:0"])
         .env("LOCUS_TOKEN", "s3cret")
@@ -297,17 +302,20 @@ fn daemons_as_processes_match_single_machine() {
         .spawn()
         .unwrap();
     let addr = listening_addr(&mut sched);
-    let mut workers: Vec<_> = (0..2)
-        .map(|_| {
+    let mut workers: Vec<_> = [&config, &unbound]
+        .into_iter()
+        .map(|c| {
             let mut w = locus()
                 .args(["worker", "--scheduler", &addr, "--config"])
-                .arg(&config)
+                .arg(c)
                 .env_remove("LOCUS_TOKEN")
                 .env("RUST_LOG", "warn")
                 .stdout(Stdio::piped())
                 .spawn()
                 .unwrap();
-            listening_addr(&mut w);
+            let at = listening_addr(&mut w);
+            let wildcard = at.starts_with("0.0.0.0:");
+            assert_eq!(wildcard, c == &unbound, "{} listens on {at}", c.display());
             w
         })
         .collect();
@@ -323,6 +331,8 @@ fn daemons_as_processes_match_single_machine() {
             "2",
             "--partitioner",
             "morton",
+            "--fetch",
+            "forward",
         ])
         .arg(&scene)
         .arg("-o")
@@ -348,6 +358,8 @@ fn daemons_as_processes_match_single_machine() {
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d.join("farm.json")).unwrap()).unwrap();
     assert_eq!(report["farm"]["workers"].as_array().unwrap().len(), 2);
+    let forwarded = report["farm"]["forwarded_fraction"].as_f64().unwrap();
+    assert!(forwarded > 0.0, "rays crossed between the workers");
     // The same error estimate as one machine's, to the bit.
     let one: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d.join("single.json")).unwrap()).unwrap();

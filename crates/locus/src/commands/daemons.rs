@@ -60,16 +60,23 @@ pub(crate) async fn serve<F: std::future::Future<Output = Result<()>>>(
     run(shutdown).await
 }
 
+/// Where a worker listens for peer links when neither `--listen` nor its
+/// config says.
+const DEFAULT_WORKER_LISTEN: &str = "0.0.0.0:0";
+
 pub(crate) fn cmd_worker(a: WorkerArgs) -> Result<()> {
     let (cfg, token, tls) = a.auth.load(true)?;
     let w = &cfg.worker;
     let scheduler = a.scheduler.or(w.scheduler.clone()).context(
         "no scheduler address: pass --scheduler or set [worker] scheduler in the config",
     )?;
+    // Peers dial a wildcard listener at the address this worker reaches
+    // the scheduler from (`locus_worker::advertised`), so a worker needs
+    // no address of its own to join a farm.
     let listen = a
         .listen
         .or(w.listen.clone())
-        .context("no listen address: pass --listen or set [worker] listen in the config")?;
+        .unwrap_or_else(|| DEFAULT_WORKER_LISTEN.to_string());
     let wc = WorkerConfig {
         scheduler,
         listen,
