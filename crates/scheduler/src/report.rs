@@ -109,10 +109,7 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
             .map(|(w, s)| WorkerSummary {
                 id: w as u16,
                 addr: names.get(w).cloned().unwrap_or_default(),
-                predicted_cost_share: match j.req.options.cost_model {
-                    locus_protocol::submit::CostModel::Analytic => prep.analytic_share[w],
-                    locus_protocol::submit::CostModel::Sampled => prep.sampled_share[w],
-                },
+                predicted_cost_share: prep.predicted_share(w, j.req.options.cost_model),
                 measured_cost_share: measured[w],
                 stats: s.clone(),
             })

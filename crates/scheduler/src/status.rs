@@ -4,7 +4,6 @@
 //! workers). Built by the actor on request, so it is always consistent.
 
 use crate::actor::{Actor, Running};
-use locus_protocol::submit::CostModel;
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::time::Instant;
@@ -242,12 +241,11 @@ impl Actor {
                 .map(|(w, m)| Member {
                     worker: *m,
                     listen: self.listen_of(*m),
-                    predicted_share: j.attempt.prep.as_ref().map(|p| {
-                        match j.req.options.cost_model {
-                            CostModel::Analytic => p.analytic_share[w],
-                            CostModel::Sampled => p.sampled_share[w],
-                        }
-                    }),
+                    predicted_share: j
+                        .attempt
+                        .prep
+                        .as_ref()
+                        .map(|p| p.predicted_share(w, j.req.options.cost_model)),
                     tile_passes_done: j.attempt.tiles_by[w],
                 })
                 .collect(),
