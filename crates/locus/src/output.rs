@@ -207,10 +207,12 @@ pub(crate) fn write_farm_result(
     for w in &f.workers {
         let s = &w.stats;
         let sent: u64 = s.peers.iter().map(|p| p.bytes_sent).sum();
+        // A replica holds every leaf, whatever its processor map names.
+        let leaves = if f.replicated { f.leaves } else { s.leaves };
         println!(
             "  {:>6}  {:>6}  {:>9}  {:>10}  {:>7}  {:>10}  {:>7.2}  {:>6.2}  {:>6.2}  {:>5.1}  {:>5.1}",
             w.id,
-            s.leaves,
+            leaves,
             s.triangles,
             s.trace.bvh_queries,
             s.forwarded_out,
