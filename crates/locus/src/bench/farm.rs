@@ -96,6 +96,14 @@ pub struct Row {
     /// The same CPU above one machine's over every ray the farm traced:
     /// what the farm costs a ray however few are forwarded.
     pub us_extra_per_ray: Option<f64>,
+    /// One machine's render CPU over the rays it traced (its row only):
+    /// what tracing a ray costs on this machine, the yardstick of a
+    /// forward's cost.
+    pub us_per_ray: Option<f64>,
+    /// [`Self::us_per_forward`] over one machine's [`Self::us_per_ray`]:
+    /// what a forwarded query costs in rays traced, a figure that moves
+    /// far less from one processor to the next than microseconds do.
+    pub forward_in_rays: Option<f64>,
     pub forwards_per_ray: f64,
     pub bytes_per_sample: f64,
     /// Ray items (forwarded queries and answers) per message between
@@ -147,6 +155,8 @@ impl Row {
             cpu_s: 0.0,
             us_per_forward: None,
             us_extra_per_ray: None,
+            us_per_ray: None,
+            forward_in_rays: None,
             forwards_per_ray: 0.0,
             bytes_per_sample: 0.0,
             items_per_message: None,
@@ -218,6 +228,15 @@ struct Single {
     render_s: f64,
     total_s: f64,
     cpu_s: f64,
+    /// Rays traced: camera, shadow and indirect.
+    rays: u64,
+}
+
+impl Single {
+    /// CPU microseconds a ray (None for a render that traced none).
+    fn us_per_ray(&self) -> Option<f64> {
+        (self.rays > 0).then(|| self.cpu_s / self.rays as f64 * 1e6)
+    }
 }
 
 fn single(scene: &Scene, cores: usize, repeat: u32) -> Single {
@@ -238,6 +257,7 @@ fn single(scene: &Scene, cores: usize, repeat: u32) -> Single {
             render_s: out.render_s,
             total_s: t.elapsed().as_secs_f64(),
             cpu_s,
+            rays,
         };
         if best.as_ref().is_none_or(|b| s.render_s < b.render_s) {
             best = Some(s);
@@ -355,6 +375,7 @@ fn row(scene: &str, run: &FarmRun, one: &Single, runs: Runs) -> Row {
         .map(|w| w.stats.cpu_s - w.stats.setup_cpu_s)
         .sum();
     let fwd = t.forwarded_out;
+    let us_per_forward = (fwd > 0).then(|| (cpu - one.cpu_s) / fwd as f64 * 1e6);
     let messages: u64 = f
         .workers
         .iter()
@@ -395,7 +416,9 @@ fn row(scene: &str, run: &FarmRun, one: &Single, runs: Runs) -> Row {
         efficiency_render: one.render_s / f.phases.render_s.max(1e-9),
         efficiency_total: one.total_s / total_s.max(1e-9),
         cpu_s: cpu,
-        us_per_forward: (fwd > 0).then(|| (cpu - one.cpu_s) / fwd as f64 * 1e6),
+        us_per_forward,
+        us_per_ray: None,
+        forward_in_rays: us_per_forward.zip(one.us_per_ray()).map(|(f, r)| f / r),
         us_extra_per_ray: {
             let tr = &t.trace;
             let rays = tr.camera_rays + tr.shadow_rays + tr.indirect_rays;
@@ -471,6 +494,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
             render_s: one.render_s,
             total_s: one.total_s,
             cpu_s: one.cpu_s,
+            us_per_ray: one.us_per_ray(),
             peak_rss: one_peak,
             ..Row::blank(&name)
         });

@@ -16,11 +16,11 @@ pub fn markdown(rows: &[Row]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | CPU us / ray above one machine | forwards / ray | bytes / sample | items / message | imbalance | imbalance with setup | idle | engine busy | handed | peak MiB per process (budget) | bit-identical |"
+        "| scene | configuration | render s | total s | efficiency (render) | efficiency (total) | CPU us / forward | a forward in rays' CPU | CPU us / ray (one machine) | CPU us / ray above one machine | forwards / ray | bytes / sample | items / message | imbalance | imbalance with setup | idle | engine busy | handed | peak MiB per process (budget) | bit-identical |"
     );
     let _ = writeln!(
         s,
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"
     );
     for r in rows {
         let peaks = r
@@ -36,7 +36,7 @@ pub fn markdown(rows: &[Row]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {} | {:.3} | {:.0} | {} | {:.2} | {:.2} | {:.0}% | {} | {} | {}{} | {} |",
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {} | {} | {} | {:.3} | {:.0} | {} | {:.2} | {:.2} | {:.0}% | {} | {} | {}{} | {} |",
             r.scene,
             r.config,
             r.render_s,
@@ -44,6 +44,8 @@ pub fn markdown(rows: &[Row]) -> String {
             r.efficiency_render,
             r.efficiency_total,
             r.us_per_forward.map_or("".into(), |u| format!("{u:.2}")),
+            r.forward_in_rays.map_or("".into(), |u| format!("{u:.2}")),
+            r.us_per_ray.map_or("".into(), |u| format!("{u:.3}")),
             r.us_extra_per_ray.map_or("".into(), |u| format!("{u:.3}")),
             r.forwards_per_ray,
             r.bytes_per_sample,
