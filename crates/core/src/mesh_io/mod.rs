@@ -14,6 +14,7 @@ mod gltf_check;
 mod gltf_mesh;
 mod obj;
 mod ply;
+mod ply_binary;
 
 use crate::error::{Location, SceneError};
 use glam::Vec3;

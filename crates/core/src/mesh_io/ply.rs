@@ -1,14 +1,16 @@
-//! PLY (ASCII and binary, through ply-rs-bw): vertices with `x y z` and
-//! optional `nx ny nz`, faces with a `vertex_indices` (or `vertex_index`)
-//! list, fanned into triangles.
+//! PLY (ASCII and binary): vertices with `x y z` and optional `nx ny nz`,
+//! faces with a `vertex_indices` (or `vertex_index`) list, fanned into
+//! triangles.
 //!
-//! The elements are read into small typed records ([`Vertex`], [`Face`])
-//! rather than ply-rs-bw's default element, a map from property name to
-//! value per vertex: with that, a 77 MB binary file of 4 million
-//! triangles took 12 s to load and held every vertex as a hash map.
-//! Elements other than vertices and faces are read with the default
+//! ply-rs-bw reads the header, and an ASCII body into small typed records
+//! ([`Vertex`], [`Face`]) rather than its default element, a map from
+//! property name to value per vertex: with that, a 77 MB binary file of 4
+//! million triangles took 12 s to load and held every vertex as a hash
+//! map. Elements other than vertices and faces are read with the default
 //! element and dropped (they must be read: the payload is in header
-//! order).
+//! order). A binary body is read from the file's bytes by
+//! [`super::ply_binary`], which takes the same values into the same
+//! [`Records`] without a call per scalar or an allocation per face.
 
 use super::MeshData;
 use crate::error::{Location, SceneError};
@@ -19,9 +21,18 @@ use std::path::Path;
 /// A vertex as read: its position and normal components, each present
 /// when the file gives it as a scalar.
 #[derive(Default)]
-struct Vertex {
-    at: [Option<f32>; 3],
-    normal: [Option<f32>; 3],
+pub(super) struct Vertex {
+    pub(super) at: [Option<f32>; 3],
+    pub(super) normal: [Option<f32>; 3],
+}
+
+/// The vertex and face elements as read, by either reader: each face's
+/// vertex list as a range of `indices` (None where the face has none).
+#[derive(Default)]
+pub(super) struct Records {
+    pub(super) verts: Vec<Vertex>,
+    pub(super) faces: Vec<Option<(usize, usize)>>,
+    pub(super) indices: Vec<i64>,
 }
 
 impl PropertyAccess for Vertex {
@@ -125,14 +136,13 @@ fn check_ply_counts(
 
 pub(super) fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
     use ply_rs_bw::parser::Parser;
-    use ply_rs_bw::ply::DefaultElement;
+    use ply_rs_bw::ply::{DefaultElement, Encoding};
     let file = || path.to_path_buf();
-    let f = std::fs::File::open(path).map_err(|source| SceneError::Io {
+    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
         file: file(),
         source,
     })?;
-    let len = f.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
-    let mut r = ply_rs_bw::parser::Reader::new(std::io::BufReader::new(f));
+    let mut r = ply_rs_bw::parser::Reader::new(&bytes[..]);
     let ply_error = |e: ply_rs_bw::parser::ParseError| {
         let msg = e.to_string();
         // ply-rs-bw prefixes ASCII errors with "Line N: ".
@@ -151,27 +161,46 @@ pub(super) fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
     let header = Parser::<DefaultElement>::new()
         .read_header(&mut r)
         .map_err(ply_error)?;
-    check_ply_counts(path, &header, len)?;
-    let (mut verts, mut faces) = (Vec::new(), Vec::new());
-    for (name, def) in header.elements.iter() {
-        match name.as_str() {
-            "vertex" => {
-                verts = Parser::<Vertex>::new()
-                    .read_payload_for_element(&mut r, def, &header)
-                    .map_err(ply_error)?;
+    check_ply_counts(path, &header, bytes.len() as u64)?;
+    let records = match header.encoding {
+        Encoding::BinaryLittleEndian => super::ply_binary::read(path, &header, r.get_ref(), false)?,
+        Encoding::BinaryBigEndian => super::ply_binary::read(path, &header, r.get_ref(), true)?,
+        Encoding::Ascii => {
+            let mut records = Records::default();
+            for (name, def) in header.elements.iter() {
+                match name.as_str() {
+                    "vertex" => {
+                        records.verts = Parser::<Vertex>::new()
+                            .read_payload_for_element(&mut r, def, &header)
+                            .map_err(ply_error)?;
+                    }
+                    "face" => {
+                        let faces = Parser::<Face>::new()
+                            .read_payload_for_element(&mut r, def, &header)
+                            .map_err(ply_error)?;
+                        for f in faces {
+                            let list = f.indices.or(f.index).map(|l| {
+                                records.indices.extend_from_slice(&l);
+                                (records.indices.len() - l.len(), l.len())
+                            });
+                            records.faces.push(list);
+                        }
+                    }
+                    _ => {
+                        Parser::<DefaultElement>::new()
+                            .read_payload_for_element(&mut r, def, &header)
+                            .map_err(ply_error)?;
+                    }
+                }
             }
-            "face" => {
-                faces = Parser::<Face>::new()
-                    .read_payload_for_element(&mut r, def, &header)
-                    .map_err(ply_error)?;
-            }
-            _ => {
-                Parser::<DefaultElement>::new()
-                    .read_payload_for_element(&mut r, def, &header)
-                    .map_err(ply_error)?;
-            }
+            records
         }
-    }
+    };
+    let Records {
+        verts,
+        faces,
+        indices,
+    } = records;
     let mut out = MeshData::default();
     for (i, v) in verts.iter().enumerate() {
         let mut c = [0f32; 3];
@@ -214,9 +243,7 @@ pub(super) fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
     let n = out.positions.len();
     for (i, f) in faces.iter().enumerate() {
         let idx = f
-            .indices
-            .as_ref()
-            .or(f.index.as_ref())
+            .map(|(start, len)| &indices[start..start + len])
             .ok_or_else(|| SceneError::Invalid {
                 file: file(),
                 location: Location::Element(format!("face {i}")),
@@ -329,20 +356,38 @@ mod tests {
         let binary = |big: bool| {
             let order = if big { "big" } else { "little" };
             let mut b = format!(
-                "ply\nformat binary_{order}_endian 1.0\nelement vertex 4\nproperty double x\nproperty double y\n\
-                 property int z\nelement face 2\nproperty list uchar ushort vertex_index\nend_header\n"
+                "ply\nformat binary_{order}_endian 1.0\ncomment skipped lists and scalars around the ones read\n\
+                 element vertex 4\nproperty double x\nproperty list short float weights\nproperty double y\n\
+                 property int z\nelement face 2\nproperty list uchar ushort vertex_index\nproperty uchar flags\nend_header\n"
             )
             .into_bytes();
             for (i, v) in [[0.1f64, 0.2], [1.0 / 3.0, 0.0], [1.0, 1e-3], [-2.5, 7.0]]
                 .iter()
                 .enumerate()
             {
-                for x in v {
+                for (k, x) in v.iter().enumerate() {
                     b.extend(if big {
                         x.to_be_bytes()
                     } else {
                         x.to_le_bytes()
                     });
+                    if k == 0 {
+                        // `i` weights after x.
+                        let n = i as i16;
+                        b.extend(if big {
+                            n.to_be_bytes()
+                        } else {
+                            n.to_le_bytes()
+                        });
+                        for w in 0..i {
+                            let w = w as f32 * 0.5;
+                            b.extend(if big {
+                                w.to_be_bytes()
+                            } else {
+                                w.to_le_bytes()
+                            });
+                        }
+                    }
                 }
                 let z = i as i32 - 1;
                 b.extend(if big {
@@ -360,6 +405,7 @@ mod tests {
                         k.to_le_bytes()
                     });
                 }
+                b.push(7);
             }
             b
         };
@@ -371,6 +417,22 @@ mod tests {
             assert_eq!(tris.len(), 3, "{}", p.display());
             assert_eq!((pos, nrm, tris), by_default_element(p), "{}", p.display());
         }
+        // A binary body cut short, or with a negative list length, is an
+        // error naming the element it broke in.
+        let whole = binary(false);
+        let cut = dir.join("cut.ply");
+        std::fs::write(&cut, &whole[..whole.len() - 4]).unwrap();
+        let e = load_ply(&cut).expect_err("cut short").to_string();
+        assert!(e.contains("face 1") && e.contains("ends inside"), "{e}");
+        let negative = dir.join("negative.ply");
+        let mut bad = whole.clone();
+        let end = b"end_header\n";
+        let body = bad.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+        // The first vertex's weights' length: the i16 after its x.
+        bad[body + 8..body + 10].copy_from_slice(&(-3i16).to_le_bytes());
+        std::fs::write(&negative, &bad).unwrap();
+        let e = load_ply(&negative).expect_err("negative").to_string();
+        assert!(e.contains("vertex 0") && e.contains("negative (-3)"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
