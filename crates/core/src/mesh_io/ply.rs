@@ -35,6 +35,17 @@ pub(super) struct Records {
     pub(super) indices: Vec<i64>,
 }
 
+impl Vertex {
+    /// Component `k`: 0-2 the position's `x y z`, 3-5 the normal's.
+    #[inline]
+    pub(super) fn component(&mut self, k: usize) -> &mut Option<f32> {
+        match k {
+            0..3 => &mut self.at[k],
+            _ => &mut self.normal[k - 3],
+        }
+    }
+}
+
 impl PropertyAccess for Vertex {
     fn new() -> Self {
         Self::default()
@@ -96,15 +107,8 @@ fn check_ply_counts(
     header: &ply_rs_bw::ply::Header,
     len: u64,
 ) -> Result<(), SceneError> {
-    use ply_rs_bw::ply::{Encoding, PropertyType, ScalarType};
-    let size = |t: &ScalarType| -> u64 {
-        match t {
-            ScalarType::Char | ScalarType::UChar => 1,
-            ScalarType::Short | ScalarType::UShort => 2,
-            ScalarType::Int | ScalarType::UInt | ScalarType::Float => 4,
-            ScalarType::Double => 8,
-        }
-    };
+    use ply_rs_bw::ply::{Encoding, PropertyType};
+    let size = |t| super::ply_binary::size(t) as u64;
     let mut need = 0u64;
     for (name, e) in header.elements.iter() {
         let each = match header.encoding {
@@ -132,6 +136,38 @@ fn check_ply_counts(
         }
     }
     Ok(())
+}
+
+/// The vertex and face elements of an ASCII body, read by ply-rs-bw into
+/// typed records from `r`, which stands after the header.
+fn ascii_records(
+    r: &mut ply_rs_bw::parser::Reader<&[u8]>,
+    header: &ply_rs_bw::ply::Header,
+) -> Result<Records, ply_rs_bw::parser::ParseError> {
+    use ply_rs_bw::parser::Parser;
+    use ply_rs_bw::ply::DefaultElement;
+    let mut records = Records::default();
+    for (name, def) in header.elements.iter() {
+        match name.as_str() {
+            "vertex" => {
+                records.verts = Parser::<Vertex>::new().read_payload_for_element(r, def, header)?
+            }
+            "face" => {
+                let faces = Parser::<Face>::new().read_payload_for_element(r, def, header)?;
+                for f in faces {
+                    let list = f.indices.or(f.index).map(|l| {
+                        records.indices.extend_from_slice(&l);
+                        (records.indices.len() - l.len(), l.len())
+                    });
+                    records.faces.push(list);
+                }
+            }
+            _ => {
+                Parser::<DefaultElement>::new().read_payload_for_element(r, def, header)?;
+            }
+        }
+    }
+    Ok(records)
 }
 
 pub(super) fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
@@ -165,36 +201,7 @@ pub(super) fn load_ply(path: &Path) -> Result<MeshData, SceneError> {
     let records = match header.encoding {
         Encoding::BinaryLittleEndian => super::ply_binary::read(path, &header, r.get_ref(), false)?,
         Encoding::BinaryBigEndian => super::ply_binary::read(path, &header, r.get_ref(), true)?,
-        Encoding::Ascii => {
-            let mut records = Records::default();
-            for (name, def) in header.elements.iter() {
-                match name.as_str() {
-                    "vertex" => {
-                        records.verts = Parser::<Vertex>::new()
-                            .read_payload_for_element(&mut r, def, &header)
-                            .map_err(ply_error)?;
-                    }
-                    "face" => {
-                        let faces = Parser::<Face>::new()
-                            .read_payload_for_element(&mut r, def, &header)
-                            .map_err(ply_error)?;
-                        for f in faces {
-                            let list = f.indices.or(f.index).map(|l| {
-                                records.indices.extend_from_slice(&l);
-                                (records.indices.len() - l.len(), l.len())
-                            });
-                            records.faces.push(list);
-                        }
-                    }
-                    _ => {
-                        Parser::<DefaultElement>::new()
-                            .read_payload_for_element(&mut r, def, &header)
-                            .map_err(ply_error)?;
-                    }
-                }
-            }
-            records
-        }
+        Encoding::Ascii => ascii_records(&mut r, &header).map_err(ply_error)?,
     };
     let Records {
         verts,
