@@ -90,6 +90,7 @@ impl<L: Copy + PartialEq> Route<L> {
             .fold(f32::INFINITY, f32::min);
         let ok = |l: u32| local(self.labels[l as usize]);
         let mut boxes = self.boxes.clone();
+        let mut stack = Vec::new();
         for (i, out) in boxes.iter_mut().enumerate() {
             if !local(self.labels[i]) {
                 continue;
@@ -112,7 +113,7 @@ impl<L: Copy + PartialEq> Route<L> {
                         if slab.max[a] <= slab.min[a] {
                             break;
                         }
-                        if self.table.tree().all_overlapping(&slab, &ok) {
+                        if self.table.tree().all_overlapping(&slab, &ok, &mut stack) {
                             if up {
                                 b.max[a] = slab.max[a];
                             } else {

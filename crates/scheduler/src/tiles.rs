@@ -82,7 +82,7 @@ pub fn locator(tiles: &[Tile]) -> impl Fn(u32, u32) -> Option<usize> + '_ {
         .max()
         .unwrap_or(1)
         .max(1);
-    let cell: std::collections::HashMap<(u32, u32), usize> = tiles
+    let cell: rustc_hash::FxHashMap<(u32, u32), usize> = tiles
         .iter()
         .enumerate()
         .map(|(i, t)| ((t.x0 / size, t.y0 / size), i))

@@ -214,8 +214,18 @@ impl Octree {
     }
 
     /// Whether every leaf whose box shares volume with `b` passes `ok`.
-    pub fn all_overlapping(&self, b: &Bounds, ok: &dyn Fn(u32) -> bool) -> bool {
-        let mut stack = vec![0usize];
+    /// `stack` is scratch the caller keeps between calls: a route's boxes
+    /// are grown by thousands of these, and a stack grown afresh each time
+    /// (1, 4, 8, 16, 32 entries) cost more in reallocations than the
+    /// descent itself.
+    pub fn all_overlapping(
+        &self,
+        b: &Bounds,
+        ok: &dyn Fn(u32) -> bool,
+        stack: &mut Vec<usize>,
+    ) -> bool {
+        stack.clear();
+        stack.push(0);
         while let Some(n) = stack.pop() {
             let nb = &self.node_bounds[n];
             if (0..3).any(|a| nb.min[a] >= b.max[a] || b.min[a] >= nb.max[a]) {

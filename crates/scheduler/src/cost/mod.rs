@@ -35,10 +35,18 @@ use locus_core::region::WorkerId;
 use locus_core::scene::Scene;
 use locus_core::stats::TraceStats;
 use locus_protocol::packet::TYPICAL_FORWARD_BYTES;
-use std::collections::HashMap;
 
 mod shared;
 mod tracing;
+
+/// Preview rays crossing from one leaf into another, per ordered pair
+/// `(from, into)`. Keyed by FxHash: the preview's crossings and the
+/// partition's leaf graph fill maps of hundreds of thousands of entries,
+/// where SipHash (which guards against keys chosen to collide, not a
+/// danger for leaf numbers the scheduler made itself) took a fifth of
+/// the partition's instructions. Nothing reads such a map in its
+/// iteration order without sorting first.
+pub type Crossings = rustc_hash::FxHashMap<(u32, u32), u32>;
 pub use shared::{shared_leaves, traffic};
 pub use tracing::preview;
 
@@ -96,7 +104,7 @@ pub struct Preview {
     /// [`Preview::crossings_beside`] with nothing shared). The direction
     /// matters because the two ends of a forwarded query pay unequally
     /// (see `partition::FORWARD_COST`).
-    pub crossings: HashMap<(u32, u32), u32>,
+    pub crossings: Crossings,
     /// The leaves with triangles each ray went through, in order, path
     /// by path: each ray's run ended by [`WALK_END`] (a path's ray) or
     /// [`SHADOW_END`] (its shadow ray), each path by [`PATH_END`]. What
@@ -263,7 +271,7 @@ pub fn sampled_in_parts(
 /// references as shipped). Without a preview it cannot tell, and rents
 /// (the workers decide leaf by leaf as they go).
 pub fn buying_pays(
-    crossings: &HashMap<(u32, u32), u32>,
+    crossings: &Crossings,
     owner: &[WorkerId],
     workers: usize,
     scene_bytes: u64,
@@ -285,7 +293,7 @@ pub fn buying_pays(
 /// the queries it forwards if every path is started by the owner of its
 /// first leaf. A tile has one owner for paths whose first leaves scatter,
 /// and [`Preview::forwards_from`] counts what that adds.
-pub fn cut(crossings: &HashMap<(u32, u32), u32>, owner: &[WorkerId]) -> u64 {
+pub fn cut(crossings: &Crossings, owner: &[WorkerId]) -> u64 {
     crossings
         .iter()
         .filter(|((a, b), _)| owner.get(*a as usize) != owner.get(*b as usize))
@@ -584,7 +592,7 @@ mod tests {
         // Leaves 0, 1 on worker 0 and leaf 2 on worker 1; only the border
         // between 1 and 2 separates workers.
         let owner = [0u16, 0, 1];
-        let crossings: HashMap<(u32, u32), u32> = [((0, 1), 1000), ((1, 2), 10)].into();
+        let crossings: Crossings = [((0, 1), 1000), ((1, 2), 10)].into_iter().collect();
         let buy = 3000 * TRIANGLE_BYTES;
         let refs = buy;
         // 10 preview crossings per 100 paths: the job forwards samples / 10.
@@ -603,7 +611,7 @@ mod tests {
         // No preview: no prediction, rent.
         assert!(!buying_pays(&crossings, &owner, 2, refs, u64::MAX, 0));
         // Crossings inside one worker's region cost nothing.
-        let inside: HashMap<(u32, u32), u32> = [((0, 1), 1_000_000)].into();
+        let inside: Crossings = [((0, 1), 1_000_000)].into_iter().collect();
         assert!(!buying_pays(&inside, &owner, 2, refs, samples_even, 100));
     }
 }

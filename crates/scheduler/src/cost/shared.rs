@@ -5,9 +5,8 @@
 //! ([`Preview::crossings_beside`]), along which regions are grown
 //! (`job::regions`).
 
-use super::{PATH_END, Preview, SHADOW_END, WALK_END};
+use super::{Crossings, PATH_END, Preview, SHADOW_END, WALK_END};
 use locus_core::region::WorkerId;
-use std::collections::HashMap;
 
 impl Preview {
     /// The crossings a farm forwards once the `shared` leaves (which every
@@ -22,18 +21,14 @@ impl Preview {
     /// holds it: its tile goes to that leaf's owner
     /// ([`Preview::first_leaves`]), so entering it is no crossing, and a
     /// shadow ray from a shared surface before it into another leaf is.
-    pub fn crossings_beside(&self, shared: &[bool]) -> HashMap<(u32, u32), u32> {
+    pub fn crossings_beside(&self, shared: &[bool]) -> Crossings {
         self.crossings_beside_from(shared, &self.first_leaves(shared))
     }
 
     /// [`Preview::crossings_beside`] with the paths' first leaves beside
     /// the `shared` ones already known ([`Preview::first_leaves`]).
-    pub fn crossings_beside_from(
-        &self,
-        shared: &[bool],
-        first: &[Option<u32>],
-    ) -> HashMap<(u32, u32), u32> {
-        let mut out: HashMap<(u32, u32), u32> = HashMap::new();
+    pub fn crossings_beside_from(&self, shared: &[bool], first: &[Option<u32>]) -> Crossings {
+        let mut out = Crossings::default();
         self.follow(shared, first, |e| {
             if let Some(p) = e.held.filter(|&p| !e.shared && p != e.leaf) {
                 *out.entry((p, e.leaf)).or_default() += 1;
@@ -330,7 +325,7 @@ struct Entered {
 }
 
 /// Crossings into or out of each of `n` leaves.
-pub fn traffic(crossings: &HashMap<(u32, u32), u32>, n: usize) -> Vec<u64> {
+pub fn traffic(crossings: &Crossings, n: usize) -> Vec<u64> {
     let mut t = vec![0u64; n];
     for (&(a, b), &c) in crossings {
         t[a as usize] += c as u64;
@@ -413,20 +408,25 @@ mod tests {
             rays: 13,
             steps: 0,
             paths: 4,
-            crossings: HashMap::new(),
+            crossings: Crossings::default(),
             walks,
             walk_costs: [&costs0[..], &costs1, &[0; 3], &[0; 9]].concat(),
             pixels: vec![(0, 0), (1, 0), (2, 0), (3, 0)],
         };
         let shared = [true, false, false, false];
         let beside = pv.crossings_beside(&shared);
-        assert_eq!(beside, [((a, b), 2), ((a, c), 1), ((c, b), 1)].into());
+        assert_eq!(
+            beside,
+            [((a, b), 2), ((a, c), 1), ((c, b), 1)]
+                .into_iter()
+                .collect::<Crossings>()
+        );
         let first = [Some(a), None, Some(c), Some(c)];
         assert_eq!(pv.first_leaves(&shared), first);
         // With nothing shared every change of leaf is a crossing, ray
         // after ray.
         let all = pv.crossings_beside(&[]);
-        let want: HashMap<(u32, u32), u32> = [
+        let want: Crossings = [
             ((s, a), 1),
             ((a, b), 1),
             ((a, s), 1),
@@ -434,7 +434,8 @@ mod tests {
             ((c, s), 1),
             ((s, b), 2),
         ]
-        .into();
+        .into_iter()
+        .collect();
         assert_eq!(all, want);
         let first = [Some(s), Some(s), Some(c), Some(s)];
         assert_eq!(pv.first_leaves(&[]), first);
@@ -564,14 +565,15 @@ mod tests {
     #[test]
     fn shared_leaves_are_the_most_crossed_per_triangle_that_fit() {
         let refs = [10, 1000, 10, 0, 50, 4];
-        let crossings: HashMap<(u32, u32), u32> = [
+        let crossings: Crossings = [
             ((0, 1), 100),
             ((1, 2), 100),
             ((2, 4), 5),
             ((0, 2), 50),
             ((5, 1), 1),
         ]
-        .into();
+        .into_iter()
+        .collect();
         // Crossings per (triangle + 16): leaf 2 155/26, leaf 0 150/26,
         // leaf 1 201/1016, leaf 4 5/66, leaf 5 1/20; leaf 3 is crossed by none.
         let none = [false; 6];

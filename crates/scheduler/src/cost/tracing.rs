@@ -14,7 +14,6 @@ use locus_core::octree::Octree;
 use locus_core::sampler::SampleKey;
 use locus_core::scene::Scene;
 use locus_core::stats::TraceStats;
-use std::collections::HashMap;
 use std::ops::ControlFlow;
 
 /// What one thread of the preview counts.
@@ -150,7 +149,7 @@ pub fn preview(
         rays: t.rays,
         steps: t.steps,
         paths: w as u64 * h as u64,
-        crossings: HashMap::new(),
+        crossings: super::Crossings::default(),
         walks: t.walks,
         walk_costs: t.walk_costs,
         pixels: t.pixels,

@@ -7,13 +7,13 @@
 //! ([`cost::Preview::share_values`]) while the forwards predicted fall
 //! ([`Draw::drawn`]).
 
+use crate::cost::Crossings;
 use crate::{cost, partition};
 use locus_core::octree::Octree;
 use locus_core::region::WorkerId;
 use locus_core::render::Tile;
 use locus_core::scene::Camera;
 use locus_protocol::submit::Partitioner;
-use std::collections::HashMap;
 
 /// What a job's regions are drawn from.
 pub(super) struct Draw<'a> {
@@ -125,7 +125,7 @@ impl Draw<'_> {
                 || pv.charged_from(shared, first),
                 || pv.crossings_beside_from(shared, first),
             ),
-            _ => (unshared(self.analytic, shared), HashMap::new()),
+            _ => (unshared(self.analytic, shared), Crossings::default()),
         };
         // The camera's leaf has always counted towards its nominal owner.
         let beside = |l: usize| shared[l] && Some(l as u32) != self.camera;

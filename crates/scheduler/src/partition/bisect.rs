@@ -122,13 +122,13 @@ fn cut_at(order: &[u32], cost: &[f64], frac: f64, total: f64) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::collections::HashMap;
+    use rustc_hash::FxHashMap as HashMap;
 
     /// An n x n x 1 grid of unit cells, each joined to its face
     /// neighbours by a border of weight 1.
     fn grid(n: u32) -> (Vec<Vec3>, LeafGraph) {
         let id = |x: u32, y: u32| y * n + x;
-        let mut edges: Vec<HashMap<u32, (f64, f64)>> = vec![HashMap::new(); (n * n) as usize];
+        let mut edges: Vec<HashMap<u32, (f64, f64)>> = vec![HashMap::default(); (n * n) as usize];
         for y in 0..n {
             for x in 0..n {
                 for (dx, dy) in [(1, 0), (0, 1)] {

@@ -16,8 +16,9 @@
 //! units and chooses among the grown, the bisected and the Morton regions;
 //! `tests` holds the tests of them all.
 
+use crate::cost::Crossings;
 use locus_core::octree::Octree;
-use std::collections::HashMap;
+use rustc_hash::FxHashMap;
 
 mod bisect;
 mod grow;
@@ -81,10 +82,10 @@ pub struct LeafGraph {
 impl LeafGraph {
     /// The graph of `tree`'s leaves with the preview's `crossings`, per
     /// ordered pair `(from, into)`.
-    pub fn new(tree: &Octree, crossings: &HashMap<(u32, u32), u32>) -> Self {
+    pub fn new(tree: &Octree, crossings: &Crossings) -> Self {
         let n = tree.leaves.len();
         // Per neighbour: (weight either way, weight out of this leaf).
-        let mut edges: Vec<HashMap<u32, (f64, f64)>> = vec![HashMap::new(); n];
+        let mut edges: Vec<FxHashMap<u32, (f64, f64)>> = vec![FxHashMap::default(); n];
         let nb = tree.face_neighbours();
         let contact = |a: usize, b: usize| {
             let (p, q) = (&tree.leaves[a].bounds, &tree.leaves[b].bounds);
@@ -136,7 +137,7 @@ impl LeafGraph {
     /// The graph of per-node neighbour weights (either way, and out of the
     /// node), each list sorted by neighbour so that every walk over it is
     /// deterministic.
-    fn from_maps(edges: Vec<HashMap<u32, (f64, f64)>>) -> Self {
+    fn from_maps(edges: Vec<FxHashMap<u32, (f64, f64)>>) -> Self {
         let (edges, out) = edges
             .into_iter()
             .map(|m| {
@@ -408,7 +409,7 @@ impl Units {
         };
         let n = bounds.len();
         let (mut ucost, mut refs) = (vec![0.0; n], vec![0u64; n]);
-        let mut edges: Vec<HashMap<u32, (f64, f64)>> = vec![HashMap::new(); n];
+        let mut edges: Vec<FxHashMap<u32, (f64, f64)>> = vec![FxHashMap::default(); n];
         for (l, &g) in group.iter().enumerate() {
             ucost[g as usize] += cost[l];
             refs[g as usize] += lim.refs[l];

@@ -210,7 +210,7 @@ pub(super) fn busiest(graph: &LeafGraph, cost: &[f64], lim: &Limits, owner: &[u1
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::collections::HashMap;
+    use rustc_hash::FxHashMap as HashMap;
 
     /// Two equal regions of one leaf each with a busy border between them:
     /// giving one leaf to the other region would end the border, and the
@@ -218,8 +218,10 @@ mod tests {
     /// also leave a worker with nothing to do.
     #[test]
     fn smoothing_leaves_no_region_below_its_share() {
-        let edges: Vec<HashMap<u32, (f64, f64)>> =
-            vec![[(1, (10.0, 5.0))].into(), [(0, (10.0, 5.0))].into()];
+        let edges: Vec<HashMap<u32, (f64, f64)>> = vec![
+            [(1, (10.0, 5.0))].into_iter().collect(),
+            [(0, (10.0, 5.0))].into_iter().collect(),
+        ];
         let graph = LeafGraph::from_maps(edges);
         let cost = [100.0, 100.0];
         let lim = Limits {
