@@ -117,8 +117,9 @@ impl LeafGraph {
         }
         // In a fixed order: a border's weight sums its crossings both
         // ways onto its area's share, and floating-point sums in the
-        // map's own order (seeded afresh for every map) drew different
-        // regions for the same job from one run to the next.
+        // map's own order (which was seeded afresh for every map, and
+        // still follows its size and history) drew different regions
+        // for the same job from one run to the next.
         let mut crossings: Vec<((u32, u32), u32)> =
             crossings.iter().map(|(&k, &c)| (k, c)).collect();
         crossings.sort_unstable();
