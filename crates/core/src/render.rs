@@ -5,7 +5,7 @@
 //! [`crate::passes`] by one task, so the image is bit-identical for any thread count and any
 //! tile order. Non-finite sample values are replaced by zero and counted.
 
-use crate::accel::Accel;
+use crate::accel::{Accel, BuildQuality};
 use crate::dircache::{CacheMemory, CacheParams, LeafCaches};
 use crate::geometry::{Bounds, TriangleSet};
 use crate::image_io::Image;
@@ -39,23 +39,45 @@ pub struct Prepared {
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct PrepTimings {
     pub bvh_s: f64,
+    /// The quality the BVH was built at.
+    pub quality: BuildQuality,
 }
 
 /// The BVH over every triangle of `scene` that one machine traces.
 pub fn whole_scene_accel(scene: &Scene) -> Accel {
+    whole_scene_accel_with(scene, BuildQuality::Full)
+}
+
+/// [`whole_scene_accel`] at the quality asked for.
+pub fn whole_scene_accel_with(scene: &Scene, quality: BuildQuality) -> Accel {
     let set = TriangleSet {
         ids: (0..scene.tris.len() as u32).collect(),
         verts: scene.tris.clone(),
         material: scene.tri_material.clone(),
         normals: scene.tri_normals.clone(),
     };
-    Accel::from_set(set, scene.magnitude())
+    Accel::from_set_with(set, scene.magnitude(), quality)
 }
 
 impl Prepared {
+    /// The scene prepared with a [`BuildQuality::Full`] BVH: what tests,
+    /// benchmarks of the tracer and long renders want.
     pub fn new(scene: Scene) -> Self {
+        Self::with_quality(scene, BuildQuality::Full)
+    }
+
+    /// The scene prepared for a render of `samples` camera samples: its
+    /// BVH built at [`BuildQuality::for_job`]'s quality, as the farm's
+    /// workers build theirs for the same job.
+    pub fn for_job(scene: Scene, samples: u64) -> Self {
+        let quality = BuildQuality::for_job(samples, scene.tris.len() as u64);
+        Self::with_quality(scene, quality)
+    }
+
+    /// The scene prepared with its BVH built at `quality`.
+    pub fn with_quality(scene: Scene, quality: BuildQuality) -> Self {
         let t = Instant::now();
-        let accel = whole_scene_accel(&scene);
+        let accel = whole_scene_accel_with(&scene, quality);
         let bvh_s = t.elapsed().as_secs_f64();
         let lights = LightSet::build(&scene);
         if lights.is_empty() {
@@ -65,7 +87,7 @@ impl Prepared {
             scene,
             accel,
             lights,
-            timings: PrepTimings { bvh_s },
+            timings: PrepTimings { bvh_s, quality },
             octree: OnceLock::new(),
         }
     }

@@ -45,3 +45,40 @@ fn same_bits_for_any_threads_and_tile_order() {
     };
     assert_ne!(render(&prep, &o, &|_, _| {}).image.to_bits(), bits);
 }
+
+/// A job of fewer camera samples than triangles builds its BVH quick
+/// (`BuildQuality::for_job`), a different tree from the full build, and
+/// renders the same image to the bit: hits are exact and ties go to the
+/// smaller id whatever the tree.
+#[test]
+fn a_quick_bvh_renders_what_a_full_one_does() {
+    use locus_core::accel::{BuildQuality, QUICK_BELOW_SAMPLES_PER_TRIANGLE};
+    let mut s = common::furnace_scene(0.7, 0.3, 2, 16);
+    s.camera.width = 24;
+    s.camera.height = 16;
+    let tris = s.tris.len() as u64;
+    let samples = 24 * 16 * s.settings.spp as u64;
+    assert!(
+        samples < tris * QUICK_BELOW_SAMPLES_PER_TRIANGLE,
+        "{samples} {tris}"
+    );
+    let quick = Prepared::for_job(s.clone(), samples);
+    let full = Prepared::new(s);
+    assert_eq!(quick.timings.quality, BuildQuality::Quick);
+    assert_eq!(full.timings.quality, BuildQuality::Full);
+    assert_ne!(
+        quick.accel.bytes(),
+        full.accel.bytes(),
+        "the two builds made the same tree: the test would show nothing"
+    );
+    let o = RenderOptions::from_scene(&full.scene);
+    let a = render(&quick, &o, &|_, _| {});
+    let b = render(&full, &o, &|_, _| {});
+    assert!(b.image.mean()[0] > 0.0);
+    assert_eq!(a.image.to_bits(), b.image.to_bits());
+    assert_eq!(a.stats.rays(), b.stats.rays());
+    // The rule's edge: at one sample a triangle the full build pays.
+    assert_eq!(BuildQuality::for_job(tris, tris), BuildQuality::Full);
+    assert_eq!(BuildQuality::for_job(tris - 1, tris), BuildQuality::Quick);
+    assert_eq!(BuildQuality::for_job(0, 0), BuildQuality::Full);
+}

@@ -170,11 +170,13 @@ fn shared_layout(job: u64, prep: &Prepared, takers: &[bool]) -> Option<(Vec<usiz
     }
     let ids: Vec<Arc<Vec<u32>>> = prep.parts[first].iter().map(|r| r.ids.clone()).collect();
     let scene = prep.scene.clone();
+    let quality =
+        locus_worker::job::job_quality(&scene.camera, scene.settings.spp, &prep.leaf_tris);
     let (tx, rx) = watch::channel(None);
     let (workers, spent) = (same.len(), prep.layout_s.clone());
     tokio::task::spawn_blocking(move || {
         let t = Instant::now();
-        let built = std::panic::catch_unwind(move || lay_out(&scene, &ids));
+        let built = std::panic::catch_unwind(move || lay_out(&scene, &ids, quality));
         let seconds = t.elapsed().as_secs_f64();
         spent.store(seconds.to_bits(), std::sync::atomic::Ordering::Relaxed);
         let layout = match built {
@@ -206,11 +208,11 @@ fn shared_layout(job: u64, prep: &Prepared, takers: &[bool]) -> Option<(Vec<usiz
 /// triangles merged as the worker merges them (ascending ids, each once).
 /// The whole scene (what a replicated job ships) is laid out in place; a
 /// part of it over a copy of its vertices alone.
-fn lay_out(scene: &Scene, ids: &[Arc<Vec<u32>>]) -> Layout {
+fn lay_out(scene: &Scene, ids: &[Arc<Vec<u32>>], quality: BuildQuality) -> Layout {
     let mut all: Vec<u32> = ids.iter().flat_map(|l| l.iter().copied()).collect();
     all.sort_unstable();
     all.dedup();
-    let (mag, quality) = (scene.magnitude(), BuildQuality::Full);
+    let mag = scene.magnitude();
     // Ascending, distinct and each below the count: all of them, in order.
     if all.len() == scene.tris.len() {
         return Layout::build_over(&scene.tris, &all, mag, quality);

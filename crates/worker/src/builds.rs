@@ -18,6 +18,7 @@
 //! process, have none.
 
 use crate::job::build_region_part;
+use locus_core::accel::BuildQuality;
 use locus_core::accel_set::Part;
 use locus_core::geometry::TriangleSet;
 use std::collections::HashMap;
@@ -46,6 +47,7 @@ impl std::fmt::Debug for SharedBuilds {
 #[derive(Clone, PartialEq, Eq, Hash)]
 struct Key {
     magnitude: u32,
+    quality: BuildQuality,
     leaves: Vec<u32>,
     triangles: usize,
     /// A hash of the triangle ids.
@@ -99,8 +101,9 @@ impl SharedBuilds {
         chunk: TriangleSet,
         leaves: Vec<u32>,
         magnitude: f32,
+        quality: BuildQuality,
     ) -> (Arc<Part>, Origin) {
-        let key = Key::of(&chunk, &leaves, magnitude);
+        let key = Key::of(&chunk, &leaves, magnitude, quality);
         let found = {
             let mut parts = self.parts.lock().unwrap_or_else(PoisonError::into_inner);
             parts.retain(|_, e| match e {
@@ -125,7 +128,7 @@ impl SharedBuilds {
                 let p = cell
                     .get_or_init(|| {
                         let (chunk, leaves) = own.take().expect("taken once");
-                        build_region_part(chunk, leaves, magnitude, self.pool.as_deref())
+                        build_region_part(chunk, leaves, magnitude, quality, self.pool.as_deref())
                     })
                     .clone();
                 if own.is_none() {
@@ -142,7 +145,7 @@ impl SharedBuilds {
                     triangles = chunk.len(),
                     "a BVH part built in this process for the same leaves holds other triangles; building this one apart"
                 );
-                let p = build_region_part(chunk, leaves, magnitude, self.pool.as_deref());
+                let p = build_region_part(chunk, leaves, magnitude, quality, self.pool.as_deref());
                 (p, Origin::Built)
             }
         }
@@ -182,11 +185,12 @@ fn start(parts: &mut HashMap<Key, Entry>, key: Key) -> Arc<OnceLock<Arc<Part>>> 
 }
 
 impl Key {
-    fn of(chunk: &TriangleSet, leaves: &[u32], magnitude: f32) -> Self {
+    fn of(chunk: &TriangleSet, leaves: &[u32], magnitude: f32, quality: BuildQuality) -> Self {
         let mut h = DefaultHasher::new();
         chunk.ids.hash(&mut h);
         Self {
             magnitude: magnitude.to_bits(),
+            quality,
             leaves: leaves.to_vec(),
             triangles: chunk.len(),
             ids: h.finish(),
@@ -216,7 +220,9 @@ mod tests {
         let builds = SharedBuilds::new(2).unwrap();
         let got: Vec<(Arc<Part>, Origin)> = std::thread::scope(|s| {
             let hs: Vec<_> = (0..4)
-                .map(|_| s.spawn(|| builds.part(set(2000, 0.0), vec![1, 2], 10.0)))
+                .map(|_| {
+                    s.spawn(|| builds.part(set(2000, 0.0), vec![1, 2], 10.0, BuildQuality::Full))
+                })
                 .collect();
             hs.into_iter().map(|h| h.join().unwrap()).collect()
         });
@@ -225,11 +231,11 @@ mod tests {
         assert!(got.iter().all(|(p, _)| Arc::ptr_eq(p, &got[0].0)));
         assert!(got[0].0.accel.holds_exactly(&set(2000, 0.0)));
         drop(got);
-        let (again, o) = builds.part(set(2000, 0.0), vec![1, 2], 10.0);
+        let (again, o) = builds.part(set(2000, 0.0), vec![1, 2], 10.0, BuildQuality::Full);
         assert_eq!(o, Origin::Built, "nobody held the part: built again");
         drop(again);
         // A part of other leaves: the one nobody holds is forgotten.
-        let (_other, _) = builds.part(set(2000, 0.0), vec![3], 10.0);
+        let (_other, _) = builds.part(set(2000, 0.0), vec![3], 10.0, BuildQuality::Full);
         assert_eq!(builds.tracked(), 1, "dropped parts are forgotten");
     }
 
@@ -238,7 +244,7 @@ mod tests {
     #[test]
     fn other_triangles_are_built_apart() {
         let builds = SharedBuilds::new(1).unwrap();
-        let (a, o) = builds.part(set(50, 0.0), vec![3], 10.0);
+        let (a, o) = builds.part(set(50, 0.0), vec![3], 10.0, BuildQuality::Full);
         assert_eq!(o, Origin::Built);
         for (chunk, leaves, mag) in [
             (set(50, 0.0), vec![4], 10.0),
@@ -246,12 +252,12 @@ mod tests {
             (set(50, 0.0), vec![3], 11.0),
             (set(50, 0.5), vec![3], 10.0),
         ] {
-            let (p, o) = builds.part(chunk.clone(), leaves, mag);
+            let (p, o) = builds.part(chunk.clone(), leaves, mag, BuildQuality::Full);
             assert_eq!(o, Origin::Built);
             assert!(!Arc::ptr_eq(&p, &a));
             assert!(p.accel.holds_exactly(&chunk));
         }
-        let (p, o) = builds.part(set(50, 0.0), vec![3], 10.0);
+        let (p, o) = builds.part(set(50, 0.0), vec![3], 10.0, BuildQuality::Full);
         assert_eq!((Arc::ptr_eq(&p, &a), o), (true, Origin::Shared));
     }
 }

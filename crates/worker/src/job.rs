@@ -7,7 +7,7 @@ use crate::engine::{self, EngineError, EngineJob, Event, Links};
 use crate::peers::{self, Inbox, JobLink, OnBreak, Traffic};
 use crate::sys;
 use anyhow::{Context, bail};
-use locus_core::accel::{Accel, Layout};
+use locus_core::accel::{Accel, BuildQuality, Layout};
 use locus_core::accel_set::{self, Part};
 use locus_core::irradiance::IrradianceCache;
 use locus_protocol::control::{JobSetup, TriangleSet, WorkerToScheduler};
@@ -235,16 +235,16 @@ impl Building {
         layout: Option<Arc<Layout>>,
     ) -> anyhow::Result<()> {
         let s = &self.setup;
-        let (mag, t) = (s.magnitude, Instant::now());
+        let (mag, quality, t) = (s.magnitude, region_quality(s), Instant::now());
         let (pool, builds) = (self.pool.clone(), self.builds.clone());
         let (part, origin) = tokio::task::spawn_blocking(move || {
             let built = match (layout, builds) {
                 (Some(l), _) => Accel::from_layout(chunk, &l)
                     .map(|a| (Arc::new(Part::new(a, leaves)), Origin::Shipped))
                     .map_err(|e| anyhow::anyhow!("the scheduler's BVH layout: {e}")),
-                (None, Some(b)) => Ok(b.part(chunk, leaves, mag)),
+                (None, Some(b)) => Ok(b.part(chunk, leaves, mag, quality)),
                 (None, None) => Ok((
-                    build_region_part(chunk, leaves, mag, pool.as_deref()),
+                    build_region_part(chunk, leaves, mag, quality, pool.as_deref()),
                     Origin::Built,
                 )),
             };
@@ -309,9 +309,10 @@ pub fn build_region_part(
     chunk: TriangleSet,
     leaves: Vec<u32>,
     magnitude: f32,
+    quality: BuildQuality,
     pool: Option<&rayon::ThreadPool>,
 ) -> Arc<Part> {
-    let build = move || region_part_now(chunk, leaves, magnitude);
+    let build = move || region_part_now(chunk, leaves, magnitude, quality);
     match pool {
         Some(p) => p.install(build),
         None => {
@@ -325,8 +326,36 @@ pub fn build_region_part(
 /// builds apart from rendering on whichever thread they ran
 /// (`bench/forward_cost.py`).
 #[inline(never)]
-fn region_part_now(chunk: TriangleSet, leaves: Vec<u32>, magnitude: f32) -> Arc<Part> {
-    Arc::new(Part::new(Accel::from_set(chunk, magnitude), leaves))
+fn region_part_now(
+    chunk: TriangleSet,
+    leaves: Vec<u32>,
+    magnitude: f32,
+    quality: BuildQuality,
+) -> Arc<Part> {
+    Arc::new(Part::new(
+        Accel::from_set_with(chunk, magnitude, quality),
+        leaves,
+    ))
+}
+
+/// The quality of the BVHs this job's region is built at: the job's
+/// camera samples against the scene's triangle references, as the
+/// scheduler and one machine decide ([`BuildQuality::for_job`]).
+pub fn region_quality(s: &JobSetup) -> BuildQuality {
+    job_quality(&s.camera, s.spp, &s.leaf_tris)
+}
+
+/// [`region_quality`] from the parts of a setup it reads, for the
+/// scheduler, which lays out a replicated job's BVH before any setup
+/// leaves.
+pub fn job_quality(
+    camera: &locus_core::scene::Camera,
+    spp: u32,
+    leaf_tris: &[u32],
+) -> BuildQuality {
+    let samples = camera.width as u64 * camera.height as u64 * spp as u64;
+    let references = leaf_tris.iter().map(|&n| n as u64).sum();
+    BuildQuality::for_job(samples, references)
 }
 
 /// What starting a job needs from the daemon.
@@ -656,12 +685,11 @@ mod tests {
         let whole = part(0..40);
         let n = 45;
         let mag = setup(&tris, n, 0).magnitude;
-        let layout = Arc::new(Layout::build(
-            &whole,
-            mag,
-            locus_core::accel::BuildQuality::Full,
-        ));
-        let own = Accel::from_set(whole.clone(), mag);
+        // Built at the quality the job's worker builds at, so that the
+        // layout's BVH and the worker's own are the same.
+        let quality = region_quality(&setup(&tris, n, 0));
+        let layout = Arc::new(Layout::build(&whole, mag, quality));
+        let own = Accel::from_set_with(whole.clone(), mag, quality);
         let announced = |layout| {
             let mut s = setup(&tris, n, 0);
             s.layout = layout;
@@ -688,11 +716,7 @@ mod tests {
             assert!(e.to_string().contains("second"), "{e}");
         }
         // A layout over other triangles.
-        let other = Arc::new(Layout::build(
-            &part(0..39),
-            mag,
-            locus_core::accel::BuildQuality::Full,
-        ));
+        let other = Arc::new(Layout::build(&part(0..39), mag, quality));
         let mut b = announced(true);
         b.add_part(vec![0], whole.clone(), true).await.unwrap();
         let e = b.add_layout(Some(other)).await.unwrap_err();

@@ -243,8 +243,12 @@ fn single(scene: &Scene, cores: usize, repeat: u32) -> Single {
     let mut best: Option<Single> = None;
     for _ in 0..repeat.max(1) {
         let t = Instant::now();
-        let prep = Prepared::new(scene.clone());
-        let mut o = RenderOptions::from_scene(scene);
+        let o0 = RenderOptions::from_scene(scene);
+        let cam = &scene.camera;
+        let samples = cam.width as u64 * cam.height as u64 * o0.spp as u64;
+        // Built as `locus render` builds it for this job.
+        let prep = Prepared::for_job(scene.clone(), samples);
+        let mut o = o0;
         o.threads = cores;
         let cpu0 = locus_worker::sys::process_cpu_s();
         let out = render(&prep, &o, &|_, _| {});

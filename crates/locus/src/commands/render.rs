@@ -123,10 +123,17 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         .map_err(anyhow::Error::msg)?;
     // Read the reference before rendering so a bad path fails fast.
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
-    let prep = Prepared::new(scene);
+    // A job of few samples a triangle builds a quick BVH, as the farm's
+    // workers do for the same job.
+    let samples = scene.camera.width as u64 * scene.camera.height as u64 * opts.spp as u64;
+    let prep = Prepared::for_job(scene, samples);
     // What the build freed goes back to the system for the render.
     locus_worker::sys::trim_heap();
-    tracing::info!(bvh_s = prep.timings.bvh_s, "acceleration built");
+    tracing::info!(
+        bvh_s = prep.timings.bvh_s,
+        quality = ?prep.timings.quality,
+        "acceleration built"
+    );
     let (w, h) = (prep.scene.camera.width, prep.scene.camera.height);
     let ntiles = locus_core::render::tiles(w, h, opts.tile_size, opts.tile_order).len();
     let pb = progress_bar(ntiles as u64, "render");
@@ -162,6 +169,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
             load_s,
             octree_s: prep.octree_s().unwrap_or(0.0),
             bvh_s: prep.timings.bvh_s,
+            bvh_quality: prep.timings.quality,
             render_s: out.render_s,
         },
         stats: st,
@@ -183,7 +191,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         );
     }
     println!(
-        "wrote {} ({}x{}, {} spp) with {} and {}\n  load {:.3}s  octree {:.3}s  bvh {:.3}s  render {:.3}s  {:.0} samples/s  {:.2} Mrays/s",
+        "wrote {} ({}x{}, {} spp) with {} and {}\n  load {:.3}s  octree {:.3}s  bvh {:.3}s{}  render {:.3}s  {:.0} samples/s  {:.2} Mrays/s",
         a.output.display(),
         w,
         h,
@@ -193,6 +201,10 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         load_s,
         prep.octree_s().unwrap_or(0.0),
         prep.timings.bvh_s,
+        match prep.timings.quality {
+            locus_core::accel::BuildQuality::Full => "",
+            locus_core::accel::BuildQuality::Quick => " (quick)",
+        },
         out.render_s,
         report.samples_per_second,
         report.rays_per_second / 1e6

@@ -232,10 +232,25 @@ pub fn prepare(
     // [`cost::DECISION_PREVIEW`]); only a job that then rents, and so draws regions
     // that carry rays, pays for the preview those regions are drawn from.
     let decide_first = sampled_model && options.fetch == FetchPolicy::Adaptive && fits_everywhere;
+    // The regions' preview counts BVH steps on a tree built as the
+    // workers will build theirs for this job (`job_quality`).
+    let samples_quality = locus_worker::job::job_quality(
+        &scene.camera,
+        scene.settings.spp,
+        &tree
+            .leaves
+            .iter()
+            .map(|l| l.tris.len() as u32)
+            .collect::<Vec<_>>(),
+    );
+    let full_preview = cost::PreviewSize {
+        quality: samples_quality,
+        ..cost::FULL_PREVIEW
+    };
     let first = if decide_first {
         cost::DECISION_PREVIEW
     } else {
-        cost::FULL_PREVIEW
+        full_preview
     };
     let mut pv = sampled_model.then(|| cost::sampled_in_parts(&scene, &tree, &lights, first));
     let mut preview_s = t_pre.elapsed().as_secs_f64();
@@ -289,12 +304,7 @@ pub fn prepare(
     if decide_first && !replicated {
         decision_rays = pv.as_ref().map_or(0, |pv| pv.rays);
         let t = Instant::now();
-        pv = Some(cost::sampled_in_parts(
-            &scene,
-            &tree,
-            &lights,
-            cost::FULL_PREVIEW,
-        ));
+        pv = Some(cost::sampled_in_parts(&scene, &tree, &lights, full_preview));
         preview_s += t.elapsed().as_secs_f64();
         let t = Instant::now();
         drawn = drawing.drawn(pv.as_ref())?;
