@@ -170,8 +170,7 @@ fn shared_layout(job: u64, prep: &Prepared, takers: &[bool]) -> Option<(Vec<usiz
     }
     let ids: Vec<Arc<Vec<u32>>> = prep.parts[first].iter().map(|r| r.ids.clone()).collect();
     let scene = prep.scene.clone();
-    let quality =
-        locus_worker::job::job_quality(&scene.camera, scene.settings.spp, &prep.leaf_tris);
+    let quality = prep.bvh_quality;
     let (tx, rx) = watch::channel(None);
     let (workers, spent) = (same.len(), prep.layout_s.clone());
     tokio::task::spawn_blocking(move || {

@@ -342,19 +342,18 @@ fn region_part_now(
 /// camera samples against the scene's triangle references, as the
 /// scheduler and one machine decide ([`BuildQuality::for_job`]).
 pub fn region_quality(s: &JobSetup) -> BuildQuality {
-    job_quality(&s.camera, s.spp, &s.leaf_tris)
+    job_quality(
+        &s.camera,
+        s.spp,
+        s.leaf_tris.iter().map(|&n| n as u64).sum(),
+    )
 }
 
-/// [`region_quality`] from the parts of a setup it reads, for the
-/// scheduler, which lays out a replicated job's BVH before any setup
-/// leaves.
-pub fn job_quality(
-    camera: &locus_core::scene::Camera,
-    spp: u32,
-    leaf_tris: &[u32],
-) -> BuildQuality {
+/// [`region_quality`] from the counts it reads, for the scheduler, which
+/// decides before any setup leaves (its preview and a replicated job's
+/// layout are built at it too).
+pub fn job_quality(camera: &locus_core::scene::Camera, spp: u32, references: u64) -> BuildQuality {
     let samples = camera.width as u64 * camera.height as u64 * spp as u64;
-    let references = leaf_tris.iter().map(|&n| n as u64).sum();
     BuildQuality::for_job(samples, references)
 }
 

@@ -58,6 +58,9 @@ pub struct Prepared {
     pub max_inflight: Vec<u32>,
     /// Triangle references per leaf.
     pub leaf_tris: Vec<u32>,
+    /// The quality every BVH of the job is built at
+    /// (`locus_worker::job::job_quality`).
+    pub bvh_quality: locus_core::accel::BuildQuality,
     /// The irradiance cache's overture, when it is on.
     pub irradiance: Option<PreparedOverture>,
     /// Each worker's threads.
@@ -233,18 +236,11 @@ pub fn prepare(
     // that carry rays, pays for the preview those regions are drawn from.
     let decide_first = sampled_model && options.fetch == FetchPolicy::Adaptive && fits_everywhere;
     // The regions' preview counts BVH steps on a tree built as the
-    // workers will build theirs for this job (`job_quality`).
-    let samples_quality = locus_worker::job::job_quality(
-        &scene.camera,
-        scene.settings.spp,
-        &tree
-            .leaves
-            .iter()
-            .map(|l| l.tris.len() as u32)
-            .collect::<Vec<_>>(),
-    );
+    // workers will build theirs for this job, and a replicated job's
+    // layout is built the same way.
+    let bvh_quality = locus_worker::job::job_quality(&scene.camera, scene.settings.spp, all_refs);
     let full_preview = cost::PreviewSize {
-        quality: samples_quality,
+        quality: bvh_quality,
         ..cost::FULL_PREVIEW
     };
     let first = if decide_first {
@@ -463,6 +459,7 @@ pub fn prepare(
         }
     });
     Ok(Prepared {
+        bvh_quality,
         shared_leaves,
         irradiance,
         member_cores: members.iter().map(|m| m.cores).collect(),
