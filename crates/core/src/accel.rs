@@ -39,7 +39,9 @@ mod walk;
 
 use leaf::{LeafTest, Prims};
 
-pub use build::{BUILD_BYTES_PER_TRIANGLE, BuildQuality, QUICK_BELOW_SAMPLES_PER_TRIANGLE};
+pub use build::{
+    BUILD_BYTES_PER_TRIANGLE, BuildQuality, BvhSetting, QUICK_BELOW_SAMPLES_PER_TRIANGLE,
+};
 pub use layout::{Layout, ids_hash};
 
 /// A closest hit: global triangle id plus distance and barycentrics.

@@ -66,11 +66,13 @@ impl Prepared {
         Self::with_quality(scene, BuildQuality::Full)
     }
 
-    /// The scene prepared for a render of `samples` camera samples: its
-    /// BVH built at [`BuildQuality::for_job`]'s quality, as the farm's
-    /// workers build theirs for the same job.
-    pub fn for_job(scene: Scene, samples: u64) -> Self {
-        let quality = BuildQuality::for_job(samples, scene.tris.len() as u64);
+    /// The scene prepared for a render of `spp` samples a pixel: its BVH
+    /// built at the quality its settings ask for such a job
+    /// ([`crate::accel::BvhSetting::quality`]), as the farm's workers
+    /// build theirs for the same job.
+    pub fn for_job(scene: Scene, spp: u32) -> Self {
+        let samples = scene.camera.samples(spp);
+        let quality = scene.settings.bvh.quality(samples, scene.tris.len() as u64);
         Self::with_quality(scene, quality)
     }
 

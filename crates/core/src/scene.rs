@@ -7,6 +7,7 @@
 //! mesh into global triangles with a material id each. Degenerate
 //! (zero-area) triangles are dropped and counted.
 
+use crate::accel::BvhSetting;
 use crate::error::{Location, SceneError};
 use crate::geometry::{FLAT, Ray, tri_area_f64};
 use crate::mesh_io;
@@ -45,6 +46,12 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The camera samples of a job of `spp` samples a pixel.
+    #[inline]
+    pub fn samples(&self, spp: u32) -> u64 {
+        self.width as u64 * self.height as u64 * spp as u64
+    }
+
     /// The ray through film position (x + u, y + v), with y down the image.
     #[inline]
     pub fn ray(&self, x: u32, y: u32, u: [f32; 2]) -> Ray {
@@ -107,6 +114,9 @@ pub struct RenderSettings {
     /// below this ([`crate::metrics::meets_target`]); `spp` is then the
     /// most samples a pixel gets.
     pub target_rel_mse: Option<f64>,
+    /// The quality of the job's BVHs ([`BvhSetting`]); `auto` unless the
+    /// scene file or the command line says otherwise.
+    pub bvh: BvhSetting,
 }
 
 impl Default for RenderSettings {
@@ -118,6 +128,7 @@ impl Default for RenderSettings {
             sampler: Sampler::default(),
             octree: OctreeParams::default(),
             target_rel_mse: None,
+            bvh: BvhSetting::Auto,
         }
     }
 }
@@ -196,6 +207,9 @@ struct RenderDesc {
     /// Stop once the estimated relMSE is at or below this.
     #[serde(default)]
     target_rel_mse: Option<f64>,
+    /// "auto" (the default), "full" or "quick".
+    #[serde(default)]
+    bvh: BvhSetting,
 }
 fn d_spp() -> u32 {
     16
@@ -211,6 +225,7 @@ impl Default for RenderDesc {
             seed: 0,
             sampler: Sampler::default(),
             target_rel_mse: None,
+            bvh: BvhSetting::Auto,
         }
     }
 }
@@ -413,6 +428,7 @@ impl Scene {
             sampler: desc.render.sampler,
             octree,
             target_rel_mse: desc.render.target_rel_mse,
+            bvh: desc.render.bvh,
         };
 
         let mut b = Builder::default();

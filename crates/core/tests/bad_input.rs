@@ -71,6 +71,12 @@ fn each_corpus_file_gets_its_error() {
             |l| matches!(l, Location::Line { line: 9, .. }),
         ),
         (
+            "toml_unknown_bvh.toml",
+            "toml_unknown_bvh.toml",
+            "Syntax",
+            |l| matches!(l, Location::Line { line: 9, .. }),
+        ),
+        (
             "toml_deep_paths.toml",
             "toml_deep_paths.toml",
             "Invalid",

@@ -47,7 +47,8 @@ fn same_bits_for_any_threads_and_tile_order() {
 }
 
 /// A job of fewer camera samples than triangles builds its BVH quick
-/// (`BuildQuality::for_job`), a different tree from the full build, and
+/// (`BuildQuality::for_job`; a scene's `bvh` setting fixes either), a
+/// different tree from the full build, and
 /// renders the same image to the bit: hits are exact and ties go to the
 /// smaller id whatever the tree.
 #[test]
@@ -57,12 +58,12 @@ fn a_quick_bvh_renders_what_a_full_one_does() {
     s.camera.width = 24;
     s.camera.height = 16;
     let tris = s.tris.len() as u64;
-    let samples = 24 * 16 * s.settings.spp as u64;
+    let samples = s.camera.samples(s.settings.spp);
     assert!(
         samples < tris * QUICK_BELOW_SAMPLES_PER_TRIANGLE,
         "{samples} {tris}"
     );
-    let quick = Prepared::for_job(s.clone(), samples);
+    let quick = Prepared::for_job(s.clone(), s.settings.spp);
     let full = Prepared::new(s);
     assert_eq!(quick.timings.quality, BuildQuality::Quick);
     assert_eq!(full.timings.quality, BuildQuality::Full);
@@ -81,4 +82,25 @@ fn a_quick_bvh_renders_what_a_full_one_does() {
     assert_eq!(BuildQuality::for_job(tris, tris), BuildQuality::Full);
     assert_eq!(BuildQuality::for_job(tris - 1, tris), BuildQuality::Quick);
     assert_eq!(BuildQuality::for_job(0, 0), BuildQuality::Full);
+    // A setting other than `auto` holds whatever the job's samples.
+    use locus_core::accel::BvhSetting;
+    for (setting, spp, want) in [
+        (BvhSetting::Auto, 1 << 20, BuildQuality::Full),
+        (BvhSetting::Full, 1, BuildQuality::Full),
+        (BvhSetting::Quick, 1 << 20, BuildQuality::Quick),
+    ] {
+        let samples = full.scene.camera.samples(spp);
+        assert_eq!(
+            setting.quality(samples, tris),
+            want,
+            "{setting:?} at {spp} spp"
+        );
+    }
+    let mut pinned = full.scene.clone();
+    pinned.settings.bvh = BvhSetting::Full;
+    let spp = pinned.settings.spp;
+    assert_eq!(
+        Prepared::for_job(pinned, spp).timings.quality,
+        BuildQuality::Full
+    );
 }

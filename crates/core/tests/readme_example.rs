@@ -22,4 +22,14 @@ fn readme_scene_example_loads() {
         .filter(|&&m| s.materials[m as usize].is_emissive())
         .count();
     assert_eq!(emitters, 2);
+    // The BVH setting is read, not defaulted: the example names `auto`,
+    // and each other value comes back as written.
+    use locus_core::accel::BvhSetting;
+    assert!(text.contains("bvh = \"auto\""));
+    assert_eq!(s.settings.bvh, BvhSetting::Auto);
+    for b in [BvhSetting::Full, BvhSetting::Quick] {
+        let t = text.replace("bvh = \"auto\"", &format!("bvh = \"{}\"", b.name()));
+        let s = Scene::from_toml(&path, &t).unwrap_or_else(|e| panic!("{b:?}: {e}"));
+        assert_eq!(s.settings.bvh, b);
+    }
 }

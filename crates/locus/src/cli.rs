@@ -90,6 +90,10 @@ pub(crate) struct BenchFarmArgs {
     pub(crate) height: u32,
     #[arg(long, default_value_t = 16)]
     pub(crate) spp: u32,
+    /// The BVHs' build quality in every row, one machine's and the
+    /// farm's: auto (by samples a triangle), full or quick.
+    #[arg(long, default_value = "auto")]
+    pub(crate) bvh: locus_core::accel::BvhSetting,
     /// Runs per configuration; the fastest is reported (shared machines
     /// are noisy, and noise only ever adds time), and region growing is
     /// judged against Morton over all of them (means and standard errors
@@ -346,6 +350,11 @@ pub(crate) struct SubmitArgs {
     /// below this (e.g. 1e-3); --spp is then the most a pixel gets.
     #[arg(long, value_parser = parse_target)]
     pub(crate) target_rel_mse: Option<f64>,
+    /// The BVHs' build quality: auto (the scene's default: quick for a job
+    /// of fewer camera samples than triangles, else full), full or quick.
+    /// The image is the same to the bit either way.
+    #[arg(long)]
+    pub(crate) bvh: Option<locus_core::accel::BvhSetting>,
     #[arg(long)]
     pub(crate) reference: Option<PathBuf>,
     #[arg(long, default_value_t = 1.0)]
@@ -400,6 +409,11 @@ pub(crate) struct RenderArgs {
     /// below this (e.g. 1e-3); --spp is then the most a pixel gets.
     #[arg(long, value_parser = parse_target)]
     pub(crate) target_rel_mse: Option<f64>,
+    /// The BVHs' build quality: auto (the scene's default: quick for a job
+    /// of fewer camera samples than triangles, else full), full or quick.
+    /// The image is the same to the bit either way.
+    #[arg(long)]
+    pub(crate) bvh: Option<locus_core::accel::BvhSetting>,
     /// Compute threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     pub(crate) threads: usize,

@@ -100,13 +100,14 @@ pub(crate) fn write_farm_result(
         false => String::new(),
     };
     println!(
-        "  load {:.3}s  octree {:.3}s  preview {:.3}s  partition {:.3}s  distribution {:.3}s (bvh {:.3}s{layout})  render {:.3}s  total {:.3}s  {:.0} samples/s",
+        "  load {:.3}s  octree {:.3}s  preview {:.3}s  partition {:.3}s  distribution {:.3}s (bvh {:.3}s{}{layout})  render {:.3}s  total {:.3}s  {:.0} samples/s",
         ph.load_s,
         ph.octree_s,
         ph.preview_s,
         ph.partition_s,
         ph.distribution_s,
         ph.bvh_s,
+        f.bvh_quality.suffix(),
         ph.render_s,
         ph.total_s,
         f.samples_per_s

@@ -30,7 +30,7 @@ fn four_budgeted_workers_render_what_one_machine_needs_more_for() {
     assert!(tris > 300_000, "{tris} triangles");
 
     // One machine's peak, on a process of its own.
-    let one_peak = locus::bench::farm::single_peak(&exe, &path, 2).unwrap();
+    let one_peak = locus::bench::farm::single_peak(&exe, &path, 2, Default::default()).unwrap();
     if cfg!(target_os = "linux") {
         assert!(
             one_peak > BUDGET,

@@ -241,6 +241,11 @@ pub struct JobSetup {
     /// scheduler builds its BVH once for them all (only for a worker that
     /// takes layouts and builds its region as one BVH).
     pub layout: bool,
+    /// The quality every BVH of the job's region is built at, decided
+    /// once by the scheduler from the job's settings and counts
+    /// ([`locus_core::accel::BvhSetting::quality`]), so that every worker
+    /// builds alike and as one machine would.
+    pub bvh_quality: locus_core::accel::BuildQuality,
 }
 
 /// How a worker keeps to its memory budget in one job, as the scheduler

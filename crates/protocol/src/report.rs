@@ -269,6 +269,10 @@ pub struct FarmReport {
     /// Whether every worker held the whole scene (`fetch`, or `adaptive`
     /// when its rent-or-buy rule bought everything at the start).
     pub replicated: bool,
+    /// The quality every BVH of the job was built at (the scheduler's
+    /// preview and layout, the workers' regions).
+    #[serde(default)]
+    pub bvh_quality: locus_core::accel::BuildQuality,
     pub leaves: u32,
     pub triangles: u64,
     /// Nodes of the processor map's route (the octree collapsed by owner):

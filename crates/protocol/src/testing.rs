@@ -87,5 +87,6 @@ pub fn job_setup(tris: &[[Vec3; 3]], workers: u16) -> JobSetup {
         },
         normals: false,
         layout: false,
+        bvh_quality: Default::default(),
     }
 }

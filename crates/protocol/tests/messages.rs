@@ -2,6 +2,7 @@
 //! arbitrary bytes never panic the decoder of any family.
 
 use glam::Vec3;
+use locus_core::accel::BuildQuality;
 use locus_core::dircache::CacheParams;
 use locus_core::geometry::Ray;
 use locus_core::integrator::{PathRay, ShadowRay};
@@ -110,6 +111,11 @@ fn setup(n: usize, seed: u64, workers: u16) -> JobSetup {
         region_triangles: n as u64,
         normals: seed.is_multiple_of(2),
         layout: seed.is_multiple_of(3),
+        bvh_quality: if seed.is_multiple_of(5) {
+            BuildQuality::Quick
+        } else {
+            BuildQuality::Full
+        },
         ..base
     }
 }

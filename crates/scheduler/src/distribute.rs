@@ -91,6 +91,7 @@ pub fn ship(
             region_triangles: prep.region_triangles[w],
             normals: !prep.scene.tri_normals.is_empty(),
             layout: layout.is_some(),
+            bvh_quality: prep.bvh_quality,
         };
         let scene = prep.scene.clone();
         // The overture's known levels follow the geometry.

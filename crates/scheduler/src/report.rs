@@ -76,6 +76,7 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         cost_model: format!("{:?}", j.req.options.cost_model),
         policy: j.req.options.fetch.name().to_string(),
         replicated: prep.replicated,
+        bvh_quality: prep.bvh_quality,
         leaves: prep.leaves,
         triangles: prep.scene.tris.len() as u64,
         route_leaves: prep.map.route.leaves() as u32,

@@ -235,7 +235,7 @@ impl Building {
         layout: Option<Arc<Layout>>,
     ) -> anyhow::Result<()> {
         let s = &self.setup;
-        let (mag, quality, t) = (s.magnitude, region_quality(s), Instant::now());
+        let (mag, quality, t) = (s.magnitude, s.bvh_quality, Instant::now());
         let (pool, builds) = (self.pool.clone(), self.builds.clone());
         let (part, origin) = tokio::task::spawn_blocking(move || {
             let built = match (layout, builds) {
@@ -336,25 +336,6 @@ fn region_part_now(
         Accel::from_set_with(chunk, magnitude, quality),
         leaves,
     ))
-}
-
-/// The quality of the BVHs this job's region is built at: the job's
-/// camera samples against the scene's triangle references, as the
-/// scheduler and one machine decide ([`BuildQuality::for_job`]).
-pub fn region_quality(s: &JobSetup) -> BuildQuality {
-    job_quality(
-        &s.camera,
-        s.spp,
-        s.leaf_tris.iter().map(|&n| n as u64).sum(),
-    )
-}
-
-/// [`region_quality`] from the counts it reads, for the scheduler, which
-/// decides before any setup leaves (its preview and a replicated job's
-/// layout are built at it too).
-pub fn job_quality(camera: &locus_core::scene::Camera, spp: u32, references: u64) -> BuildQuality {
-    let samples = camera.width as u64 * camera.height as u64 * spp as u64;
-    BuildQuality::for_job(samples, references)
 }
 
 /// What starting a job needs from the daemon.
@@ -686,7 +667,7 @@ mod tests {
         let mag = setup(&tris, n, 0).magnitude;
         // Built at the quality the job's worker builds at, so that the
         // layout's BVH and the worker's own are the same.
-        let quality = region_quality(&setup(&tris, n, 0));
+        let quality = setup(&tris, n, 0).bvh_quality;
         let layout = Arc::new(Layout::build(&whole, mag, quality));
         let own = Accel::from_set_with(whole.clone(), mag, quality);
         let announced = |layout| {

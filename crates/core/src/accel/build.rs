@@ -90,6 +90,15 @@ pub enum BuildQuality {
 pub const QUICK_BELOW_SAMPLES_PER_TRIANGLE: u64 = 1;
 
 impl BuildQuality {
+    /// What a summary line adds after a build's time: nothing for the
+    /// usual full build.
+    pub fn suffix(self) -> &'static str {
+        match self {
+            BuildQuality::Full => "",
+            BuildQuality::Quick => " (quick)",
+        }
+    }
+
     /// The quality of the BVHs a job of `samples` camera samples traces
     /// over a scene of `triangles` (triangle references, for a farm's
     /// workers and scheduler, which count them leaf by leaf: a few more
@@ -101,6 +110,58 @@ impl BuildQuality {
         } else {
             BuildQuality::Full
         }
+    }
+}
+
+/// What a job asks of its BVHs (the scene file's `[render] bvh`, the
+/// command line's `--bvh`): [`BvhSetting::Auto`] decides by the job's
+/// samples a triangle ([`BuildQuality::for_job`]); the others fix the
+/// quality, which changes no image (hits are exact, ties go to the
+/// smaller id in any tree), only the time spent building against the
+/// time spent tracing.
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum BvhSetting {
+    #[default]
+    Auto,
+    Full,
+    Quick,
+}
+
+impl BvhSetting {
+    pub const ALL: [BvhSetting; 3] = [BvhSetting::Auto, BvhSetting::Full, BvhSetting::Quick];
+
+    /// The name the scene file and the command line use.
+    pub fn name(self) -> &'static str {
+        match self {
+            BvhSetting::Auto => "auto",
+            BvhSetting::Full => "full",
+            BvhSetting::Quick => "quick",
+        }
+    }
+
+    /// The quality a job of `samples` camera samples over `triangles`
+    /// builds its BVHs at. The scheduler decides this once for a farm's
+    /// job and sends it to every worker, so all of them build alike.
+    pub fn quality(self, samples: u64, triangles: u64) -> BuildQuality {
+        match self {
+            BvhSetting::Auto => BuildQuality::for_job(samples, triangles),
+            BvhSetting::Full => BuildQuality::Full,
+            BvhSetting::Quick => BuildQuality::Quick,
+        }
+    }
+}
+
+impl std::str::FromStr for BvhSetting {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|b| b.name() == s)
+            .ok_or_else(|| format!("unknown BVH setting {s:?}: expected auto, full or quick"))
     }
 }
 

@@ -28,6 +28,7 @@
 use super::partitions::RunFigures;
 use crate::farm::{FarmSpec, LocalFarm};
 use anyhow::{Context, Result, bail};
+use locus_core::accel::BvhSetting;
 use locus_core::generate::{RoomParams, write_room};
 use locus_core::image_io::Image;
 use locus_core::render::{Prepared, RenderOptions, render};
@@ -44,6 +45,8 @@ pub struct Plan {
     pub width: u32,
     pub height: u32,
     pub spp: u32,
+    /// The BVHs' build quality, one machine's and the farm's alike.
+    pub bvh: BvhSetting,
     /// Runs per configuration; the fastest is reported (noise only adds).
     pub repeat: u32,
     pub workers: Vec<usize>,
@@ -244,10 +247,8 @@ fn single(scene: &Scene, cores: usize, repeat: u32) -> Single {
     for _ in 0..repeat.max(1) {
         let t = Instant::now();
         let o0 = RenderOptions::from_scene(scene);
-        let cam = &scene.camera;
-        let samples = cam.width as u64 * cam.height as u64 * o0.spp as u64;
         // Built as `locus render` builds it for this job.
-        let prep = Prepared::for_job(scene.clone(), samples);
+        let prep = Prepared::for_job(scene.clone(), o0.spp);
         let mut o = o0;
         o.threads = cores;
         let cpu0 = locus_worker::sys::process_cpu_s();
@@ -466,6 +467,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
         scene.camera.width = plan.width;
         scene.camera.height = plan.height;
         scene.settings.spp = plan.spp;
+        scene.settings.bvh = plan.bvh;
         let name = path
             .file_stem()
             .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
@@ -474,7 +476,7 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
         // What one machine needs for the large scene, measured on a process
         // of its own: the figure the workers' budgets stay below.
         let one_peak = match large {
-            Some(_) => vec![single_peak(&plan.exe, &path, plan.cores)?],
+            Some(_) => vec![single_peak(&plan.exe, &path, plan.cores, plan.bvh)?],
             None => Vec::new(),
         };
         if large.is_none() {
@@ -583,13 +585,15 @@ pub fn run(plan: &Plan) -> Result<(Vec<Row>, Vec<Prediction>)> {
 /// Peak resident memory in bytes of `locus render` of `scene` on one
 /// machine with `cores` threads, as a process of its own (0 where the
 /// platform cannot tell).
-pub fn single_peak(exe: &Path, scene: &Path, cores: usize) -> Result<u64> {
+pub fn single_peak(exe: &Path, scene: &Path, cores: usize, bvh: BvhSetting) -> Result<u64> {
     let out = std::env::temp_dir().join(format!("locus-bench-{}.exr", std::process::id()));
     let mut cmd = std::process::Command::new(exe);
     cmd.arg("render")
         .arg(scene)
         .arg("--threads")
         .arg(cores.to_string())
+        .arg("--bvh")
+        .arg(bvh.name())
         .arg("-o")
         .arg(&out)
         .stdout(std::process::Stdio::null())

@@ -212,6 +212,7 @@ pub(crate) fn cmd_bench_farm(a: BenchFarmArgs) -> Result<()> {
         width: a.width,
         height: a.height,
         spp: a.spp,
+        bvh: a.bvh,
         repeat: a.repeat.max(1),
         workers: a.workers.clone(),
         policies: a.policies.clone(),

@@ -80,7 +80,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     locus_worker::sys::reuse_freed_memory();
     super::limit_threads(a.threads);
     let t = Instant::now();
-    let scene = Scene::load(&a.scene)?;
+    let mut scene = Scene::load(&a.scene)?;
     let load_s = t.elapsed().as_secs_f64();
     tracing::info!(
         triangles = scene.tris.len(),
@@ -115,6 +115,9 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if let Some(t) = a.target_rel_mse {
         opts.target_rel_mse = Some(t);
     }
+    if let Some(b) = a.bvh {
+        scene.settings.bvh = b;
+    }
     opts.threads = a.threads;
     locus_core::limits::check_settings(opts.spp, opts.max_depth).map_err(anyhow::Error::msg)?;
     // The film and the image written from it.
@@ -124,9 +127,8 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     // Read the reference before rendering so a bad path fails fast.
     let reference = a.reference.as_deref().map(Image::read_exr).transpose()?;
     // A job of few samples a triangle builds a quick BVH, as the farm's
-    // workers do for the same job.
-    let samples = scene.camera.width as u64 * scene.camera.height as u64 * opts.spp as u64;
-    let prep = Prepared::for_job(scene, samples);
+    // workers do for the same job (unless its `bvh` setting says which).
+    let prep = Prepared::for_job(scene, opts.spp);
     // What the build freed goes back to the system for the render.
     locus_worker::sys::trim_heap();
     tracing::info!(
@@ -201,10 +203,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         load_s,
         prep.octree_s().unwrap_or(0.0),
         prep.timings.bvh_s,
-        match prep.timings.quality {
-            locus_core::accel::BuildQuality::Full => "",
-            locus_core::accel::BuildQuality::Quick => " (quick)",
-        },
+        prep.timings.quality.suffix(),
         out.render_s,
         report.samples_per_second,
         report.rays_per_second / 1e6
@@ -254,6 +253,7 @@ pub(crate) struct Overrides {
     pub(crate) seed: Option<u64>,
     pub(crate) sampler: Option<Sampler>,
     pub(crate) target_rel_mse: Option<f64>,
+    pub(crate) bvh: Option<locus_core::accel::BvhSetting>,
 }
 
 pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
@@ -263,6 +263,7 @@ pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
         seed,
         sampler,
         target_rel_mse,
+        bvh,
     } = o;
     let mut scene = Scene::load(path)?;
     if let Some(s) = spp {
@@ -279,6 +280,9 @@ pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
     }
     if let Some(t) = target_rel_mse {
         scene.settings.target_rel_mse = Some(t);
+    }
+    if let Some(b) = bvh {
+        scene.settings.bvh = b;
     }
     let st = &scene.settings;
     locus_core::limits::check_settings(st.spp, st.max_depth).map_err(anyhow::Error::msg)?;
@@ -320,6 +324,7 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
             seed: a.seed,
             sampler: a.sampler,
             target_rel_mse: a.target_rel_mse,
+            bvh: a.bvh,
         },
     )?;
     let load_s = t.elapsed().as_secs_f64();

@@ -203,8 +203,8 @@ pub struct PreviewSize {
 /// The preview regions are drawn from: one part up to 512k triangles
 /// (which keeps a build within about 200 MB whatever the scene's size),
 /// 8,192 paths. A job builds it at the quality its workers build their
-/// regions at (`locus_worker::job::job_quality`): full, but for a job of
-/// fewer camera samples than triangles, whose workers build quick BVHs
+/// regions at (the job's `bvh_quality`): by default full, but for a job
+/// of fewer camera samples than triangles, whose workers build quick BVHs
 /// and whose preview then counts the steps of such a tree (on the
 /// 4-million-triangle room at 320x240 and 16 spp the preview took
 /// 0.98-1.11 s instead of 1.65-1.83, at 0.069-0.070 forwards a ray under

@@ -58,8 +58,9 @@ pub struct Prepared {
     pub max_inflight: Vec<u32>,
     /// Triangle references per leaf.
     pub leaf_tris: Vec<u32>,
-    /// The quality every BVH of the job is built at
-    /// (`locus_worker::job::job_quality`).
+    /// The quality every BVH of the job is built at, decided here once
+    /// from its settings and counts (`BvhSetting::quality`) and sent to
+    /// every worker in its setup.
     pub bvh_quality: locus_core::accel::BuildQuality,
     /// The irradiance cache's overture, when it is on.
     pub irradiance: Option<PreparedOverture>,
@@ -235,10 +236,12 @@ pub fn prepare(
     // [`cost::DECISION_PREVIEW`]); only a job that then rents, and so draws regions
     // that carry rays, pays for the preview those regions are drawn from.
     let decide_first = sampled_model && options.fetch == FetchPolicy::Adaptive && fits_everywhere;
-    // The regions' preview counts BVH steps on a tree built as the
-    // workers will build theirs for this job, and a replicated job's
-    // layout is built the same way.
-    let bvh_quality = locus_worker::job::job_quality(&scene.camera, scene.settings.spp, all_refs);
+    // The job's BVH quality, decided here once and sent to every worker:
+    // the regions' preview counts BVH steps on a tree built as the
+    // workers will build theirs, and a replicated job's layout is built
+    // the same way.
+    let samples = scene.camera.samples(scene.settings.spp);
+    let bvh_quality = scene.settings.bvh.quality(samples, all_refs);
     let full_preview = cost::PreviewSize {
         quality: bvh_quality,
         ..cost::FULL_PREVIEW
@@ -282,8 +285,6 @@ pub fn prepare(
         drawing.drawn(pv.as_ref())?
     };
     let mut partition_s = t_part.elapsed().as_secs_f64();
-    let samples =
-        scene.camera.width as u64 * scene.camera.height as u64 * scene.settings.spp as u64;
     // The rent counts every crossing between two owners' leaves, those
     // into or out of a shared leaf too (no query is forwarded into one):
     // it leans towards buying, which on a fast network is the quicker.

@@ -314,3 +314,41 @@ fn predicted_shares_leave_the_shared_camera_leaf_out() {
     let sum: f64 = p.sampled_share.iter().sum();
     assert!((sum - 1.0).abs() < 1e-9, "{:?}", p.sampled_share);
 }
+
+/// The job's BVH quality is decided once here, from its settings and
+/// its triangle references, and is what every worker's setup carries:
+/// `auto` builds quick below one camera sample a triangle and full
+/// above, `full` and `quick` hold whatever the samples.
+#[test]
+fn the_bvh_quality_follows_the_jobs_setting_and_samples() {
+    use locus_core::accel::{BuildQuality, BvhSetting};
+    // 256 camera samples a pass.
+    let quality = |scene: &Scene, bvh: BvhSetting, spp: u32| {
+        let mut scene = scene.clone();
+        scene.camera.width = 16;
+        scene.camera.height = 16;
+        scene.settings.spp = spp;
+        scene.settings.bvh = bvh;
+        let scene = Arc::new(scene);
+        let tiles = tiles_of(&scene);
+        let options = JobOptions::default();
+        let p = prepare(scene, &options, &[MEMBER; 2], &tiles, &[]).expect("prepared");
+        let refs: u64 = p.leaf_tris.iter().map(|&n| n as u64).sum();
+        (p.bvh_quality, refs)
+    };
+    let small = crate::cornell_box();
+    let mut large = small.clone();
+    add_cuboid(&mut large, 8);
+    let (_, few) = quality(&small, BvhSetting::Auto, 1);
+    let (_, many) = quality(&large, BvhSetting::Auto, 1);
+    assert!(few < 256 && many > 256 && many < 16 * 256, "{few} {many}");
+    for (scene, bvh, spp, want) in [
+        (&small, BvhSetting::Auto, 1, BuildQuality::Full),
+        (&large, BvhSetting::Auto, 1, BuildQuality::Quick),
+        (&large, BvhSetting::Auto, 16, BuildQuality::Full),
+        (&small, BvhSetting::Quick, 16, BuildQuality::Quick),
+        (&large, BvhSetting::Full, 1, BuildQuality::Full),
+    ] {
+        assert_eq!(quality(scene, bvh, spp).0, want, "{bvh:?} at {spp} spp");
+    }
+}
