@@ -276,7 +276,10 @@ pub(crate) struct FarmArgs {
     #[arg(long, value_enum, default_value = "region-growing")]
     pub(crate) partitioner: PartitionerArg,
     /// Leaf cost prediction the partitioner balances.
-    #[arg(long, value_enum, default_value = "sampled")]
+    /// (auto: sampled, but analytic for a `forward` job of fewer camera
+    /// samples than triangles, whose preview would cost more than it
+    /// saves.)
+    #[arg(long, value_enum, default_value = "auto")]
     pub(crate) cost: CostArg,
     /// Most ray items per packet (a packet also leaves when its worker
     /// runs out of work).
@@ -324,6 +327,7 @@ pub(crate) enum PartitionerArg {
 pub(crate) enum CostArg {
     Analytic,
     Sampled,
+    Auto,
 }
 
 #[derive(clap::Args)]
@@ -734,6 +738,7 @@ impl FarmArgs {
             cost_model: match self.cost {
                 CostArg::Analytic => CostModel::Analytic,
                 CostArg::Sampled => CostModel::Sampled,
+                CostArg::Auto => CostModel::Auto,
             },
             tile_size: self.tile_size.max(1),
             tuning: Tuning {

@@ -21,8 +21,12 @@ pub enum CostModel {
     /// Surface area times triangle count (MacDonald and Booth).
     Analytic,
     /// Work counted per leaf while tracing a low-resolution preview.
-    #[default]
     Sampled,
+    /// `Sampled`, from a smaller preview where the full one would cost
+    /// a job more than it saves (fewer camera samples than triangle
+    /// references: the scheduler's `cost::preview_pays`).
+    #[default]
+    Auto,
 }
 
 /// What a worker does with a ray that reaches a leaf it does not own

@@ -4,6 +4,7 @@
 use crate::actor::Running;
 use crate::cost;
 use locus_protocol::report::{FarmReport, Phases, Prediction, WorkerStats, WorkerSummary};
+use locus_protocol::submit::CostModel;
 use std::time::Instant;
 
 /// The report of job `j`, whose last attempt's workers are `names` (their
@@ -73,7 +74,11 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         seed: j.req.settings.seed,
         sampler: j.req.settings.sampler.name().into(),
         partitioner: format!("{:?}", j.req.options.partitioner),
-        cost_model: format!("{:?}", j.req.options.cost_model),
+        cost_model: match (j.req.options.cost_model, prep.small_preview) {
+            (CostModel::Auto, true) => "Sampled (auto: the small preview)".into(),
+            (CostModel::Auto, false) => "Sampled (auto)".into(),
+            (m, _) => format!("{m:?}"),
+        },
         policy: j.req.options.fetch.name().to_string(),
         replicated: prep.replicated,
         bvh_quality: prep.bvh_quality,
@@ -110,7 +115,7 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
             .map(|(w, s)| WorkerSummary {
                 id: w as u16,
                 addr: names.get(w).cloned().unwrap_or_default(),
-                predicted_cost_share: prep.predicted_share(w, j.req.options.cost_model),
+                predicted_cost_share: prep.predicted_share(w),
                 measured_cost_share: measured[w],
                 stats: s.clone(),
             })

@@ -241,11 +241,7 @@ impl Actor {
                 .map(|(w, m)| Member {
                     worker: *m,
                     listen: self.listen_of(*m),
-                    predicted_share: j
-                        .attempt
-                        .prep
-                        .as_ref()
-                        .map(|p| p.predicted_share(w, j.req.options.cost_model)),
+                    predicted_share: j.attempt.prep.as_ref().map(|p| p.predicted_share(w)),
                     tile_passes_done: j.attempt.tiles_by[w],
                 })
                 .collect(),

@@ -215,6 +215,55 @@ pub const FULL_PREVIEW: PreviewSize = PreviewSize {
     quality: BuildQuality::Full,
 };
 
+/// A job under
+/// [`CostModel::Auto`](locus_protocol::submit::CostModel::Auto) traces
+/// the full preview only when it has at least this many camera samples a
+/// triangle reference; a smaller one draws its regions from the
+/// [`DECISION_PREVIEW`] (a quarter of the paths over quick BVHs in small
+/// parts), which `adaptive` decides on whether to buy anyway. An
+/// `adaptive` job whose scene does not fit every worker keeps the full
+/// preview: it fetches leaves by what its preview counted, and fetched
+/// far more from the small one's counts (the 4-million-triangle room
+/// below: 8.25 s of render against 5.12).
+///
+/// The preview's cost grows with the scene (a BVH over all of it) and its
+/// gain with the job (fewer forwards, better balance, for every sample).
+/// Measured on this 2-core AMD EPYC (2026-12-07, the embedded farm, two
+/// workers of one thread, `forward`, the whole job from submission, the
+/// full preview (`--cost sampled`) against the small one (`--cost auto`)
+/// against the analytic model (`--cost analytic`)): the room at 160x90
+/// and 1 spp (0.044 samples a reference) 0.47, 0.28 and 0.20 s, at 4 spp
+/// 0.56, 0.38 and 0.35; the conference room at 320x180 and 1 spp 0.48,
+/// 0.34 and 0.28, at 4 spp (0.83) 0.85, 0.75 and 0.72; the Country
+/// Kitchen (1.44 million triangles) at 160x90 and 1 spp 2.29, 1.47 and
+/// 1.07, at 4 spp 2.45, 1.70 and 1.27; the 4-million-triangle room on
+/// four workers at 320x240 and 16 spp (0.30) 7.89, 6.43 and 7.31 (the
+/// render 4.19, 4.58 and 5.90 s: analytic regions balance it badly).
+/// Regions from the small preview render about as fast as the full
+/// one's. Where the full preview pays, from measurements before the
+/// small one was tried (full against analytic): the room at 320x180 and
+/// 4 spp (0.71) 0.98 against 1.03 s, at 16 spp (2.84) 2.57 against 3.31;
+/// the conference room at 16 spp (3.3) 2.06 against 2.33; the kitchen at
+/// 320x180 and 16 spp (0.64) 5.12 against 4.94. One sample a reference
+/// is on the right side of all but the room's 0.71 (5%). The small
+/// preview against the full one above it (forced by a switch not kept):
+/// the room at 320x180 and 4 spp (0.71) 0.75-0.77 s against 0.96-0.98,
+/// at 16 spp (2.84) 2.29-2.33 against 2.46-2.49 with the render 2.05-2.07
+/// against 1.96-1.97; the conference room at 16 spp (3.3) 1.86-1.98
+/// against 2.08-2.09, the render level. So the small preview still wins
+/// the whole job at three samples a reference, at a render up to 5%
+/// slower; the rule stays at one, where the standard benchmarks' jobs
+/// (the room at 3.8) keep their regions and the full preview's margin
+/// grows with the workers a partition places work between.
+pub const PREVIEW_FROM_SAMPLES_PER_TRIANGLE: u64 = 1;
+
+/// Whether a job of `samples` camera samples over `references` triangle
+/// references pays for the full preview when its cost model is
+/// `CostModel::Auto` ([`PREVIEW_FROM_SAMPLES_PER_TRIANGLE`]).
+pub fn preview_pays(samples: u64, references: u64) -> bool {
+    samples >= references.saturating_mul(PREVIEW_FROM_SAMPLES_PER_TRIANGLE)
+}
+
 /// The preview `adaptive` decides with whether to buy the whole scene.
 /// Parts this small build several at once and each faster (obvhs's
 /// conversion to the wide BVH is serial, and its tables then fit the

@@ -72,6 +72,12 @@ pub struct Prepared {
     /// hold the paths there ([`cost::Preview::charged`]).
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
+    /// The cost model the regions were drawn from (`Auto` is `Sampled`).
+    pub cost_model: CostModel,
+    /// Whether they were drawn from the small preview
+    /// ([`cost::DECISION_PREVIEW`]) because the full one would not pay
+    /// ([`cost::preview_pays`]).
+    pub small_preview: bool,
     pub preview_rays: u64,
     /// The queries the preview predicts a path forwards under the
     /// partition and the tiles' affinities; none without a preview, with
@@ -93,15 +99,15 @@ impl Prepared {
     /// whichever worker asks (the partition still drawn there places
     /// nothing: on the room, 35% and 65% predicted against 49% and 51%
     /// measured).
-    pub fn predicted_share(&self, w: usize, model: CostModel) -> f64 {
+    pub fn predicted_share(&self, w: usize) -> f64 {
         if self.replicated {
             let cores = crate::actor::shares(&self.member_cores);
             let all: u64 = cores.iter().map(|&c| c as u64).sum();
             return cores.get(w).map_or(0.0, |&c| c as f64 / all.max(1) as f64);
         }
-        match model {
-            CostModel::Analytic => self.analytic_share[w],
+        match self.cost_model {
             CostModel::Sampled => self.sampled_share[w],
+            CostModel::Analytic | CostModel::Auto => self.analytic_share[w],
         }
     }
 
@@ -227,24 +233,40 @@ pub fn prepare(
     // ray to forward, so the preview (a quarter of a second on the room)
     // would predict nothing the job uses.
     let needs_preview = workers > 1 && !replicate_now;
-    let t_pre = Instant::now();
-    let lights = LightSet::build(&scene);
-    let analytic = cost::analytic(&tree);
-    let sampled_model = options.cost_model == CostModel::Sampled && needs_preview;
-    // `adaptive` with the whole scene fitting everywhere asks first only
-    // whether to buy, on a preview BVH of small parts built at once (see
-    // [`cost::DECISION_PREVIEW`]); only a job that then rents, and so draws regions
-    // that carry rays, pays for the preview those regions are drawn from.
-    let decide_first = sampled_model && options.fetch == FetchPolicy::Adaptive && fits_everywhere;
     // The job's BVH quality, decided here once and sent to every worker:
     // the regions' preview counts BVH steps on a tree built as the
     // workers will build theirs, and a replicated job's layout is built
     // the same way.
     let samples = scene.camera.samples(scene.settings.spp);
     let bvh_quality = scene.settings.bvh.quality(samples, all_refs);
-    let full_preview = cost::PreviewSize {
-        quality: bvh_quality,
-        ..cost::FULL_PREVIEW
+    // A job too small for the full preview to pay draws its regions from
+    // the small one `adaptive` decides to buy on ([`cost::preview_pays`]),
+    // but for an `adaptive` job whose scene does not fit every worker: it
+    // fetches leaves by what its preview counted, and fetched far more
+    // from the small one's counts.
+    let preview_pays = options.cost_model != CostModel::Auto
+        || cost::preview_pays(samples, all_refs)
+        || (options.fetch == FetchPolicy::Adaptive && !fits_everywhere);
+    let cost_model = match options.cost_model {
+        CostModel::Auto => CostModel::Sampled,
+        m => m,
+    };
+    let t_pre = Instant::now();
+    let lights = LightSet::build(&scene);
+    let analytic = cost::analytic(&tree);
+    let sampled_model = cost_model == CostModel::Sampled && needs_preview;
+    // `adaptive` with the whole scene fitting everywhere asks first only
+    // whether to buy, on a preview BVH of small parts built at once (see
+    // [`cost::DECISION_PREVIEW`]); only a job that then rents, and so draws regions
+    // that carry rays, pays for the preview those regions are drawn from.
+    let decide_first = sampled_model && options.fetch == FetchPolicy::Adaptive && fits_everywhere;
+    let full_preview = if preview_pays {
+        cost::PreviewSize {
+            quality: bvh_quality,
+            ..cost::FULL_PREVIEW
+        }
+    } else {
+        cost::DECISION_PREVIEW
     };
     let first = if decide_first {
         cost::DECISION_PREVIEW
@@ -299,10 +321,14 @@ pub fn prepare(
     // Every ray a preview traced is counted, the decision's too.
     let mut decision_rays = 0;
     if decide_first && !replicated {
-        decision_rays = pv.as_ref().map_or(0, |pv| pv.rays);
-        let t = Instant::now();
-        pv = Some(cost::sampled_in_parts(&scene, &tree, &lights, full_preview));
-        preview_s += t.elapsed().as_secs_f64();
+        // The decision preview is the job's whole preview where the full
+        // one would not pay.
+        if preview_pays {
+            decision_rays = pv.as_ref().map_or(0, |pv| pv.rays);
+            let t = Instant::now();
+            pv = Some(cost::sampled_in_parts(&scene, &tree, &lights, full_preview));
+            preview_s += t.elapsed().as_secs_f64();
+        }
         let t = Instant::now();
         drawn = drawing.drawn(pv.as_ref())?;
         partition_s += t.elapsed().as_secs_f64();
@@ -467,6 +493,8 @@ pub fn prepare(
         leaf_tris: tree.leaves.iter().map(|l| l.tris.len() as u32).collect(),
         analytic_share: cost::shares(&regions::unshared(&analytic, &shared), &map.owner, workers),
         sampled_share: cost::shares(&sampled, &map.owner, workers),
+        cost_model,
+        small_preview: sampled_model && !preview_pays,
         preview_rays,
         forwards_per_path,
         leaves: tree.leaves.len() as u32,

@@ -70,9 +70,12 @@ fn the_preview_runs_only_where_its_prediction_is_used() {
 /// are `forward`'s regions exactly, and counts the rays of both.
 #[test]
 fn adaptive_decides_on_a_small_preview_and_rents_on_the_full_one() {
+    // `forward` asked for its preview by name: under the default it would
+    // draw the tiny job's regions without one.
     let job = |scene: &Scene, fetch: FetchPolicy| {
         let options = JobOptions {
             fetch,
+            cost_model: CostModel::Sampled,
             ..JobOptions::default()
         };
         let members = [MEMBER; 2];
@@ -148,9 +151,7 @@ fn a_replicated_region_under_a_budget_is_cut_by_centroid() {
     // Tiles go to whoever asks: the work is predicted by the cores, not
     // by the partition drawn beside it.
     for (w, share) in [(0, 0.25), (1, 0.75)] {
-        for model in [CostModel::Analytic, CostModel::Sampled] {
-            assert_eq!(p.predicted_share(w, model), share);
-        }
+        assert_eq!(p.predicted_share(w), share);
     }
     for w in 0..2 {
         let parts = &p.parts[w];
@@ -351,4 +352,53 @@ fn the_bvh_quality_follows_the_jobs_setting_and_samples() {
     ] {
         assert_eq!(quality(scene, bvh, spp).0, want, "{bvh:?} at {spp} spp");
     }
+}
+
+/// Under the default cost model a job of fewer camera samples than
+/// triangle references draws its regions from the small preview, the
+/// full one costing it more than it saves; a larger job and one that asks
+/// for the sampled model by name trace the full preview, and the analytic
+/// model traces none.
+#[test]
+fn a_job_too_small_for_the_full_preview_draws_from_the_small_one() {
+    let mut base = crate::cornell_box();
+    add_cuboid(&mut base, 80);
+    // Enough pixels that the full preview traces more paths than the
+    // small one (each traces at most a path a pixel).
+    base.camera.width = 128;
+    base.camera.height = 128;
+    let run = |spp: u32, fetch: FetchPolicy, model: CostModel| {
+        let mut scene = base.clone();
+        scene.settings.spp = spp;
+        let scene = Arc::new(scene);
+        let options = JobOptions {
+            fetch,
+            cost_model: model,
+            ..JobOptions::default()
+        };
+        let tiles = tiles_of(&scene);
+        let p = prepare(scene, &options, &[MEMBER; 2], &tiles, &[]).expect("prepared");
+        let refs: u64 = p.leaf_tris.iter().map(|&n| n as u64).sum();
+        (p.preview_rays, p.small_preview, refs, p.replicated)
+    };
+    // 16,384 samples a pass against some 80,000 references: `adaptive`
+    // rents.
+    let (_, _, refs, _) = run(1, FetchPolicy::Forward, CostModel::Auto);
+    assert!(refs > 16384 && refs < 16 * 16384, "{refs} references");
+    for fetch in [FetchPolicy::Forward, FetchPolicy::Adaptive] {
+        let (small, is_small, _, bought) = run(1, fetch, CostModel::Auto);
+        let (full, is_full, _, _) = run(1, fetch, CostModel::Sampled);
+        assert!(is_small && !is_full && !bought, "{fetch:?}");
+        // `adaptive` traces the small preview to decide on in both.
+        assert!(
+            0 < small && small < full,
+            "{fetch:?}: {small} against {full}"
+        );
+        let (large, is_small, _, _) = run(16, fetch, CostModel::Auto);
+        assert!(!is_small && large >= small, "{fetch:?}: {large}");
+    }
+    let (large, _, _, _) = run(16, FetchPolicy::Forward, CostModel::Auto);
+    let (small, _, _, _) = run(1, FetchPolicy::Forward, CostModel::Auto);
+    assert!(large > small, "{large} against {small}");
+    assert_eq!(run(1, FetchPolicy::Forward, CostModel::Analytic).0, 0);
 }
