@@ -260,7 +260,8 @@ pub fn prepare(
     // [`cost::DECISION_PREVIEW`]); only a job that then rents, and so draws regions
     // that carry rays, pays for the preview those regions are drawn from.
     let decide_first = sampled_model && options.fetch == FetchPolicy::Adaptive && fits_everywhere;
-    let full_preview = if preview_pays {
+    // The preview the regions are drawn from.
+    let regions_preview = if preview_pays {
         cost::PreviewSize {
             quality: bvh_quality,
             ..cost::FULL_PREVIEW
@@ -271,7 +272,7 @@ pub fn prepare(
     let first = if decide_first {
         cost::DECISION_PREVIEW
     } else {
-        full_preview
+        regions_preview
     };
     let mut pv = sampled_model.then(|| cost::sampled_in_parts(&scene, &tree, &lights, first));
     let mut preview_s = t_pre.elapsed().as_secs_f64();
@@ -326,7 +327,12 @@ pub fn prepare(
         if preview_pays {
             decision_rays = pv.as_ref().map_or(0, |pv| pv.rays);
             let t = Instant::now();
-            pv = Some(cost::sampled_in_parts(&scene, &tree, &lights, full_preview));
+            pv = Some(cost::sampled_in_parts(
+                &scene,
+                &tree,
+                &lights,
+                regions_preview,
+            ));
             preview_s += t.elapsed().as_secs_f64();
         }
         let t = Instant::now();
