@@ -12,7 +12,7 @@ pub struct PhaseTimes {
     /// 0 when no octree was needed (directional caches off).
     pub octree_s: f64,
     pub bvh_s: f64,
-    /// The quality the BVH was built at ([`crate::accel::BuildQuality::for_job`]).
+    /// The quality the BVH was built at ([`crate::accel::BvhSetting::quality`]).
     pub bvh_quality: crate::accel::BuildQuality,
     pub render_s: f64,
 }

@@ -275,10 +275,10 @@ pub(crate) struct FarmArgs {
     /// Partitioner of octree leaves into regions.
     #[arg(long, value_enum, default_value = "region-growing")]
     pub(crate) partitioner: PartitionerArg,
-    /// Leaf cost prediction the partitioner balances.
-    /// (auto: sampled, but analytic for a `forward` job of fewer camera
-    /// samples than triangles, whose preview would cost more than it
-    /// saves.)
+    /// Leaf cost prediction the partitioner balances: analytic, sampled
+    /// (the full preview), small (a quarter-size preview), or auto (small
+    /// for a job of fewer camera samples than triangles, whose full
+    /// preview would cost more than it saves, else sampled).
     #[arg(long, value_enum, default_value = "auto")]
     pub(crate) cost: CostArg,
     /// Most ray items per packet (a packet also leaves when its worker
@@ -327,6 +327,7 @@ pub(crate) enum PartitionerArg {
 pub(crate) enum CostArg {
     Analytic,
     Sampled,
+    Small,
     Auto,
 }
 
@@ -738,6 +739,7 @@ impl FarmArgs {
             cost_model: match self.cost {
                 CostArg::Analytic => CostModel::Analytic,
                 CostArg::Sampled => CostModel::Sampled,
+                CostArg::Small => CostModel::Small,
                 CostArg::Auto => CostModel::Auto,
             },
             tile_size: self.tile_size.max(1),

@@ -22,9 +22,13 @@ pub enum CostModel {
     Analytic,
     /// Work counted per leaf while tracing a low-resolution preview.
     Sampled,
-    /// `Sampled`, from a smaller preview where the full one would cost
-    /// a job more than it saves (fewer camera samples than triangle
-    /// references: the scheduler's `cost::preview_pays`).
+    /// `Sampled` from the quarter-size preview `adaptive` decides on
+    /// whether to buy (the scheduler's `cost::DECISION_PREVIEW`).
+    Small,
+    /// `Small` where the full preview would cost a job more than it
+    /// saves (fewer camera samples than triangle references: the
+    /// scheduler's `cost::preview_pays`), but for an `adaptive` job whose
+    /// scene does not fit every worker; `Sampled` otherwise.
     #[default]
     Auto,
 }

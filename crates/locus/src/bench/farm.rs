@@ -246,10 +246,9 @@ fn single(scene: &Scene, cores: usize, repeat: u32) -> Single {
     let mut best: Option<Single> = None;
     for _ in 0..repeat.max(1) {
         let t = Instant::now();
-        let o0 = RenderOptions::from_scene(scene);
+        let mut o = RenderOptions::from_scene(scene);
         // Built as `locus render` builds it for this job.
-        let prep = Prepared::for_job(scene.clone(), o0.spp);
-        let mut o = o0;
+        let prep = Prepared::for_job(scene.clone(), o.spp);
         o.threads = cores;
         let cpu0 = locus_worker::sys::process_cpu_s();
         let out = render(&prep, &o, &|_, _| {});

@@ -246,13 +246,14 @@ pub const FULL_PREVIEW: PreviewSize = PreviewSize {
 /// the conference room at 16 spp (3.3) 2.06 against 2.33; the kitchen at
 /// 320x180 and 16 spp (0.64) 5.12 against 4.94. One sample a reference
 /// is on the right side of all but the room's 0.71 (5%). The small
-/// preview against the full one above it (forced by a switch not kept):
-/// the room at 320x180 and 4 spp (0.71) 0.75-0.77 s against 0.96-0.98,
-/// at 16 spp (2.84) 2.29-2.33 against 2.46-2.49 with the render 2.05-2.07
-/// against 1.96-1.97; the conference room at 16 spp (3.3) 1.86-1.98
-/// against 2.08-2.09, the render level. So the small preview still wins
-/// the whole job at three samples a reference, at a render up to 5%
-/// slower; the rule stays at one, where the standard benchmarks' jobs
+/// preview against the full one above it (`--cost small` against
+/// `--cost sampled`): the room at 320x180 and 4 spp (0.71) 0.75-0.77 s
+/// against 0.96-0.98, at 16 spp (2.84) 2.31-2.35 against 2.46-2.58 with
+/// the render 2.04-2.10 against 1.97-2.08; the conference room at 16 spp
+/// (3.3) 1.90-2.07 against 2.02-2.06, the render 3-7% slower. So the
+/// small preview can still win the whole job at three samples a
+/// reference, at a slower render; the rule stays at one, where the
+/// standard benchmarks' jobs
 /// (the room at 3.8) keep their regions and the full preview's margin
 /// grows with the workers a partition places work between.
 pub const PREVIEW_FROM_SAMPLES_PER_TRIANGLE: u64 = 1;

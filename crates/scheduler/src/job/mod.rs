@@ -72,11 +72,13 @@ pub struct Prepared {
     /// hold the paths there ([`cost::Preview::charged`]).
     pub analytic_share: Vec<f64>,
     pub sampled_share: Vec<f64>,
-    /// The cost model the regions were drawn from (`Auto` is `Sampled`).
+    /// The cost model the regions were drawn from: `Analytic` or
+    /// `Sampled` (which `Small` and `Auto` are, from one preview or the
+    /// other).
     pub cost_model: CostModel,
     /// Whether they were drawn from the small preview
-    /// ([`cost::DECISION_PREVIEW`]) because the full one would not pay
-    /// ([`cost::preview_pays`]).
+    /// ([`cost::DECISION_PREVIEW`]): asked for, or the full one would not
+    /// pay ([`cost::preview_pays`]).
     pub small_preview: bool,
     pub preview_rays: u64,
     /// The queries the preview predicts a path forwards under the
@@ -106,8 +108,8 @@ impl Prepared {
             return cores.get(w).map_or(0.0, |&c| c as f64 / all.max(1) as f64);
         }
         match self.cost_model {
-            CostModel::Sampled => self.sampled_share[w],
-            CostModel::Analytic | CostModel::Auto => self.analytic_share[w],
+            CostModel::Analytic => self.analytic_share[w],
+            _ => self.sampled_share[w],
         }
     }
 
@@ -244,12 +246,19 @@ pub fn prepare(
     // but for an `adaptive` job whose scene does not fit every worker: it
     // fetches leaves by what its preview counted, and fetched far more
     // from the small one's counts.
-    let preview_pays = options.cost_model != CostModel::Auto
-        || cost::preview_pays(samples, all_refs)
-        || (options.fetch == FetchPolicy::Adaptive && !fits_everywhere);
+    let preview_pays = match options.cost_model {
+        CostModel::Small => false,
+        CostModel::Auto => {
+            cost::preview_pays(samples, all_refs)
+                || (options.fetch == FetchPolicy::Adaptive && !fits_everywhere)
+        }
+        CostModel::Sampled | CostModel::Analytic => true,
+    };
+    // Every sampled model is `Sampled` from here on; `small_preview`
+    // below says which preview it came from.
     let cost_model = match options.cost_model {
-        CostModel::Auto => CostModel::Sampled,
-        m => m,
+        CostModel::Analytic => CostModel::Analytic,
+        _ => CostModel::Sampled,
     };
     let t_pre = Instant::now();
     let lights = LightSet::build(&scene);

@@ -401,4 +401,7 @@ fn a_job_too_small_for_the_full_preview_draws_from_the_small_one() {
     let (small, _, _, _) = run(1, FetchPolicy::Forward, CostModel::Auto);
     assert!(large > small, "{large} against {small}");
     assert_eq!(run(1, FetchPolicy::Forward, CostModel::Analytic).0, 0);
+    // The small preview asked for by name, where the full one would pay.
+    let (asked, is_small, _, _) = run(16, FetchPolicy::Forward, CostModel::Small);
+    assert!(is_small && asked == small, "{asked} against {small}");
 }
