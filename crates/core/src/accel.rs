@@ -143,7 +143,7 @@ const BVH_T_SHIFT: f32 = 2.5e-4;
 /// inverse but positive near planes: every box's entry came out beyond
 /// its exit, and such a ray hit nothing at all.
 #[inline(always)]
-fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
+fn bvh_ray(ray: &Ray, tmin: f32, tmax: f32) -> obvhs::ray::Ray {
     let inv = |x: f32| {
         if x.abs() < 1e-30 {
             if x < 0.0 { -1e30 } else { 1e30 }
@@ -155,7 +155,10 @@ fn bvh_ray(ray: &Ray, tmax: f32) -> obvhs::ray::Ray {
         origin: Vec3A::from(ray.origin - ray.dir * BVH_T_SHIFT),
         direction: Vec3A::from(ray.dir),
         inv_direction: Vec3A::new(inv(ray.dir.x), inv(ray.dir.y), inv(ray.dir.z)),
-        tmin: 0.0,
+        // Shifted as the origin is, then taken back by as much again: the
+        // node test skips children that end before `tmin`, with this as a
+        // margin beyond the boxes' padding.
+        tmin: tmin.max(0.0),
         tmax: tmax + BVH_T_SHIFT,
     }
 }
@@ -422,7 +425,7 @@ impl Accel {
         stats: &mut TraceStats,
     ) -> Option<AccelHit> {
         let w = WatertightRay::new(ray);
-        let mut r = bvh_ray(ray, t1);
+        let mut r = bvh_ray(ray, t0, t1);
         let nr = cwnode::NodeRay::new(&r);
         let mut best: Option<AccelHit> = None;
         let mut room = walk::slots();
@@ -516,7 +519,7 @@ impl Accel {
         stats: &mut TraceStats,
     ) -> bool {
         let w = WatertightRay::new(ray);
-        let r = bvh_ray(ray, t1);
+        let r = bvh_ray(ray, t0, t1);
         let nr = cwnode::NodeRay::new(&r);
         let mut room = walk::slots();
         let mut state = walk::Walk::new(self.bvh.nodes.len(), r.direction, &mut room);

@@ -144,6 +144,74 @@ fn rays_with_zero_components_of_either_sign_find_what_every_triangle_gives() {
     assert!(hits > 300, "only {hits} hits: the rays test little");
 }
 
+/// A query that starts along its ray skips the nodes that end before its
+/// start (`cwnode::entry_min`) and still finds every hit at or beyond it:
+/// started exactly at each ray's first hit it finds that hit, started a
+/// hair beyond it finds what testing every triangle finds there, and it
+/// visits fewer nodes than the same queries started at the origin.
+#[test]
+fn queries_started_along_the_ray_find_the_hits_at_their_start() {
+    let set = soup(6000, 40);
+    let ids: Vec<u32> = (0..set.len() as u32).collect();
+    let accel = Accel::build(&set, &ids, 20.0);
+    let brute = |r: &Ray, t0: f32| {
+        let w = WatertightRay::new(r);
+        set.iter()
+            .enumerate()
+            .filter_map(|(i, v)| w.intersect(v, t0, f32::INFINITY).map(|h| (h.t, i as u32)))
+            .min_by(|a, b| a.partial_cmp(b).unwrap())
+    };
+    let (mut from_origin, mut from_start) = (TraceStats::default(), TraceStats::default());
+    let mut checked = 0;
+    for i in 0..1500u64 {
+        let k = SampleKey::independent(i, 4, 9);
+        let o = (Vec3::new(k.get1d(0), k.get1d(1), k.get1d(2)) * 2.0 - 1.0) * 14.0;
+        // Aimed at a triangle's vertex or its middle, so that most hit and
+        // some graze an edge.
+        let tri = set[(k.get1d(3) * set.len() as f32) as usize % set.len()];
+        let aim = if i % 2 == 0 {
+            tri[0]
+        } else {
+            (tri[0] + tri[1] + tri[2]) / 3.0
+        };
+        let Some(d) = (aim - o).try_normalize() else {
+            continue;
+        };
+        let r = Ray::new(o, d);
+        let Some((t_hit, _)) = brute(&r, 0.0) else {
+            continue;
+        };
+        let _ = accel.closest(&r, 0.0, f32::INFINITY, &mut from_origin);
+        let got = accel.closest(&r, t_hit, f32::INFINITY, &mut from_start);
+        assert_eq!(
+            got.map(|h| (h.hit.t, h.hit.tri)),
+            brute(&r, t_hit),
+            "ray {i} from its hit"
+        );
+        assert!(
+            accel.occluded(&r, t_hit, t_hit * 1.5 + 1.0, &mut from_start),
+            "ray {i}"
+        );
+        let beyond = t_hit.next_up();
+        let got = accel.closest(&r, beyond, f32::INFINITY, &mut from_start);
+        assert_eq!(
+            got.map(|h| (h.hit.t, h.hit.tri)),
+            brute(&r, beyond),
+            "ray {i} beyond its hit"
+        );
+        checked += 1;
+    }
+    assert!(checked > 1000, "only {checked} rays hit");
+    // Each ray was asked twice from along it and once from its origin.
+    assert!(
+        2 * from_origin.bvh_nodes > from_start.bvh_nodes * 11 / 10,
+        "queries from along the ray visited {} nodes, from the origin {} (twice that: {})",
+        from_start.bvh_nodes,
+        from_origin.bvh_nodes,
+        2 * from_origin.bvh_nodes
+    );
+}
+
 /// The traversal compiled for AVX2 around the eight-wide node test and
 /// the eight-lane triangle test gives every query the four-wide and
 /// scalar one's answer, to the bit, visiting the same nodes and, for
