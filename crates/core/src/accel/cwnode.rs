@@ -1,7 +1,7 @@
 //! The CWBVH node test: obvhs's `CwBvhNode::intersect_ray_simd` with the
 //! same arithmetic (so a query from its ray's origin visits the same
 //! children, to the bit; one that starts along its ray also skips those
-//! that end before its start, see [`entry_min`]), made cheaper where a
+//! that end before its start, see [`NodeRay`]), made cheaper where a
 //! profile showed it:
 //!
 //! - the quantised child bounds are widened with SSE4.1's `pmovzxbd` and
@@ -33,26 +33,21 @@ use obvhs::ray::Ray;
 /// origin.
 const ENTRY_MIN: f32 = 0.0001;
 
-/// The least entry distance a child may have and be visited: obvhs's
-/// [`ENTRY_MIN`], or the query's own start where that is later. A query
-/// that starts along its ray (a forwarded query's run in a region, or a
-/// resumed one) then skips the children that end before it, which can
-/// hold no hit it takes. Safe by the boxes' padding: a triangle's box
-/// reaches beyond every point of it by 2^-18 of the scene's magnitude,
-/// far more than the slab test's rounding, and `tmin` is the start moved
-/// back by the ray's shift (`bvh_ray`).
-#[inline(always)]
-fn entry_min(r: &Ray) -> f32 {
-    r.tmin.max(ENTRY_MIN)
-}
-
 /// What a ray's node tests share: per axis, the byte offsets in a node of
 /// the near and far quantised planes (which depend only on the direction's
-/// signs).
+/// signs), and the least entry distance a child may have and be visited.
 #[derive(Clone, Copy)]
 pub(crate) struct NodeRay {
     near: [usize; 3],
     far: [usize; 3],
+    /// obvhs's [`ENTRY_MIN`], or the query's own start where that is
+    /// later. A query that starts along its ray (a forwarded query's run
+    /// in a region, or a resumed one) then skips the children that end
+    /// before it, which can hold no hit it takes. Safe by the boxes'
+    /// padding: a triangle's box reaches beyond every point of it by 2^-18
+    /// of the scene's magnitude, far more than the slab test's rounding,
+    /// and `tmin` is the start moved back by the ray's shift (`bvh_ray`).
+    entry_min: f32,
 }
 
 impl NodeRay {
@@ -77,6 +72,7 @@ impl NodeRay {
         Self {
             near: [pick(0, true), pick(1, true), pick(2, true)],
             far: [pick(0, false), pick(1, false), pick(2, false)],
+            entry_min: r.tmin.max(ENTRY_MIN),
         }
     }
 }
@@ -165,7 +161,7 @@ unsafe fn intersect_sse41(node: &CwBvhNode, r: &Ray, nr: &NodeRay, oct_inv4: u32
         };
         let (ix, iy, iz) = (_mm_set1_ps(inv.x), _mm_set1_ps(inv.y), _mm_set1_ps(inv.z));
         let (ox, oy, oz) = (_mm_set1_ps(org.x), _mm_set1_ps(org.y), _mm_set1_ps(org.z));
-        let (entry_min, exit_max) = (_mm_set1_ps(entry_min(r)), _mm_set1_ps(r.tmax));
+        let (entry_min, exit_max) = (_mm_set1_ps(nr.entry_min), _mm_set1_ps(r.tmax));
         // Each child's contribution to the mask is `bits << at` (its
         // leaf-or-inner bits at its octant-ordered position), kept where the
         // box is hit: computed in the lanes, `1 << at` as the float 2^at
@@ -246,7 +242,7 @@ unsafe fn intersect_avx2(node: &CwBvhNode, r: &Ray, nr: &NodeRay, oct_inv4: u32)
         let tmax_z = t(nr.far[2], iz, oz);
         let tmin = _mm256_max_ps(tmin_x, _mm256_max_ps(tmin_y, tmin_z));
         let tmax = _mm256_min_ps(tmax_x, _mm256_min_ps(tmax_y, tmax_z));
-        let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(entry_min(r)));
+        let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(nr.entry_min));
         let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(r.tmax));
         // `cmpleps`'s predicate: false when either side is NaN.
         let hit = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax));
