@@ -74,11 +74,11 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         seed: j.req.settings.seed,
         sampler: j.req.settings.sampler.name().into(),
         partitioner: format!("{:?}", j.req.options.partitioner),
-        cost_model: match (j.req.options.cost_model, prep.small_preview) {
-            (CostModel::Auto, true) => "Sampled (auto: the small preview)".into(),
-            (CostModel::Auto, false) => "Sampled (auto)".into(),
-            (m, _) => format!("{m:?}"),
-        },
+        cost_model: cost_model_label(
+            j.req.options.cost_model,
+            prep.preview_rays,
+            prep.small_preview,
+        ),
         policy: j.req.options.fetch.name().to_string(),
         replicated: prep.replicated,
         bvh_quality: prep.bvh_quality,
@@ -135,8 +135,50 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
 }
 
 /// The largest of `v` over their mean; 1 where there is nothing to share.
+/// What the report says of the cost model: the one asked for, and for a
+/// sampled one which preview the regions came from, or that none was
+/// traced (a lone worker, or a job that holds the whole scene on every
+/// worker, has no regions to draw and so no preview).
+fn cost_model_label(asked: CostModel, preview_rays: u64, small_preview: bool) -> String {
+    match (asked, preview_rays, small_preview) {
+        (CostModel::Analytic, ..) => "Analytic".into(),
+        (m, 0, _) => format!("{m:?} (no preview: nothing to partition)"),
+        (CostModel::Auto, _, true) => "Sampled (auto: the small preview)".into(),
+        (CostModel::Auto, _, false) => "Sampled (auto)".into(),
+        (m, ..) => format!("{m:?}"),
+    }
+}
+
 fn max_over_mean(v: &[f64]) -> f64 {
     let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
     let max = v.iter().cloned().fold(0.0, f64::max);
     if mean > 0.0 { max / mean } else { 1.0 }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A job that traced no preview does not claim a sampled model; one
+    /// that did says which preview.
+    #[test]
+    fn the_cost_model_says_whether_a_preview_was_traced() {
+        let label = cost_model_label;
+        assert_eq!(
+            label(CostModel::Auto, 0, false),
+            "Auto (no preview: nothing to partition)"
+        );
+        assert_eq!(
+            label(CostModel::Sampled, 0, false),
+            "Sampled (no preview: nothing to partition)"
+        );
+        assert_eq!(label(CostModel::Auto, 5, false), "Sampled (auto)");
+        assert_eq!(
+            label(CostModel::Auto, 5, true),
+            "Sampled (auto: the small preview)"
+        );
+        assert_eq!(label(CostModel::Small, 5, true), "Small");
+        assert_eq!(label(CostModel::Sampled, 5, false), "Sampled");
+        assert_eq!(label(CostModel::Analytic, 0, false), "Analytic");
+    }
 }
