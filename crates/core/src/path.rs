@@ -475,21 +475,27 @@ impl Kernel<'_> {
                 _ => unreachable!("a tracer that finishes every segment left one pending"),
             };
         }
+        // The vertex takes its place in the chain only when something of it
+        // waits: most vertices of a farm worker finish here, and writing
+        // each into the chain and reading it back cost more than placing
+        // the few that wait. Its continuation's own waiting vertices, if
+        // any, were appended meanwhile; this one goes before them.
         let idx = chain.len();
-        chain.push(ChainVertex {
+        let (next, update) = next(chain, st);
+        if let (Child::Done(visible), Child::Done(l)) = (&shadow, &next) {
+            return Some(s.vertex.finish(*visible, *l));
+        }
+        let v = ChainVertex {
             vertex: s.vertex,
             shadow,
-            next: Child::Done(Vec3::ZERO),
-            update: None,
-        });
-        let (next, update) = next(chain, st);
-        if let (Child::Done(visible), Child::Done(l)) = (&chain[idx].shadow, &next) {
-            let v = chain[idx].vertex.finish(*visible, *l);
-            chain.truncate(idx);
-            return Some(v);
+            next,
+            update,
+        };
+        if idx == chain.len() {
+            chain.push(v);
+        } else {
+            chain.insert(idx, v);
         }
-        chain[idx].next = next;
-        chain[idx].update = update;
         None
     }
 
