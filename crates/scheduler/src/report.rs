@@ -134,21 +134,21 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
     }
 }
 
-/// The largest of `v` over their mean; 1 where there is nothing to share.
 /// What the report says of the cost model: the one asked for, and for a
 /// sampled one which preview the regions came from, or that none was
 /// traced (a lone worker, or a job that holds the whole scene on every
-/// worker, has no regions to draw and so no preview).
+/// worker, has no regions to draw and so traces none).
 fn cost_model_label(asked: CostModel, preview_rays: u64, small_preview: bool) -> String {
     match (asked, preview_rays, small_preview) {
         (CostModel::Analytic, ..) => "Analytic".into(),
-        (m, 0, _) => format!("{m:?} (no preview: nothing to partition)"),
+        (m, 0, _) => format!("{m:?} (no preview traced)"),
         (CostModel::Auto, _, true) => "Sampled (auto: the small preview)".into(),
         (CostModel::Auto, _, false) => "Sampled (auto)".into(),
         (m, ..) => format!("{m:?}"),
     }
 }
 
+/// The largest of `v` over their mean; 1 where there is nothing to share.
 fn max_over_mean(v: &[f64]) -> f64 {
     let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
     let max = v.iter().cloned().fold(0.0, f64::max);
@@ -164,13 +164,10 @@ mod tests {
     #[test]
     fn the_cost_model_says_whether_a_preview_was_traced() {
         let label = cost_model_label;
-        assert_eq!(
-            label(CostModel::Auto, 0, false),
-            "Auto (no preview: nothing to partition)"
-        );
+        assert_eq!(label(CostModel::Auto, 0, false), "Auto (no preview traced)");
         assert_eq!(
             label(CostModel::Sampled, 0, false),
-            "Sampled (no preview: nothing to partition)"
+            "Sampled (no preview traced)"
         );
         assert_eq!(label(CostModel::Auto, 5, false), "Sampled (auto)");
         assert_eq!(
