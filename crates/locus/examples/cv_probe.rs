@@ -23,7 +23,7 @@
 use glam::{DVec3, Vec3};
 use locus_core::image_io::Image;
 use locus_core::integrator::{DIM_PIXEL, Frame, PathRay, shade};
-use locus_core::path::WholeScene;
+use locus_core::path::{Kernel, WholeScene};
 use locus_core::render::Prepared;
 use locus_core::sampler::Sampler;
 use locus_core::scene::Scene;
@@ -60,13 +60,6 @@ const A: [f64; 9] = [
     0.25,
     0.25,
 ];
-
-#[derive(Clone, Copy)]
-struct Record {
-    cell: usize,
-    w: Vec3,
-    l: DVec3,
-}
 
 /// A path vertex that sent a continuation: its cell, shading normal,
 /// continuation direction, the throughput before it (the product of the
@@ -113,19 +106,23 @@ fn main() -> anyhow::Result<()> {
         (c.z as usize * grid + c.y as usize) * grid + c.x as usize
     };
     let tracer = WholeScene(&prep.accel);
+    let base = Kernel {
+        sampler,
+        ..prep.kernel(prep.scene.settings.max_depth, None)
+    };
     // The kernel's value of a camera sample, and the path walked again
     // vertex by vertex with the same calls, its radiance finished from the
     // last vertex back (checked against the kernel's, bit for bit).
     let sample = |seed: u64, x: u32, y: u32, i: u32| -> (Vec3, Vec<Vertex>) {
-        let mut kernel = prep.kernel(prep.scene.settings.max_depth, None);
-        kernel.seed = seed;
-        kernel.sampler = sampler;
+        let kernel = Kernel { seed, ..base };
         let mut chain = Vec::new();
         let mut st = TraceStats::default();
         let total = kernel.sample(&tracer, x, y, i, &mut chain, &mut st);
         let key = kernel.sample_key(x, y, i);
         let mut q = PathRay::camera(kernel.view.ray(x, y, key.get2d(DIM_PIXEL)), key);
-        // (vertex, visible, continued) along the path.
+        // Each vertex shaded and whether its shadow segment was clear; for
+        // each that sent a continuation (all but the last), its cell,
+        // shading normal and the continuation's direction.
         let mut walked = Vec::new();
         let mut info = Vec::new();
         while let Some(hit) = prep.accel.closest(&q.ray, 0.0, f32::INFINITY, &mut st) {
@@ -182,17 +179,11 @@ fn main() -> anyhow::Result<()> {
     };
 
     // Training: other seeds, every pixel.
-    let records: Vec<Record> = (0..np)
+    let records: Vec<Vertex> = (0..np)
         .into_par_iter()
         .flat_map_iter(|p| {
             let (x, y) = (p as u32 % w, p as u32 / w);
-            (0..train_spp).flat_map(move |i| {
-                sample(7777, x, y, i).1.into_iter().map(|v| Record {
-                    cell: v.cell,
-                    w: v.w,
-                    l: v.l.as_dvec3(),
-                })
-            })
+            (0..train_spp).flat_map(move |i| sample(7777, x, y, i).1)
         })
         .collect();
     let cells = grid * grid * grid;
@@ -204,7 +195,7 @@ fn main() -> anyhow::Result<()> {
             for j in 0..9 {
                 m[r.cell][i][j] += y[i] * y[j];
             }
-            b[r.cell][i] += y[i] * r.l;
+            b[r.cell][i] += y[i] * r.l.as_dvec3();
         }
     }
     let coef: Vec<[DVec3; 9]> = (0..cells).map(|c| solve(m[c], b[c])).collect();
