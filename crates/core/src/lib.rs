@@ -18,7 +18,9 @@
 //! seed): Owen-scrambled Sobol by default, independent on request; area
 //! lights are sampled from [`light`]. [`render`] runs the
 //! kernel over tiles on a rayon pool, each pixel's samples in the progressive
-//! [`passes`] the farm renders too, and counts work in [`stats`]. Images
+//! [`passes`] the farm renders too, and counts work in [`stats`]; with
+//! adaptive sampling, [`spread`] gives each pass's samples to the pixels
+//! by their noise. Images
 //! leave through [`image_io`], are compared with [`metrics`], and reports
 //! are written by [`report`]; [`bulk`] is the wire form of the long lists
 //! (triangles, ids, materials) a job ships. [`dircache`] is Jansen and Reinhard's directional
@@ -57,4 +59,5 @@ pub mod render;
 pub mod report;
 pub mod sampler;
 pub mod scene;
+pub mod spread;
 pub mod stats;

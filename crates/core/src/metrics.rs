@@ -88,11 +88,22 @@ pub fn estimate_error_of_sums<'a>(
     sums: impl IntoIterator<Item = &'a PixelSum>,
     samples: u32,
 ) -> Option<ErrorEstimate> {
+    estimate_error_of_counted(sums.into_iter().map(|p| (p, samples)), samples)
+}
+
+/// [`estimate_error_of_sums`] of pixels that each have their own number of
+/// samples, as an adaptive render's do ([`crate::spread`]); `label` is the
+/// samples a pixel the estimate reports. None if any pixel has fewer than
+/// two.
+pub fn estimate_error_of_counted<'a>(
+    pixels: impl IntoIterator<Item = (&'a PixelSum, u32)>,
+    label: u32,
+) -> Option<ErrorEstimate> {
     let mut e = ErrorSum::default();
-    for p in sums {
-        e.add(p.mean(samples), p.variance_of_mean_f32(samples)?);
+    for (p, n) in pixels {
+        e.add(p.mean(n), p.variance_of_mean_f32(n)?);
     }
-    Some(e.finish(samples))
+    Some(e.finish(label))
 }
 
 /// Whether a render with a noise target may stop after a pass: the

@@ -12,12 +12,13 @@ use crate::image_io::Image;
 use crate::irradiance::IrradianceParams;
 use crate::irradiance::overture::{self, OvertureStats};
 use crate::light::LightSet;
-use crate::metrics::{ErrorEstimate, estimate_error, meets_target};
+use crate::metrics::{ErrorEstimate, estimate_error, estimate_error_of_counted};
 use crate::octree::Octree;
 use crate::passes::{Moments, PixelSum, pass_sum, passes, pixel_mean};
 use crate::path::{CacheUse, ChainVertex, Kernel, Tracer, WholeScene};
 use crate::sampler::{Sampler, mix64};
 use crate::scene::Scene;
+use crate::spread;
 use crate::stats::TraceStats;
 use serde::Serialize;
 use std::ops::Range;
@@ -154,6 +155,10 @@ pub struct RenderOptions {
     /// Stop after the first pass whose estimated relMSE is at or below
     /// this; `spp` is then the most a pixel gets.
     pub target_rel_mse: Option<f64>,
+    /// Adaptive sampling: the passes after the pilot spread their samples
+    /// over the pixels by each one's noise ([`crate::spread`]), `spp` then
+    /// being the mean a pixel gets.
+    pub adaptive: bool,
 }
 
 impl RenderOptions {
@@ -169,6 +174,7 @@ impl RenderOptions {
             cache: None,
             irradiance: None,
             target_rel_mse: scene.settings.target_rel_mse,
+            adaptive: false,
         }
     }
 }
@@ -248,8 +254,11 @@ pub fn pixel_pass<T: Tracer>(
 pub struct RenderOutput {
     pub image: Image,
     /// Samples each pixel got: `spp`, or fewer where a noise target was
-    /// met at the end of an earlier pass.
+    /// met at the end of an earlier pass; with adaptive sampling, the mean
+    /// a pixel got.
     pub spp: u32,
+    /// With adaptive sampling, the samples each pixel got (row-major).
+    pub sample_counts: Option<Vec<u32>>,
     pub stats: TraceStats,
     pub render_s: f64,
     /// Each pixel mean's variance, from its samples' spread (None for one
@@ -285,8 +294,10 @@ pub fn render(
     kernel.sampler = opts.sampler;
     let tracer = WholeScene(&prep.accel);
     let tl = tiles(cam.width, cam.height, opts.tile_size, opts.tile_order);
-    // A render with a noise target goes over every tile once a pass.
-    let rounds = opts.target_rel_mse.map_or(1, |_| passes(opts.spp).len());
+    // A render with a noise target or adaptive sampling goes over every
+    // tile once a pass.
+    let in_passes = opts.target_rel_mse.is_some() || opts.adaptive;
+    let rounds = if in_passes { passes(opts.spp).len() } else { 1 };
     let total = tl.len() * rounds;
     let done = AtomicUsize::new(0);
     let start = Instant::now();
@@ -303,21 +314,32 @@ pub fn render(
     });
     kernel.irradiance = ambient.as_ref().map(|a| &a.0);
     let tick = || progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
-    let (spp, results) = match opts.target_rel_mse {
-        None => {
-            let pixel = |x, y, chain: &mut _, st: &mut _| {
-                render_pixel(&kernel, &tracer, (x, y), opts.spp, chain, st)
-            };
-            (opts.spp, render_tiles(&pool, &tl, &tick, pixel))
-        }
-        Some(target) => render_to_target(&pool, &tl, &kernel, &tracer, opts.spp, target, &tick),
+    let (spp, results, sample_counts) = if in_passes {
+        let how = InPasses {
+            spp: opts.spp,
+            target: opts.target_rel_mse,
+            adaptive: opts.adaptive,
+        };
+        render_in_passes(&pool, &tl, &kernel, &tracer, how, &tick)
+    } else {
+        let pixel = |x, y, chain: &mut _, st: &mut _| {
+            render_pixel(&kernel, &tracer, (x, y), opts.spp, chain, st)
+        };
+        (opts.spp, render_tiles(&pool, &tl, &tick, pixel), None)
     };
-    let (image, variance, stats) = assemble(cam.width, cam.height, spp, results);
+    let (image, variance, stats) = assemble(
+        cam.width,
+        cam.height,
+        spp,
+        sample_counts.as_deref(),
+        results,
+    );
     let error_estimate = variance.as_ref().map(|v| estimate_error(&image, v, spp));
     let render_s = duration_s(start.elapsed());
     RenderOutput {
         image,
         spp,
+        sample_counts,
         stats,
         render_s,
         variance,
@@ -340,8 +362,12 @@ fn render_tiles(
 ) -> Vec<TileSums> {
     use rayon::prelude::*;
     pool.install(|| {
+        // One tile a task: rayon's adaptive split otherwise leaves a thread
+        // a run of tiles it cannot give away, which idles the others when
+        // the tiles' costs differ (adaptive sampling's passes, a sky).
         tiles
             .par_iter()
+            .with_max_len(1)
             .map(|t| {
                 let mut st = TraceStats::default();
                 let mut px = Vec::with_capacity(t.pixels() as usize);
@@ -358,43 +384,76 @@ fn render_tiles(
     })
 }
 
-/// A render with a noise target: the whole image one pass at a time
-/// ([`passes`]), each pixel's passes added in pass order as
-/// [`pixel_mean`] adds them (so a render that runs every pass is the same
-/// to the bit as one without a target), until the estimate of the sums so
-/// far meets `target` ([`meets_target`], which the farm's film asks at the
-/// same pass ends) or `spp` is reached. Returns the samples each pixel got
-/// and the image's sums as one tile.
-fn render_to_target(
+/// How a render in passes runs: `spp` samples a pixel (the mean with
+/// adaptive sampling), stopping early at a noise target if there is one.
+#[derive(Clone, Copy, Debug)]
+struct InPasses {
+    spp: u32,
+    target: Option<f64>,
+    adaptive: bool,
+}
+
+/// A render in passes: the whole image one pass at a time ([`passes`]),
+/// each pixel's passes added in pass order as [`pixel_mean`] adds them (so
+/// a render that runs every pass evenly is the same to the bit as one
+/// that does not pass), until the estimate of the sums so far meets the
+/// target ([`crate::metrics::meets_target`], which the farm's film asks at the same pass
+/// ends) or `spp` is reached. With adaptive sampling, each pass after the
+/// pilot gives its samples to the pixels by [`spread`], each pixel taking
+/// the next indices of its own sequence. Returns the samples a pixel (the
+/// mean, with adaptive sampling), the image's sums as one tile, and with
+/// adaptive sampling each pixel's count.
+fn render_in_passes(
     pool: &rayon::ThreadPool,
     tiles: &[Tile],
     kernel: &Kernel,
     tracer: &WholeScene,
-    spp: u32,
-    target: f64,
+    how: InPasses,
     tick: &(dyn Fn() + Sync),
-) -> (u32, Vec<TileSums>) {
+) -> (u32, Vec<TileSums>, Option<Vec<u32>>) {
     let cam = kernel.camera;
     let (w, h) = (cam.width, cam.height);
-    let mut film = vec![PixelSum::default(); w as usize * h as usize];
+    let pixels = w as usize * h as usize;
+    let mut film = vec![PixelSum::default(); pixels];
+    let mut counts = vec![0u32; pixels];
     let mut stats = TraceStats::default();
     let mut done = 0;
-    for pass in passes(spp) {
-        let pixel = |x, y, chain: &mut _, st: &mut _| {
-            PixelSum::from_total(pixel_pass(kernel, tracer, (x, y), pass.clone(), chain, st))
+    let pilot = spread::pilot_end(how.spp);
+    let cap = how.spp.saturating_mul(spread::MAX_SHARE);
+    for pass in passes(how.spp) {
+        let given = (how.adaptive && pass.start >= pilot).then(|| {
+            let budget = pass.len() as u64 * pixels as u64;
+            spread::spread(w, h, &film, &counts, budget, cap)
+        });
+        let range = |x: u32, y: u32| {
+            let i = (y * w + x) as usize;
+            let n = given.as_ref().map_or(pass.len() as u32, |g| g[i]);
+            counts[i]..counts[i] + n
         };
-        for (t, px, st) in render_tiles(pool, tiles, tick, pixel) {
+        let pixel = |x, y, chain: &mut _, st: &mut _| {
+            PixelSum::from_total(pixel_pass(kernel, tracer, (x, y), range(x, y), chain, st))
+        };
+        let rendered = render_tiles(pool, tiles, tick, pixel);
+        for (t, px, st) in rendered {
             let mut px = px.iter();
             for y in t.y0..t.y1 {
-                let row = (y * w + t.x0) as usize..(y * w + t.x1) as usize;
-                for (f, p) in film[row].iter_mut().zip(&mut px) {
-                    f.add_pass(p.total());
+                for x in t.x0..t.x1 {
+                    let (i, p) = ((y * w + x) as usize, px.next().expect("a sum a pixel"));
+                    let n = given.as_ref().map_or(pass.len() as u32, |g| g[i]);
+                    if n > 0 {
+                        film[i].add_pass(p.total());
+                        counts[i] += n;
+                    }
                 }
             }
             stats += st;
         }
         done = pass.end;
-        if meets_target(&film, done, target) {
+        let met = how.target.is_some_and(|target| {
+            estimate_error_of_counted(film.iter().zip(counts.iter().copied()), done)
+                .is_some_and(|e| e.rel_mse <= target)
+        });
+        if met {
             break;
         }
     }
@@ -404,15 +463,18 @@ fn render_to_target(
         x1: w,
         y1: h,
     };
-    (done, vec![(whole, film, stats)])
+    let counts = how.adaptive.then_some(counts);
+    (done, vec![(whole, film, stats)], counts)
 }
 
 /// The image, each pixel mean's variance (None for one sample a pixel)
-/// and the counters, from the tiles' pixel sums.
+/// and the counters, from the tiles' pixel sums, each pixel of `spp`
+/// samples or of its own count in `counts`.
 fn assemble(
     width: u32,
     height: u32,
     spp: u32,
+    counts: Option<&[u32]>,
     results: Vec<TileSums>,
 ) -> (Image, Option<Image>, TraceStats) {
     let mut image = Image::new(width, height);
@@ -423,8 +485,9 @@ fn assemble(
         for y in t.y0..t.y1 {
             for (x, p) in (t.x0..t.x1).zip(&mut sums) {
                 let i = (y * width + x) as usize;
-                image.pixels[i] = p.mean(spp);
-                if let (Some(v), Some(var)) = (variance.as_mut(), p.variance_of_mean_f32(spp)) {
+                let n = counts.map_or(spp, |c| c[i]);
+                image.pixels[i] = p.mean(n);
+                if let (Some(v), Some(var)) = (variance.as_mut(), p.variance_of_mean_f32(n)) {
                     v.pixels[i] = var;
                 }
             }

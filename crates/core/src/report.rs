@@ -42,11 +42,36 @@ pub struct RenderReport {
     /// Samples each pixel got: `options.spp`, or fewer where
     /// `options.target_rel_mse` was met at an earlier pass's end.
     pub spp_rendered: u32,
+    /// With adaptive sampling, the fewest and most samples a pixel got and
+    /// their mean, counted from the render's counts.
+    pub sample_counts: Option<SampleCounts>,
     /// What the directional caches held at the end (when on).
     pub cache_memory: Option<crate::dircache::CacheMemory>,
     /// How the irradiance cache was built (when on); its time is part of
     /// `times.render_s`.
     pub irradiance: Option<crate::irradiance::overture::OvertureStats>,
+}
+
+/// The spread of an adaptive render's samples over its pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct SampleCounts {
+    pub min: u32,
+    pub max: u32,
+    pub mean: f64,
+}
+
+impl SampleCounts {
+    /// Of each pixel's count; None for no pixels.
+    pub fn of(counts: &[u32]) -> Option<Self> {
+        let min = *counts.iter().min()?;
+        let max = *counts.iter().max()?;
+        let sum: u64 = counts.iter().map(|&c| c as u64).sum();
+        Some(Self {
+            min,
+            max,
+            mean: sum as f64 / counts.len() as f64,
+        })
+    }
 }
 
 impl RenderReport {

@@ -419,6 +419,13 @@ pub(crate) struct RenderArgs {
     /// The image is the same to the bit either way.
     #[arg(long)]
     pub(crate) bvh: Option<locus_core::accel::BvhSetting>,
+    /// Adaptive sampling: after a pilot of an eighth of --spp (at least 8
+    /// samples a pixel), each pass spreads its samples over the pixels by
+    /// how much error each still carries, --spp being the mean a pixel
+    /// gets. One machine only, for now; the image differs from an even
+    /// render's, and is the same on any thread count.
+    #[arg(long)]
+    pub(crate) adaptive_sampling: bool,
     /// Compute threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     pub(crate) threads: usize,
@@ -669,6 +676,10 @@ pub(crate) struct QualityArgs {
     pub(crate) reference_spp: u32,
     #[arg(long, num_args = 1.., default_values = ["sobol", "independent"])]
     pub(crate) samplers: Vec<locus_core::sampler::Sampler>,
+    /// Also render each of locus's samplers with adaptive sampling (its
+    /// rows say "adaptive" after the sampler).
+    #[arg(long)]
+    pub(crate) adaptive_sampling: bool,
     /// Threads of both renderers (0: all cores).
     #[arg(long, default_value_t = 0)]
     pub(crate) threads: usize,

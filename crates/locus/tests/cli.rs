@@ -248,6 +248,51 @@ fn a_bad_noise_target_is_refused_with_the_flag() {
     std::fs::remove_dir_all(&d).ok();
 }
 
+/// `--adaptive-sampling` renders on one machine, its report counting the
+/// samples each pixel got (as many in all as an even render's), and is
+/// refused with `--workers`, before any image is written.
+#[test]
+fn adaptive_sampling_reports_its_counts_and_is_one_machine_only() {
+    let d = scratch("adaptive");
+    let scene = root().join("scenes/cornell-box/cornell.toml");
+    let a = d.join("a.exr");
+    let o = render(
+        &scene,
+        &a,
+        &["--spp", "16", "--threads", "2", "--adaptive-sampling"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("a.json")).unwrap()).unwrap();
+    let c = &report["sample_counts"];
+    assert_eq!(c["mean"].as_f64(), Some(16.0), "{report}");
+    assert!(
+        c["min"].as_u64().unwrap() >= 8 && c["max"].as_u64().unwrap() > 16,
+        "{c}"
+    );
+    let pixels = 256 * 256;
+    assert_eq!(
+        report["stats"]["samples"].as_u64(),
+        Some(16 * pixels),
+        "{report}"
+    );
+    assert_eq!(report["options"]["adaptive"].as_bool(), Some(true));
+    let b = d.join("b.exr");
+    let o = render(
+        &scene,
+        &b,
+        &["--spp", "2", "--workers", "2", "--adaptive-sampling"],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--adaptive-sampling") && err.contains("one machine"),
+        "{err}"
+    );
+    assert!(!b.exists());
+    std::fs::remove_dir_all(&d).ok();
+}
+
 /// Reads the first stdout line of a daemon ("... listening on ADDR").
 fn listening_addr(child: &mut std::process::Child) -> String {
     use std::io::BufRead;

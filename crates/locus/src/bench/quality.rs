@@ -41,6 +41,8 @@ pub struct Plan {
     pub spp: Vec<u32>,
     pub reference_spp: u32,
     pub samplers: Vec<Sampler>,
+    /// Also render each sampler with adaptive sampling.
+    pub adaptive: bool,
     /// Threads for both renderers (0: all cores).
     pub threads: usize,
     pub max_depth: Option<u32>,
@@ -197,24 +199,39 @@ pub fn run(plan: &Plan) -> Result<Outcome> {
     let prep = Prepared::new(scene.clone());
     let (reference, reference_rel_mse) = reference(plan, &scene, &prep)?;
     let mut rows = Vec::new();
-    for &sampler in &plan.samplers {
+    let spreads: &[bool] = if plan.adaptive {
+        &[false, true]
+    } else {
+        &[false]
+    };
+    for (&sampler, &adaptive) in plan
+        .samplers
+        .iter()
+        .flat_map(|s| spreads.iter().map(move |a| (s, a)))
+    {
+        let name = if adaptive {
+            format!("{}, adaptive", sampler.name())
+        } else {
+            sampler.name().to_string()
+        };
         for &spp in &plan.spp {
             let mut o = RenderOptions::from_scene(&scene);
             o.spp = spp;
             o.sampler = sampler;
             o.threads = plan.threads;
+            o.adaptive = adaptive;
             let out = render(&prep, &o, &|_, _| {});
             let m = compare(&out.image, &reference)?;
             rows.push(Row {
                 renderer: "locus".into(),
-                sampler: sampler.name().into(),
+                sampler: name.clone(),
                 spp,
                 seconds: out.render_s,
                 rel_mse: m.rel_mse,
                 estimated_rel_mse: out.error_estimate.map(|e| e.rel_mse),
             });
             tracing::info!(
-                sampler = sampler.name(),
+                sampler = %name,
                 spp,
                 seconds = out.render_s,
                 rel_mse = m.rel_mse,

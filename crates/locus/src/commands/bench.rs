@@ -92,6 +92,7 @@ pub(crate) fn cmd_bench_quality(a: QualityArgs) -> Result<()> {
         spp: a.spp.iter().map(|&n| n.max(1)).collect(),
         reference_spp: a.reference_spp,
         samplers: a.samplers,
+        adaptive: a.adaptive_sampling,
         threads: a.threads,
         max_depth: a.max_depth,
         mitsuba,

@@ -9,7 +9,7 @@ use locus_core::dircache::CacheParams;
 use locus_core::image_io::Image;
 use locus_core::irradiance::IrradianceParams;
 use locus_core::render::{Prepared, RenderOptions, render};
-use locus_core::report::{PhaseTimes, RenderReport};
+use locus_core::report::{PhaseTimes, RenderReport, SampleCounts};
 use locus_core::sampler::Sampler;
 use locus_core::scene::Scene;
 use std::io::IsTerminal;
@@ -72,6 +72,12 @@ pub(crate) fn render_quality(a: &RenderArgs) -> Result<Quality> {
 
 pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if a.workers > 0 {
+        if a.adaptive_sampling {
+            anyhow::bail!(
+                "--adaptive-sampling renders on one machine only for now: leave out --workers, \
+                 or leave out --adaptive-sampling to render on the farm"
+            );
+        }
         return cmd_render_farm(a);
     }
     // One machine, no memory budget: its BVH build reuses the blocks its
@@ -115,6 +121,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if let Some(t) = a.target_rel_mse {
         opts.target_rel_mse = Some(t);
     }
+    opts.adaptive = a.adaptive_sampling;
     if let Some(b) = a.bvh {
         scene.settings.bvh = b;
     }
@@ -180,6 +187,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         error_vs_reference: error,
         error_estimate: out.error_estimate,
         spp_rendered: out.spp,
+        sample_counts: out.sample_counts.as_deref().and_then(SampleCounts::of),
         cache_memory: out.cache_memory,
         irradiance: out.irradiance,
     };
@@ -208,6 +216,12 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         report.samples_per_second,
         report.rays_per_second / 1e6
     );
+    if let Some(c) = report.sample_counts {
+        println!(
+            "  adaptive sampling: {} to {} samples a pixel, {:.2} on average",
+            c.min, c.max, c.mean
+        );
+    }
     if let (Some(m), c) = (out.cache_memory, st.cache) {
         println!(
             "  directional cache: {} local, {} global, {} lookups (hit ratio {:.1}%), {} nodes in {} leaves, {:.1} MiB",
