@@ -421,28 +421,27 @@ fn render_in_passes(
     let pilot = spread::pilot_end(how.spp);
     let cap = how.spp.saturating_mul(spread::MAX_SHARE);
     for pass in passes(how.spp) {
-        let given = (how.adaptive && pass.start >= pilot).then(|| {
+        // The samples each pixel takes in this pass: the pass's own, or
+        // its samples spread by the pixels' noise so far.
+        let given = if how.adaptive && pass.start >= pilot {
             let budget = pass.len() as u64 * pixels as u64;
             spread::spread(w, h, &film, &counts, budget, cap)
-        });
-        let range = |x: u32, y: u32| {
-            let i = (y * w + x) as usize;
-            let n = given.as_ref().map_or(pass.len() as u32, |g| g[i]);
-            counts[i]..counts[i] + n
+        } else {
+            vec![pass.len() as u32; pixels]
         };
         let pixel = |x, y, chain: &mut _, st: &mut _| {
-            PixelSum::from_total(pixel_pass(kernel, tracer, (x, y), range(x, y), chain, st))
+            let i = (y * w + x) as usize;
+            let samples = counts[i]..counts[i] + given[i];
+            PixelSum::from_total(pixel_pass(kernel, tracer, (x, y), samples, chain, st))
         };
-        let rendered = render_tiles(pool, tiles, tick, pixel);
-        for (t, px, st) in rendered {
+        for (t, px, st) in render_tiles(pool, tiles, tick, pixel) {
             let mut px = px.iter();
             for y in t.y0..t.y1 {
                 for x in t.x0..t.x1 {
                     let (i, p) = ((y * w + x) as usize, px.next().expect("a sum a pixel"));
-                    let n = given.as_ref().map_or(pass.len() as u32, |g| g[i]);
-                    if n > 0 {
+                    if given[i] > 0 {
                         film[i].add_pass(p.total());
-                        counts[i] += n;
+                        counts[i] += given[i];
                     }
                 }
             }
