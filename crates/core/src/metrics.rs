@@ -116,7 +116,17 @@ pub fn meets_target<'a>(
     samples: u32,
     target: f64,
 ) -> bool {
-    estimate_error_of_sums(sums, samples).is_some_and(|e| e.rel_mse <= target)
+    meets_target_counted(sums.into_iter().map(|p| (p, samples)), samples, target)
+}
+
+/// [`meets_target`] of pixels that each have their own number of samples
+/// (an adaptive render's, [`estimate_error_of_counted`]).
+pub fn meets_target_counted<'a>(
+    pixels: impl IntoIterator<Item = (&'a PixelSum, u32)>,
+    label: u32,
+    target: f64,
+) -> bool {
+    estimate_error_of_counted(pixels, label).is_some_and(|e| e.rel_mse <= target)
 }
 
 /// Error of `image` against `reference`.

@@ -12,7 +12,7 @@ use crate::image_io::Image;
 use crate::irradiance::IrradianceParams;
 use crate::irradiance::overture::{self, OvertureStats};
 use crate::light::LightSet;
-use crate::metrics::{ErrorEstimate, estimate_error, estimate_error_of_counted};
+use crate::metrics::{ErrorEstimate, estimate_error, meets_target_counted};
 use crate::octree::Octree;
 use crate::passes::{Moments, PixelSum, pass_sum, passes, pixel_mean};
 use crate::path::{CacheUse, ChainVertex, Kernel, Tracer, WholeScene};
@@ -448,11 +448,11 @@ fn render_in_passes(
             stats += st;
         }
         done = pass.end;
-        let met = how.target.is_some_and(|target| {
-            estimate_error_of_counted(film.iter().zip(counts.iter().copied()), done)
-                .is_some_and(|e| e.rel_mse <= target)
-        });
-        if met {
+        let pixels_so_far = film.iter().zip(counts.iter().copied());
+        if how
+            .target
+            .is_some_and(|t| meets_target_counted(pixels_so_far, done, t))
+        {
             break;
         }
     }
