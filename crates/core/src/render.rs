@@ -174,7 +174,7 @@ impl RenderOptions {
             cache: None,
             irradiance: None,
             target_rel_mse: scene.settings.target_rel_mse,
-            adaptive: false,
+            adaptive: scene.settings.adaptive_sampling,
         }
     }
 }

@@ -4,7 +4,7 @@ use crate::metrics::{ErrorEstimate, ErrorMetrics};
 use crate::render::RenderOptions;
 use crate::scene::LoadStats;
 use crate::stats::TraceStats;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct PhaseTimes {
@@ -53,7 +53,7 @@ pub struct RenderReport {
 }
 
 /// The spread of an adaptive render's samples over its pixels.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SampleCounts {
     pub min: u32,
     pub max: u32,

@@ -114,6 +114,10 @@ pub struct RenderSettings {
     /// below this ([`crate::metrics::meets_target`]); `spp` is then the
     /// most samples a pixel gets.
     pub target_rel_mse: Option<f64>,
+    /// Adaptive sampling: the passes after the pilot spread their samples
+    /// over the pixels by each one's noise ([`crate::spread`]); `spp` is
+    /// then the mean a pixel gets.
+    pub adaptive_sampling: bool,
     /// The quality of the job's BVHs ([`BvhSetting`]); `auto` unless the
     /// scene file or the command line says otherwise.
     pub bvh: BvhSetting,
@@ -128,6 +132,7 @@ impl Default for RenderSettings {
             sampler: Sampler::default(),
             octree: OctreeParams::default(),
             target_rel_mse: None,
+            adaptive_sampling: false,
             bvh: BvhSetting::Auto,
         }
     }
@@ -207,6 +212,9 @@ struct RenderDesc {
     /// Stop once the estimated relMSE is at or below this.
     #[serde(default)]
     target_rel_mse: Option<f64>,
+    /// Spread each pass's samples by the pixels' noise.
+    #[serde(default)]
+    adaptive_sampling: bool,
     /// "auto" (the default), "full" or "quick".
     #[serde(default)]
     bvh: BvhSetting,
@@ -225,6 +233,7 @@ impl Default for RenderDesc {
             seed: 0,
             sampler: Sampler::default(),
             target_rel_mse: None,
+            adaptive_sampling: false,
             bvh: BvhSetting::Auto,
         }
     }
@@ -428,6 +437,7 @@ impl Scene {
             sampler: desc.render.sampler,
             octree,
             target_rel_mse: desc.render.target_rel_mse,
+            adaptive_sampling: desc.render.adaptive_sampling,
             bvh: desc.render.bvh,
         };
 

@@ -2,7 +2,8 @@
 //! family and most variants, into the directory given (fuzz/corpus/frames).
 
 use locus_protocol::control::{
-    Opening, Registration, SchedulerToWorker, TileAssignment, TileResult, WorkerToScheduler,
+    Opening, PassSamples, Registration, SchedulerToWorker, TileAssignment, TileResult,
+    WorkerToScheduler,
 };
 use locus_protocol::handshake::Handshake;
 use locus_protocol::rays::PeerMsg;
@@ -20,7 +21,7 @@ fn main() {
         job: 3,
         tile: 7,
         pass: 1,
-        samples: [1, 2],
+        samples: PassSamples::Even([1, 2]),
         x0: 0,
         y0: 0,
         x1: 4,

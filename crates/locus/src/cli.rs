@@ -360,6 +360,10 @@ pub(crate) struct SubmitArgs {
     /// The image is the same to the bit either way.
     #[arg(long)]
     pub(crate) bvh: Option<locus_core::accel::BvhSetting>,
+    /// Adaptive sampling, as `render --adaptive-sampling` (the scene file's
+    /// `adaptive_sampling = true` does the same).
+    #[arg(long)]
+    pub(crate) adaptive_sampling: bool,
     #[arg(long)]
     pub(crate) reference: Option<PathBuf>,
     #[arg(long, default_value_t = 1.0)]
@@ -422,8 +426,9 @@ pub(crate) struct RenderArgs {
     /// Adaptive sampling: after a pilot of an eighth of --spp (at least 8
     /// samples a pixel), each pass spreads its samples over the pixels by
     /// how much error each still carries, --spp being the mean a pixel
-    /// gets. One machine only, for now; the image differs from an even
-    /// render's, and is the same on any thread count.
+    /// gets (the scene file's `adaptive_sampling = true` does the same).
+    /// The image differs from an even render's, and is the same to the bit
+    /// on any thread count and on the farm.
     #[arg(long)]
     pub(crate) adaptive_sampling: bool,
     /// Compute threads (0: all cores).

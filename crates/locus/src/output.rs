@@ -225,6 +225,7 @@ pub(crate) fn write_farm_result(
             w.measured_cost_share * 100.0
         );
     }
+    print_sample_counts(f.sample_counts);
     print_error(f.error_estimate.as_ref(), &f.sampler, error.as_ref());
     print_target(
         f.target_rel_mse,
@@ -255,6 +256,16 @@ pub(crate) fn print_error(
     }
     if let Some(e) = reference {
         println!("error vs reference: {e}");
+    }
+}
+
+/// With adaptive sampling, the spread of the samples over the pixels.
+pub(crate) fn print_sample_counts(counts: Option<locus_core::report::SampleCounts>) {
+    if let Some(c) = counts {
+        println!(
+            "  adaptive sampling: {} to {} samples a pixel, {:.2} on average",
+            c.min, c.max, c.mean
+        );
     }
 }
 

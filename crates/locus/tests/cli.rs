@@ -248,11 +248,12 @@ fn a_bad_noise_target_is_refused_with_the_flag() {
     std::fs::remove_dir_all(&d).ok();
 }
 
-/// `--adaptive-sampling` renders on one machine, its report counting the
-/// samples each pixel got (as many in all as an even render's), and is
-/// refused with `--workers`, before any image is written.
+/// `--adaptive-sampling` spreads the samples, its report counting the
+/// samples each pixel got (as many in all as an even render's); the farm
+/// renders the same image to the bit and counts the same, and a scene
+/// file's `adaptive_sampling = true` does what the flag does.
 #[test]
-fn adaptive_sampling_reports_its_counts_and_is_one_machine_only() {
+fn adaptive_sampling_reports_its_counts_on_one_machine_and_the_farm() {
     let d = scratch("adaptive");
     let scene = root().join("scenes/cornell-box/cornell.toml");
     let a = d.join("a.exr");
@@ -262,8 +263,10 @@ fn adaptive_sampling_reports_its_counts_and_is_one_machine_only() {
         &["--spp", "16", "--threads", "2", "--adaptive-sampling"],
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(d.join("a.json")).unwrap()).unwrap();
+    let json = |name: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(d.join(name)).unwrap()).unwrap()
+    };
+    let report = json("a.json");
     let c = &report["sample_counts"];
     assert_eq!(c["mean"].as_f64(), Some(16.0), "{report}");
     assert!(
@@ -277,19 +280,36 @@ fn adaptive_sampling_reports_its_counts_and_is_one_machine_only() {
         "{report}"
     );
     assert_eq!(report["options"]["adaptive"].as_bool(), Some(true));
+    let bits = |p: &Path| locus_core::image_io::Image::read_exr(p).unwrap().to_bits();
+
     let b = d.join("b.exr");
     let o = render(
         &scene,
         &b,
-        &["--spp", "2", "--workers", "2", "--adaptive-sampling"],
+        &["--spp", "16", "--workers", "2", "--adaptive-sampling"],
     );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("--adaptive-sampling") && err.contains("one machine"),
-        "{err}"
-    );
-    assert!(!b.exists());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("adaptive sampling:"), "{out}");
+    assert_eq!(json("b.json")["farm"]["sample_counts"], *c);
+    assert_eq!(bits(&b), bits(&a), "the farm's image is one machine's");
+
+    // The scene file's setting, with the mesh found where it lies.
+    let text = std::fs::read_to_string(&scene).unwrap();
+    let obj = root().join("scenes/cornell-box/cornell.obj");
+    let text = text
+        .replace("[render]\n", "[render]\nadaptive_sampling = true\n")
+        .replace(
+            "\"cornell.obj\"",
+            &format!("{:?}", obj.display().to_string()),
+        );
+    let file = d.join("adaptive.toml");
+    std::fs::write(&file, text).unwrap();
+    let e = d.join("e.exr");
+    let o = render(&file, &e, &["--spp", "16", "--threads", "2"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(json("e.json")["sample_counts"], *c);
+    assert_eq!(bits(&e), bits(&a));
     std::fs::remove_dir_all(&d).ok();
 }
 

@@ -561,3 +561,46 @@ fn a_noise_target_stops_the_farm_where_it_stops_one_machine() {
         }
     });
 }
+
+/// Adaptive sampling on the farm: the scheduler's film spreads each pass
+/// after the pilot by the same sums one machine spreads it by, so the
+/// farm renders the same counts and the same image to the bit, under every
+/// policy, tracing exactly the even render's samples.
+#[test]
+fn adaptive_sampling_on_the_farm_keeps_one_machines_bits() {
+    let mut scene = common::small_cornell(40, 32, 9);
+    // Passes of 32 samples end at 1, 2, 4, 8, 16 and 32: a pilot of 8,
+    // then two spread passes.
+    scene.settings.spp = 32;
+    scene.settings.adaptive_sampling = true;
+    let one = common::single_machine_output(&scene);
+    let counts = one.sample_counts.clone().expect("counted");
+    let spread = locus_core::report::SampleCounts::of(&counts);
+    assert!(
+        spread.is_some_and(|c| c.min < c.max && c.max > 32),
+        "spread unevenly: {spread:?}"
+    );
+    let reference = one.image.to_bits();
+    let rt = runtime();
+    rt.block_on(async {
+        for (workers, fetch) in [
+            (2usize, FetchPolicy::Forward),
+            (3, FetchPolicy::Adaptive),
+            (2, FetchPolicy::Fetch),
+        ] {
+            let farm = locus::farm::LocalFarm::start(workers, 1)
+                .await
+                .expect("farm");
+            let req = locus_scheduler::client::request(&scene, options(workers, fetch));
+            let r = farm.render(req, &|_, _| {}).await.expect("job");
+            let rep = &r.report;
+            let what = format!("{workers} workers, {fetch:?}");
+            assert_eq!(bits(&r), reference, "{what}");
+            assert_eq!(rep.sample_counts, spread, "{what}");
+            assert_eq!(rep.spp_rendered, 32, "{what}");
+            assert_eq!(rep.error_estimate, one.error_estimate, "{what}");
+            assert_eq!(rep.totals.trace.samples, 40 * 32 * 32, "{what}");
+            farm.stop().await.expect("clean stop");
+        }
+    });
+}

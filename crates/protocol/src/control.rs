@@ -16,6 +16,7 @@ use locus_core::region::{ProcessorMap, WorkerId};
 use locus_core::sampler::Sampler;
 use locus_core::scene::{Camera, Material};
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
 
 /// The first message on a connection to the scheduler, after the handshake.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -272,15 +273,26 @@ pub const MAX_TILE_PASS_SAMPLES: u64 = 1 << 25;
 pub const MAX_TILE_PIXELS: u64 =
     (crate::MAX_FRAME_LEN as u64 - 4096) / std::mem::size_of::<Moments>() as u64;
 
+/// The samples each pixel of a tile takes in one pass.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum PassSamples {
+    /// Samples `start..end` of every pixel: the pass's own.
+    Even([u32; 2]),
+    /// Adaptive sampling ([`locus_core::spread`]): pixel `p` of the tile
+    /// (row-major) takes samples `first[p]..first[p] + count[p]`, the next
+    /// of its own sequence; a count may be 0.
+    Spread { first: Vec<u32>, count: Vec<u32> },
+}
+
 /// A tile in one of the job's progressive passes (`locus_core::passes`):
-/// the worker renders samples `samples[0]..samples[1]` of every pixel of
-/// `x0..x1` by `y0..y1`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+/// the worker renders each pixel of `x0..x1` by `y0..y1` over the samples
+/// `samples` gives it.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TileAssignment {
     pub job: u64,
     pub tile: u32,
     pub pass: u32,
-    pub samples: [u32; 2],
+    pub samples: PassSamples,
     pub x0: u32,
     pub y0: u32,
     pub x1: u32,
@@ -306,26 +318,44 @@ impl TileAssignment {
         (self.x0 + p % w, self.y0 + p / w)
     }
 
-    /// Samples per pixel in this pass (0 if the range is reversed).
-    pub fn pass_samples(&self) -> u32 {
-        self.samples[1].saturating_sub(self.samples[0])
+    /// The samples pixel `p` of the tile takes in this pass (empty if it
+    /// takes none, or `p` is not the tile's).
+    pub fn pixel_samples(&self, p: u32) -> Range<u32> {
+        match &self.samples {
+            PassSamples::Even([a, b]) => *a..(*b).max(*a),
+            PassSamples::Spread { first, count } => {
+                match (first.get(p as usize), count.get(p as usize)) {
+                    (Some(&f), Some(&n)) => f..f.saturating_add(n),
+                    _ => 0..0,
+                }
+            }
+        }
+    }
+
+    /// Camera samples in this pass of the tile, over all its pixels.
+    pub fn total_samples(&self) -> u64 {
+        match &self.samples {
+            PassSamples::Even([a, b]) => u64::from(self.pixels()) * u64::from(b.saturating_sub(*a)),
+            PassSamples::Spread { count, .. } => count.iter().map(|&n| u64::from(n)).sum(),
+        }
     }
 
     /// Why a worker cannot render this tile of a `width` by `height` image
-    /// of `spp` samples per pixel, if it cannot.
+    /// of `spp` samples per pixel, if it cannot. A spread pass may take a
+    /// pixel past `spp`, up to [`locus_core::spread::MAX_SHARE`] times it.
     pub fn problem(&self, width: u32, height: u32, spp: u32) -> Option<String> {
-        let n = self.pixels() as u64 * self.pass_samples() as u64;
-        if n > MAX_TILE_PASS_SAMPLES {
-            return Some(format!(
-                "tile {} holds {n} samples in pass {}, more than {MAX_TILE_PASS_SAMPLES}",
-                self.tile, self.pass
-            ));
-        }
         let t = self.tile;
         if self.pixels() as u64 > MAX_TILE_PIXELS {
             return Some(format!(
                 "tile {t} holds {} pixels, more than {MAX_TILE_PIXELS}",
                 self.pixels()
+            ));
+        }
+        let n = self.total_samples();
+        if n > MAX_TILE_PASS_SAMPLES {
+            return Some(format!(
+                "tile {t} holds {n} samples in pass {}, more than {MAX_TILE_PASS_SAMPLES}",
+                self.pass
             ));
         }
         if self.x0 >= self.x1 || self.y0 >= self.y1 || self.x1 > width || self.y1 > height {
@@ -334,13 +364,32 @@ impl TileAssignment {
                 self.x0, self.x1, self.y0, self.y1
             ));
         }
-        if self.samples[0] >= self.samples[1] || self.samples[1] > spp {
-            return Some(format!(
-                "tile {t} asks for samples {}..{} of {spp}",
-                self.samples[0], self.samples[1]
-            ));
+        match &self.samples {
+            PassSamples::Even([a, b]) if a >= b || *b > spp => {
+                Some(format!("tile {t} asks for samples {a}..{b} of {spp}"))
+            }
+            PassSamples::Even(_) => None,
+            PassSamples::Spread { first, count } => {
+                let pixels = self.pixels() as usize;
+                if first.len() != pixels || count.len() != pixels {
+                    return Some(format!(
+                        "tile {t} spreads {} first samples and {} counts over {pixels} pixels",
+                        first.len(),
+                        count.len()
+                    ));
+                }
+                let most = u64::from(spp) * u64::from(locus_core::spread::MAX_SHARE);
+                let over = first
+                    .iter()
+                    .zip(count)
+                    .position(|(&f, &n)| u64::from(f) + u64::from(n) > most)?;
+                Some(format!(
+                    "tile {t} asks for samples {}..{} of pixel {over}, past {most} ({spp} spp)",
+                    first[over],
+                    u64::from(first[over]) + u64::from(count[over])
+                ))
+            }
         }
-        None
     }
 }
 

@@ -35,7 +35,7 @@ pub use connection::{ConnReader, ConnWriter, Connection};
 pub use error::ProtocolError;
 
 /// Bumped on any incompatible change of any message family.
-pub const PROTOCOL_VERSION: u32 = 27;
+pub const PROTOCOL_VERSION: u32 = 28;
 
 /// Default maximum frame length: large enough for a geometry shipment of a
 /// big octree leaf, small enough that a bad length prefix cannot make a peer

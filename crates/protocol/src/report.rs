@@ -312,8 +312,11 @@ pub struct FarmReport {
     /// The noise target (an estimated relMSE) the job stopped at, if any.
     pub target_rel_mse: Option<f64>,
     /// Samples each pixel got: `spp`, or fewer where the noise target was
-    /// met at an earlier pass's end.
+    /// met at an earlier pass's end; with adaptive sampling, the mean.
     pub spp_rendered: u32,
+    /// With adaptive sampling, the fewest and most samples a pixel got and
+    /// their mean, counted from the film's counts.
+    pub sample_counts: Option<locus_core::report::SampleCounts>,
 }
 
 /// How the irradiance cache's records were made and shared: measured

@@ -178,7 +178,7 @@ proptest! {
         let s = setup(n, seed, workers);
         let t = tris(n, seed);
         let chunk = TriangleSet { ids: (0..n as u32).collect(), verts: t, material: vec![0; n], normals: normals(n, seed) };
-        let tile = TileAssignment { job: seed, tile: count, pass: workers as u32 % 8, samples: [count / 2, count], x0: 0, y0: 0, x1: 4, y1: 3, queue_share: u64::from(count) * 3 };
+        let tile = TileAssignment { job: seed, tile: count, pass: workers as u32 % 8, samples: PassSamples::Even([count / 2, count]), x0: 0, y0: 0, x1: 4, y1: 3, queue_share: u64::from(count) * 3 };
         let layout = locus_core::accel::Layout::build(&chunk, 10.0, locus_core::accel::BuildQuality::Full);
         for m in [
             SchedulerToWorker::Welcome { worker: count, heartbeat_ms: count / 3 },
@@ -292,7 +292,7 @@ fn tile_problems_are_named() {
         job: 1,
         tile: 7,
         pass: 0,
-        samples: [0, 4],
+        samples: PassSamples::Even([0, 4]),
         x0: 0,
         y0: 0,
         x1: 4,
@@ -300,34 +300,65 @@ fn tile_problems_are_named() {
         queue_share: 0,
     };
     assert_eq!(t.problem(4, 3, 4), None);
-    assert_eq!(t.pixels() * t.pass_samples(), 48);
+    assert_eq!(t.total_samples(), 48);
     let bad = [
-        TileAssignment { x1: 5, ..t },
-        TileAssignment { y0: 3, ..t },
-        TileAssignment { x0: 9, ..t },
+        TileAssignment { x1: 5, ..t.clone() },
+        TileAssignment { y0: 3, ..t.clone() },
+        TileAssignment { x0: 9, ..t.clone() },
         TileAssignment {
-            samples: [4, 4],
-            ..t
+            samples: PassSamples::Even([4, 4]),
+            ..t.clone()
         },
         TileAssignment {
-            samples: [3, 5],
-            ..t
+            samples: PassSamples::Even([3, 5]),
+            ..t.clone()
         },
     ];
     for b in bad {
         let p = b.problem(4, 3, 4).expect("refused");
         assert!(p.contains("tile 7"), "{p}");
-        let _ = (b.pixels(), b.pass_samples());
+        let _ = (b.pixels(), b.total_samples());
     }
+    // A spread pass: each pixel its own range, up to MAX_SHARE times spp.
+    let cap = 4 * locus_core::spread::MAX_SHARE;
+    let spread = |first: Vec<u32>, count: Vec<u32>| TileAssignment {
+        samples: PassSamples::Spread { first, count },
+        ..t.clone()
+    };
+    let mut count = vec![0u32; 12];
+    count[5] = cap - 4;
+    count[11] = 3;
+    let ok = spread(vec![4; 12], count.clone());
+    assert_eq!(ok.problem(4, 3, 4), None);
+    assert_eq!(ok.total_samples(), u64::from(cap - 1));
+    assert_eq!(ok.pixel_samples(5), 4..cap);
+    assert_eq!(ok.pixel_samples(0), 4..4);
+    assert_eq!(ok.pixel_samples(99), 0..0);
+    count[5] += 1;
+    let p = spread(vec![4; 12], count)
+        .problem(4, 3, 4)
+        .expect("past the cap");
+    assert!(p.contains("tile 7") && p.contains("pixel 5"), "{p}");
+    let p = spread(vec![4; 11], vec![1; 12])
+        .problem(4, 3, 4)
+        .expect("short");
+    assert!(
+        p.contains("tile 7") && p.contains("11 first samples"),
+        "{p}"
+    );
     // A tile whose result would not fit one message, in an image it fits.
     let wide = TileAssignment {
-        samples: [0, 1],
+        samples: PassSamples::Even([0, 1]),
         x1: 1400,
         y1: 1000,
         ..t
     };
     assert_eq!(
-        TileAssignment { y1: 998, ..wide }.problem(1400, 1000, 1),
+        TileAssignment {
+            y1: 998,
+            ..wide.clone()
+        }
+        .problem(1400, 1000, 1),
         None
     );
     let p = wide.problem(1400, 1000, 1).expect("refused");

@@ -11,6 +11,13 @@
 //! ([`Film::open_passes`]): a barrier at each pass end, paid only by jobs
 //! with a target.
 //!
+//! With adaptive sampling, a pass after the pilot gives its samples to
+//! the pixels by [`locus_core::spread::spread`] of the film's sums when
+//! the pass opens, as one machine does at the same pass end: the same
+//! barrier, the same sums, so the same counts to the bit. Each pixel then
+//! takes the next samples of its own sequence (a tile's
+//! [`PassSamples::Spread`]).
+//!
 //! A tile's pass that arrives before an earlier pass of the same tile is
 //! held until that one is in. The scheduler hands passes out in order
 //! (every tile of a pass before the next pass), so what is held is
@@ -18,10 +25,11 @@
 //! progress is O(passes) to read, not O(tiles).
 
 use locus_core::image_io::Image;
-use locus_core::metrics::{ErrorEstimate, estimate_error_of_sums, meets_target};
+use locus_core::metrics::{ErrorEstimate, estimate_error_of_counted, meets_target_counted};
 use locus_core::passes::{Moments, PixelSum, passes};
 use locus_core::render::Tile;
-use locus_protocol::control::TileAssignment;
+use locus_core::spread;
+use locus_protocol::control::{PassSamples, TileAssignment};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -33,12 +41,18 @@ pub struct Unit {
     pub pass: u32,
 }
 
-/// A tile as the store keeps it: its passes in so far and its pixels'
-/// sums over them.
+/// A tile as the store keeps it: its passes in so far, its pixels' sums
+/// over them and how many samples each has. With adaptive sampling, once
+/// the tile's next pass is open, `next` holds the samples each of its
+/// pixels takes in it (empty otherwise): a scheduler restarted while some
+/// tiles were a pass ahead of it cannot compute that spread again, since
+/// it was made from their sums before that pass.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileSums {
     pub passes: u32,
     pub sums: Vec<Moments>,
+    pub counts: Vec<u32>,
+    pub next: Vec<u32>,
 }
 
 /// Why a tile's pass was not taken.
@@ -58,6 +72,8 @@ pub struct Film {
     tiles: Vec<Tile>,
     passes: Vec<Range<u32>>,
     sums: Vec<PixelSum>,
+    /// Samples in each pixel's sums.
+    counts: Vec<u32>,
     /// Passes added to each tile, in order.
     passes_in: Vec<u32>,
     /// `complete[p]`: tiles whose pass `p` is added.
@@ -70,6 +86,13 @@ pub struct Film {
     /// The passes kept once the target was met: later ones are never
     /// rendered.
     kept: Option<u32>,
+    /// Adaptive sampling ([`spread`]).
+    adaptive: bool,
+    /// With adaptive sampling, the open pass whose samples are spread, and
+    /// the samples each pixel takes in it.
+    spread: Option<(u32, Vec<u32>)>,
+    /// Tiles' `next` spreads as the store kept them, until [`Film::resume`].
+    stored_next: BTreeMap<u32, Vec<u32>>,
 }
 
 impl Film {
@@ -85,11 +108,22 @@ impl Film {
             tiles,
             passes,
             sums: vec![PixelSum::default(); width as usize * height as usize],
+            counts: vec![0; width as usize * height as usize],
             early: BTreeMap::new(),
             samples_done: 0,
             target: None,
             kept: None,
+            adaptive: false,
+            spread: None,
+            stored_next: BTreeMap::new(),
         }
+    }
+
+    /// The film of a job with adaptive sampling: each pass after the pilot
+    /// spreads its samples by the pixels' noise, opened one at a time.
+    pub fn with_adaptive(mut self, adaptive: bool) -> Self {
+        self.adaptive = adaptive;
+        self
     }
 
     /// The film of a job with a noise target: it stops after the first
@@ -100,15 +134,20 @@ impl Film {
     }
 
     /// How many passes may be handed out: every pass, or with a noise
-    /// target those up to the first incomplete one (none past the passes
-    /// kept once it is met).
+    /// target or adaptive sampling those up to the first incomplete one
+    /// (none past the passes kept once the target is met).
     pub fn open_passes(&self) -> u32 {
         let all = self.passes.len() as u32;
-        match (self.target, self.kept) {
+        match (self.target.is_some() || self.adaptive, self.kept) {
             (_, Some(k)) => k,
-            (Some(_), None) => (self.pass() + 1).min(all),
-            (None, None) => all,
+            (true, None) => (self.pass() + 1).min(all),
+            (false, None) => all,
         }
+    }
+
+    /// Each pixel's sums with its count, row-major.
+    fn counted(&self) -> impl Iterator<Item = (&PixelSum, u32)> {
+        self.sums.iter().zip(self.counts.iter().copied())
     }
 
     /// Judges the film against its target once pass `k - 1` is complete
@@ -122,15 +161,56 @@ impl Film {
             return;
         }
         let samples = self.passes[k as usize - 1].end;
-        if meets_target(&self.sums, samples, t) {
+        if meets_target_counted(self.counted(), samples, t) {
             self.kept = Some(k);
         }
     }
 
+    /// With adaptive sampling, spreads the samples of pass `k`, which
+    /// opens now that the passes before it are complete, as one machine
+    /// spreads them after the same passes: nothing for the pilot's passes,
+    /// or once the target is met.
+    fn open_spread(&mut self, k: u32) {
+        self.spread = None;
+        let Some(pass) = self.passes.get(k as usize) else {
+            return;
+        };
+        if !self.adaptive || k >= self.kept_or_all() || pass.start < spread::pilot_end(self.spp) {
+            return;
+        }
+        let height = (self.sums.len() / self.width.max(1) as usize) as u32;
+        let budget = pass.len() as u64 * self.sums.len() as u64;
+        let cap = self.spp.saturating_mul(spread::MAX_SHARE);
+        let given = spread::spread(self.width, height, &self.sums, &self.counts, budget, cap);
+        self.spread = Some((k, given));
+    }
+
     /// After tiles were restored from the store: judges the film as the
-    /// running job would have when its last complete pass came in.
+    /// running job would have when its last complete pass came in, and
+    /// with adaptive sampling opens the next pass's spread: as the store
+    /// kept it for the tiles still to render it when every one of them has
+    /// it (some tiles may hold that pass already, and the spread was made
+    /// before they did), or else from the film as restored.
     pub fn resume(&mut self) {
-        self.judge(self.pass());
+        let k = self.pass();
+        self.judge(k);
+        self.open_spread(k);
+        let stored = std::mem::take(&mut self.stored_next);
+        let Some((_, mut given)) = self.spread.take() else {
+            return;
+        };
+        let lagging: Vec<u32> = (0..self.tiles.len() as u32)
+            .filter(|&t| self.passes_in[t as usize] == k)
+            .collect();
+        if lagging.iter().all(|t| stored.contains_key(t)) {
+            for t in lagging {
+                let mut from = stored[&t].iter();
+                for i in self.rows(self.tiles[t as usize]).flatten() {
+                    given[i] = *from.next().expect("its length checked at restore");
+                }
+            }
+        }
+        self.spread = Some((k, given));
     }
 
     pub fn tiles(&self) -> &[Tile] {
@@ -146,11 +226,23 @@ impl Film {
     pub fn assignment(&self, u: Unit, run: u64, queue_share: u64) -> TileAssignment {
         let r = &self.passes[u.pass as usize];
         let t = self.tiles[u.tile as usize];
+        let samples = match &self.spread {
+            // The tile's pixels have the passes before this one.
+            Some((k, given)) if *k == u.pass => PassSamples::Spread {
+                first: self
+                    .rows(t)
+                    .flat_map(|row| &self.counts[row])
+                    .copied()
+                    .collect(),
+                count: self.rows(t).flat_map(|row| &given[row]).copied().collect(),
+            },
+            _ => PassSamples::Even([r.start, r.end]),
+        };
         TileAssignment {
             job: run,
             tile: u.tile,
             pass: u.pass,
-            samples: [r.start, r.end],
+            samples,
             x0: t.x0,
             y0: t.y0,
             x1: t.x1,
@@ -159,7 +251,8 @@ impl Film {
         }
     }
 
-    /// Camera samples in each tile pass, by tile and pass.
+    /// Camera samples in each tile pass, by tile and pass: a spread pass's
+    /// tiles hold as many in all, shared unevenly.
     pub fn sizes(&self) -> crate::tiles::Sizes {
         crate::tiles::Sizes {
             tile_pixels: self.tiles.iter().map(|t| u64::from(t.pixels())).collect(),
@@ -237,16 +330,31 @@ impl Film {
         }
     }
 
+    /// Adds tile `tile`'s next pass. A pixel given no samples in a spread
+    /// pass keeps its sums as they are, as one machine's do.
     fn add_in_order(&mut self, tile: u32, sums: &[Moments]) {
         let t = self.tiles[tile as usize];
         let pass = self.passes_in[tile as usize];
-        self.each_pixel(t, sums, |p, s| p.add_pass(s));
-        let r = &self.passes[pass as usize];
-        self.samples_done += t.pixels() as u64 * (r.end - r.start) as u64;
+        let even = self.passes[pass as usize].len() as u32;
+        let given = match &self.spread {
+            Some((k, g)) if *k == pass => Some(g),
+            _ => None,
+        };
+        let mut from = sums.iter();
+        for i in self.rows(t).flatten() {
+            let s = from.next().expect("a sum a pixel, checked by add");
+            let n = given.map_or(even, |g| g[i]);
+            if n > 0 {
+                self.sums[i].add_pass(*s);
+                self.counts[i] += n;
+                self.samples_done += u64::from(n);
+            }
+        }
         self.complete[pass as usize] += 1;
         self.passes_in[tile as usize] += 1;
         if self.complete[pass as usize] == self.tiles.len() as u32 {
             self.judge(pass + 1);
+            self.open_spread(pass + 1);
         }
     }
 
@@ -271,9 +379,22 @@ impl Film {
             .rows(t)
             .flat_map(|row| self.sums[row].iter().map(PixelSum::total))
             .collect();
+        let counts = self
+            .rows(t)
+            .flat_map(|row| &self.counts[row])
+            .copied()
+            .collect();
+        let next = match &self.spread {
+            Some((k, given)) if *k == self.passes_in[tile as usize] => {
+                self.rows(t).flat_map(|row| &given[row]).copied().collect()
+            }
+            _ => Vec::new(),
+        };
         TileSums {
             passes: self.passes_in[tile as usize],
             sums,
+            counts,
+            next,
         }
     }
 
@@ -283,18 +404,40 @@ impl Film {
         let Some(&t) = self.tiles.get(tile as usize) else {
             return false;
         };
+        let pixels = t.pixels() as usize;
         if kept.passes == 0
             || kept.passes as usize > self.passes.len()
-            || kept.sums.len() != t.pixels() as usize
+            || kept.sums.len() != pixels
+            || kept.counts.len() != pixels
+            || !(kept.next.is_empty() || kept.next.len() == pixels)
             || self.passes_in[tile as usize] != 0
         {
             return false;
         }
+        // Each pixel's count: the passes' samples, or with adaptive
+        // sampling at least the pilot's and at most the cap.
+        let end = self.passes[kept.passes as usize - 1].end;
+        let cap = self.spp.saturating_mul(spread::MAX_SHARE);
+        let pilot = spread::pilot_end(self.spp).min(end);
+        let fits = |&n: &u32| match self.adaptive {
+            false => n == end,
+            true => (pilot..=cap).contains(&n),
+        };
+        if !kept.counts.iter().all(fits) {
+            return false;
+        }
         self.each_pixel(t, &kept.sums, |p, s| *p = PixelSum::from_total(s));
+        let mut from = kept.counts.iter();
+        for i in self.rows(t).flatten() {
+            self.counts[i] = *from.next().expect("checked above");
+        }
         self.passes_in[tile as usize] = kept.passes;
-        self.samples_done += t.pixels() as u64 * self.passes[kept.passes as usize - 1].end as u64;
+        self.samples_done += kept.counts.iter().map(|&n| u64::from(n)).sum::<u64>();
         for c in &mut self.complete[..kept.passes as usize] {
             *c += 1;
+        }
+        if self.adaptive && !kept.next.is_empty() {
+            self.stored_next.insert(tile, kept.next);
         }
         true
     }
@@ -335,19 +478,17 @@ impl Film {
     pub fn image(&self) -> Image {
         let height = (self.sums.len() / self.width.max(1) as usize) as u32;
         let mut img = Image::new(self.width, height);
-        for (i, t) in self.tiles.iter().enumerate() {
-            let n = self.passes_in[i];
-            if n == 0 {
-                continue;
-            }
-            let samples = self.passes[n as usize - 1].end;
-            for row in self.rows(*t) {
-                for i in row {
-                    img.pixels[i] = self.sums[i].mean(samples);
-                }
+        for (px, (p, n)) in img.pixels.iter_mut().zip(self.counted()) {
+            if n > 0 {
+                *px = p.mean(n);
             }
         }
         img
+    }
+
+    /// With adaptive sampling, the samples each pixel has (row-major).
+    pub fn sample_counts(&self) -> Option<&[u32]> {
+        self.adaptive.then_some(&self.counts[..])
     }
 
     /// The error the finished image carries, from its samples' spread, as
@@ -355,7 +496,7 @@ impl Film {
     /// for one sample a pixel).
     pub fn error_estimate(&self) -> Option<ErrorEstimate> {
         self.is_complete()
-            .then(|| estimate_error_of_sums(&self.sums, self.spp_done()))
+            .then(|| estimate_error_of_counted(self.counted(), self.spp_done()))
             .flatten()
     }
 }
@@ -376,9 +517,11 @@ mod tests {
         Film::new(W, H, SPP, tiles(W, H, 3, TileOrder::Scanline))
     }
 
-    /// A sample whose sums are sensitive to the order they are added in.
+    /// A sample whose sums are sensitive to the order they are added in,
+    /// noisier in the image's first three columns than in the others.
     fn sample(x: u32, y: u32, s: u32) -> Vec3 {
         let v = ((x * 31 + y * 17 + s * 7) % 11) as f32;
+        let v = if x < 3 { v } else { 5.0 + (v - 5.0) * 0.05 };
         Vec3::new(v * 1e7, 1.0 / (v + 0.3), (s as f32).sin() * 1e-3)
     }
 
@@ -390,7 +533,7 @@ mod tests {
         for y in a.y0..a.y1 {
             for x in a.x0..a.x1 {
                 let mut p = PixelSum::default();
-                for s in a.samples[0]..a.samples[1] {
+                for s in a.pixel_samples(v.len() as u32) {
                     p.add(sample(x, y, s), &mut st);
                 }
                 v.push(p.total());
@@ -500,9 +643,23 @@ mod tests {
             2,
             TileSums {
                 passes: 9,
-                sums: vec![Moments::default(); 9]
+                sums: vec![Moments::default(); 9],
+                counts: vec![13; 9],
+                next: Vec::new(),
             }
         ));
+        // Pass 0 of 13 spp is 2 samples a pixel: a count that says
+        // otherwise does not fit.
+        let one_pass = |counts: Vec<u32>| TileSums {
+            passes: 1,
+            sums: vec![Moments::default(); 9],
+            counts,
+            next: Vec::new(),
+        };
+        let mut fresh = film();
+        assert!(!fresh.restore(0, one_pass(vec![3; 9])));
+        assert!(!fresh.restore(0, one_pass(vec![2; 8])));
+        assert!(fresh.restore(0, one_pass(vec![2; 9])));
     }
 
     #[test]
@@ -629,5 +786,93 @@ mod tests {
         }
         assert_eq!(all.image().pixels, one_machine());
         assert_eq!(all.error_estimate(), Some(one_machine_estimate()));
+    }
+
+    /// One machine's adaptive render of [`sample`] at `spp`, as
+    /// `locus_core::render` runs it: each pixel's sums and count.
+    fn one_machine_adaptive(spp: u32) -> (Vec<PixelSum>, Vec<u32>) {
+        let n = (W * H) as usize;
+        let (mut sums, mut counts) = (vec![PixelSum::default(); n], vec![0u32; n]);
+        let mut st = TraceStats::default();
+        for pass in passes(spp) {
+            let given = if pass.start >= spread::pilot_end(spp) {
+                let budget = pass.len() as u64 * n as u64;
+                spread::spread(W, H, &sums, &counts, budget, spp * spread::MAX_SHARE)
+            } else {
+                vec![pass.len() as u32; n]
+            };
+            for i in 0..n {
+                let (x, y) = (i as u32 % W, i as u32 / W);
+                if given[i] > 0 {
+                    let range = counts[i]..counts[i] + given[i];
+                    let m = locus_core::passes::pass_sum(range, &mut st, |s, _| sample(x, y, s));
+                    sums[i].add_pass(m);
+                    counts[i] += given[i];
+                }
+            }
+        }
+        (sums, counts)
+    }
+
+    #[test]
+    fn adaptive_sampling_spreads_as_one_machine_and_survives_a_restart() {
+        // 32 spp: passes end at 1, 2, 4, 8, 16 and 32; the pilot is the
+        // first four, the last two are spread.
+        const SPP: u32 = 32;
+        let film = || Film::new(W, H, SPP, tiles(W, H, 3, TileOrder::Scanline)).with_adaptive(true);
+        let (sums, counts) = one_machine_adaptive(SPP);
+        assert!(counts.iter().min() < counts.iter().max(), "{counts:?}");
+        let want: Vec<[f32; 3]> = sums.iter().zip(&counts).map(|(p, &n)| p.mean(n)).collect();
+        let estimate = estimate_error_of_counted(sums.iter().zip(counts.iter().copied()), SPP);
+        let mut f = film();
+        let mut opened = 0;
+        while !f.is_complete() {
+            assert_eq!(f.open_passes(), f.pass() + 1, "one pass at a time");
+            assert!(add_open(&mut f) > 0);
+            opened += 1;
+        }
+        assert_eq!(opened, passes(SPP).len());
+        assert_eq!(f.image().pixels, want);
+        assert_eq!(f.sample_counts(), Some(&counts[..]));
+        assert_eq!(f.samples(), ((W * H * SPP) as u64, (W * H * SPP) as u64));
+        assert_eq!(f.error_estimate(), estimate);
+
+        // A scheduler restarted in the first spread pass, tile 0 having
+        // rendered it and the others not: the spread kept with each tile
+        // gives the others the samples they would have had.
+        let mut part = film();
+        while part.pass() < 4 {
+            add_open(&mut part);
+        }
+        let u = Unit { tile: 0, pass: 4 };
+        let a = part.assignment(u, 3, 0);
+        assert!(matches!(a.samples, PassSamples::Spread { .. }), "{a:?}");
+        let s = render(&part, u);
+        part.add(u, s).unwrap();
+        let restart = |strip: bool| {
+            let mut again = film();
+            for t in 0..part.tiles().len() as u32 {
+                let mut kept = part.tile_sums(t);
+                assert_eq!(kept.next.is_empty(), t == 0, "tile {t}");
+                if strip && t == 1 {
+                    kept.next.clear();
+                }
+                assert!(again.restore(t, kept));
+            }
+            again.resume();
+            while !again.is_complete() {
+                assert!(add_open(&mut again) > 0);
+            }
+            again
+        };
+        let again = restart(false);
+        assert_eq!(again.image().pixels, want);
+        assert_eq!(again.sample_counts(), Some(&counts[..]));
+        // Without a tile's spread the pass is spread again from the film
+        // as restored: every pixel still gets its pilot and more.
+        let spread_again = restart(true);
+        let c = spread_again.sample_counts().unwrap();
+        assert!(c.iter().all(|&n| n >= spread::pilot_end(SPP)), "{c:?}");
+        assert_ne!(c, &counts[..]);
     }
 }

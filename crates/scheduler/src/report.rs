@@ -131,6 +131,10 @@ pub fn build_report(j: &Running, names: &[String]) -> FarmReport {
         error_estimate: j.film.error_estimate(),
         target_rel_mse: j.req.settings.target_rel_mse,
         spp_rendered: j.film.spp_done(),
+        sample_counts: j
+            .film
+            .sample_counts()
+            .and_then(locus_core::report::SampleCounts::of),
     }
 }
 

@@ -52,8 +52,8 @@ fn result(t: &TileAssignment, value: f32) -> WorkerToScheduler {
         pass: t.pass,
         sums: vec![
             locus_core::passes::Moments {
-                sum: [value as f64 * t.pass_samples() as f64; 3],
-                squares: [(value as f64).powi(2) * t.pass_samples() as f64; 3],
+                sum: [value as f64 * t.pixel_samples(0).len() as f64; 3],
+                squares: [(value as f64).powi(2) * t.pixel_samples(0).len() as f64; 3],
             };
             t.pixels() as usize
         ],
@@ -110,16 +110,13 @@ async fn tiles_count_once_and_requests_are_clamped() {
     // Each tile says how many camera samples are still queued behind it
     // (one worker: the whole of them), the last none.
     for (i, t) in tiles.iter().enumerate() {
-        let behind: u64 = tiles[i + 1..]
-            .iter()
-            .map(|u| u64::from(u.pixels() * u.pass_samples()))
-            .sum();
+        let behind: u64 = tiles[i + 1..].iter().map(|u| u.total_samples()).sum();
         assert_eq!(t.queue_share, behind, "tile {i}");
     }
     assert!(tiles[0].queue_share > 0);
     farm.from(1, result(&tiles[0], 1.0)).await;
     farm.from(1, result(&tiles[0], 2.0)).await;
-    let mut unknown = tiles[0];
+    let mut unknown = tiles[0].clone();
     unknown.tile = 99;
     farm.from(1, result(&unknown, 3.0)).await;
     assert_eq!(farm.tiles_done().await, 1);
@@ -136,7 +133,7 @@ async fn tiles_count_once_and_requests_are_clamped() {
         farm.from(1, result(t, 0.5)).await;
     }
     let done = end_and_collect(&farm, &mut w, &mut client, job).await;
-    let t0 = tiles[0];
+    let t0 = tiles[0].clone();
     let first = done.pixels[(t0.y0 * 32 + t0.x0) as usize];
     assert_eq!(first, [1.0; 3], "the duplicate overwrote the film");
     farm.shutdown.cancel();
@@ -318,7 +315,7 @@ async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
     let held = ask(&farm, &mut w2, 2, r1, 1).await;
     // Four tile passes of one size: each tile's share is what is queued
     // behind it over the two members.
-    let size = u64::from(first[0].pixels() * first[0].pass_samples());
+    let size = first[0].total_samples();
     assert_eq!(first[0].queue_share, (3 * size).div_ceil(2));
     assert_eq!(held[0].queue_share, size);
     farm.from(1, result(&first[0], 1.0)).await;
@@ -369,9 +366,9 @@ async fn a_lost_worker_s_tiles_are_rendered_again_by_the_survivors() {
     ));
     report(&farm, 1, r2, 1).await;
     let done = image(&mut client).await;
-    let t0 = first[0];
+    let t0 = first[0].clone();
     assert_eq!(done.pixels[(t0.y0 * 32 + t0.x0) as usize], [1.0; 3]);
-    let h = held[0];
+    let h = held[0].clone();
     assert_eq!(done.pixels[(h.y0 * 32 + h.x0) as usize], [0.5; 3]);
     let rec = &done.report.recovery;
     assert_eq!(rec.attempts, 2);
@@ -657,6 +654,8 @@ async fn a_job_restored_whole_ends_without_a_tile() {
             let sums = TileSums {
                 passes: 1,
                 sums: vec![one; 256],
+                counts: vec![1; 256],
+                next: Vec::new(),
             };
             s.write(Write::Tile { job: 5, tile, sums });
         }

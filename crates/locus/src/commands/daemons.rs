@@ -121,6 +121,7 @@ pub(crate) fn cmd_submit(a: SubmitArgs) -> Result<()> {
             seed: a.seed,
             sampler: a.sampler,
             target_rel_mse: a.target_rel_mse,
+            adaptive_sampling: a.adaptive_sampling,
             bvh: a.bvh,
         },
     )?;

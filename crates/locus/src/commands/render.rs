@@ -72,12 +72,6 @@ pub(crate) fn render_quality(a: &RenderArgs) -> Result<Quality> {
 
 pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if a.workers > 0 {
-        if a.adaptive_sampling {
-            anyhow::bail!(
-                "--adaptive-sampling renders on one machine only for now: leave out --workers, \
-                 or leave out --adaptive-sampling to render on the farm"
-            );
-        }
         return cmd_render_farm(a);
     }
     // One machine, no memory budget: its BVH build reuses the blocks its
@@ -121,7 +115,8 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if let Some(t) = a.target_rel_mse {
         opts.target_rel_mse = Some(t);
     }
-    opts.adaptive = a.adaptive_sampling;
+    // The flag turns it on over a scene file that leaves it off.
+    opts.adaptive |= a.adaptive_sampling;
     if let Some(b) = a.bvh {
         scene.settings.bvh = b;
     }
@@ -216,12 +211,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         report.samples_per_second,
         report.rays_per_second / 1e6
     );
-    if let Some(c) = report.sample_counts {
-        println!(
-            "  adaptive sampling: {} to {} samples a pixel, {:.2} on average",
-            c.min, c.max, c.mean
-        );
-    }
+    crate::output::print_sample_counts(report.sample_counts);
     if let (Some(m), c) = (out.cache_memory, st.cache) {
         println!(
             "  directional cache: {} local, {} global, {} lookups (hit ratio {:.1}%), {} nodes in {} leaves, {:.1} MiB",
@@ -267,6 +257,8 @@ pub(crate) struct Overrides {
     pub(crate) seed: Option<u64>,
     pub(crate) sampler: Option<Sampler>,
     pub(crate) target_rel_mse: Option<f64>,
+    /// Turns adaptive sampling on (a scene file may already have).
+    pub(crate) adaptive_sampling: bool,
     pub(crate) bvh: Option<locus_core::accel::BvhSetting>,
 }
 
@@ -277,6 +269,7 @@ pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
         seed,
         sampler,
         target_rel_mse,
+        adaptive_sampling,
         bvh,
     } = o;
     let mut scene = Scene::load(path)?;
@@ -295,6 +288,7 @@ pub(crate) fn load_for_farm(path: &Path, o: Overrides) -> Result<Scene> {
     if let Some(t) = target_rel_mse {
         scene.settings.target_rel_mse = Some(t);
     }
+    scene.settings.adaptive_sampling |= adaptive_sampling;
     if let Some(b) = bvh {
         scene.settings.bvh = b;
     }
@@ -338,6 +332,7 @@ pub(crate) fn cmd_render_farm(a: RenderArgs) -> Result<()> {
             seed: a.seed,
             sampler: a.sampler,
             target_rel_mse: a.target_rel_mse,
+            adaptive_sampling: a.adaptive_sampling,
             bvh: a.bvh,
         },
     )?;

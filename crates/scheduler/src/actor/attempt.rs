@@ -326,12 +326,24 @@ impl Actor {
                 return;
             }
         };
-        if changed && let Some(s) = &self.store {
-            s.write(Write::Tile {
-                job: j.id,
-                tile: r.tile,
-                sums: j.film.tile_sums(r.tile),
-            });
+        let opened = j.film.open_passes() > open;
+        if let Some(s) = &self.store {
+            // A spread pass that opened is kept with every tile that has
+            // yet to render it (all of them): a restart cannot make it
+            // again once some tile holds it.
+            let spread = opened && j.film.sample_counts().is_some();
+            let tiles = match (spread, changed) {
+                (true, _) => 0..j.film.tiles().len() as u32,
+                (false, true) => r.tile..r.tile + 1,
+                (false, false) => 0..0,
+            };
+            for tile in tiles {
+                s.write(Write::Tile {
+                    job: j.id,
+                    tile,
+                    sums: j.film.tile_sums(tile),
+                });
+            }
         }
         j.attempt.tiles_by[w] += 1;
         self.metrics.tile();
@@ -341,7 +353,7 @@ impl Actor {
             a.advance(Phase::Collecting);
             a.t_rendered = Some(Instant::now());
             self.send_ends();
-        } else if j.film.open_passes() > open || j.attempt.owed.iter().any(|&n| n > 0) {
+        } else if opened || j.attempt.owed.iter().any(|&n| n > 0) {
             self.serve_owed();
         }
     }

@@ -598,7 +598,8 @@ impl Actor {
         let mut req = q.req;
         let scene = job::scene_of(&mut req);
         let mut film = Film::new(cam.width, cam.height, req.settings.spp, tiles)
-            .with_target(req.settings.target_rel_mse);
+            .with_target(req.settings.target_rel_mse)
+            .with_adaptive(req.settings.adaptive_sampling);
         for (k, kept) in q.tiles {
             // A stored tile that does not fit the job is rendered again.
             if !film.restore(k, kept) {

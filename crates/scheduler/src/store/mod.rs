@@ -369,6 +369,8 @@ mod tests {
             sums: TileSums {
                 passes,
                 sums: Vec::new(),
+                counts: Vec::new(),
+                next: Vec::new(),
             },
         };
         let mut b = Batch::default();
@@ -498,6 +500,8 @@ mod tests {
                             };
                             4
                         ],
+                        counts: vec![passes * 3, 4, 5, 6],
+                        next: vec![passes; 4],
                     },
                 });
             }
@@ -510,6 +514,8 @@ mod tests {
                         sum: [2.0; 3],
                         squares: [1.5, 0.0, f64::MAX],
                     }],
+                    counts: vec![2],
+                    next: Vec::new(),
                 },
             });
             s.write(Write::End { job: 4 });
@@ -531,6 +537,8 @@ mod tests {
                 };
                 4
             ],
+            counts: vec![6, 4, 5, 6],
+            next: vec![2; 4],
         };
         assert_eq!(jobs[0].tiles, vec![(7, kept)]);
         let _ = std::fs::remove_dir_all(&dir);

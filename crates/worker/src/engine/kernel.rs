@@ -368,9 +368,17 @@ fn tile_sums<T: Tracer>(
 ) -> Vec<locus_core::passes::Moments> {
     let kernel = job.kernel();
     let mut chain = Vec::new();
-    let pass = a.samples[0]..a.samples[1];
     (0..a.pixels())
-        .map(|p| pixel_pass(&kernel, tracer, a.pixel(p), pass.clone(), &mut chain, st))
+        .map(|p| {
+            pixel_pass(
+                &kernel,
+                tracer,
+                a.pixel(p),
+                a.pixel_samples(p),
+                &mut chain,
+                st,
+            )
+        })
         .collect()
 }
 

@@ -57,7 +57,11 @@ struct TileState {
     a: TileAssignment,
     values: Vec<Vec3>,
     remaining: u32,
+    /// The next sample to start: its index in `values`, its pixel, and
+    /// how many of that pixel's samples have started.
     next: u32,
+    pixel: u32,
+    within: u32,
 }
 
 /// What an answer set off besides the slots it filled.
@@ -228,13 +232,24 @@ impl Slots {
     }
 
     /// Holds tile `a` until its pass's samples are in, if it fits the
-    /// image.
-    pub fn add_tile(&mut self, a: TileAssignment) -> Result<(), String> {
+    /// image. A tile whose pass gives its pixels no samples (adaptive
+    /// sampling can) is not held: its result, every sum zero, is returned
+    /// at once.
+    pub fn add_tile(&mut self, a: TileAssignment) -> Result<Option<TileResult>, String> {
         let [w, h, spp] = self.image;
         if let Some(p) = a.problem(w, h, spp) {
             return Err(p);
         }
-        let n = a.pixels() * a.pass_samples();
+        // At most MAX_TILE_PASS_SAMPLES, which `problem` checked.
+        let n = a.total_samples() as u32;
+        if n == 0 {
+            return Ok(Some(TileResult {
+                job: self.job,
+                tile: a.tile,
+                pass: a.pass,
+                sums: vec![Default::default(); a.pixels() as usize],
+            }));
+        }
         // Room for the samples' values is made when the first starts: a
         // tile traced whole ([`Slots::take_whole`]) never needs it.
         let st = TileState {
@@ -242,6 +257,8 @@ impl Slots {
             values: Vec::new(),
             remaining: n,
             next: 0,
+            pixel: 0,
+            within: 0,
         };
         let i = match self.tiles.iter().position(Option::is_none) {
             Some(i) => {
@@ -256,7 +273,7 @@ impl Slots {
         self.fresh.push_back(i as u32);
         self.held += 1;
         self.largest = self.largest.max(n as usize);
-        Ok(())
+        Ok(None)
     }
 
     /// Whether the next tile to start has started some of its samples
@@ -301,19 +318,27 @@ impl Slots {
         if t.next == 0 {
             t.values = vec![Vec3::ZERO; t.remaining as usize];
         }
-        let (index, a) = (t.next, t.a);
+        // Past the pixels whose samples have all started, or that take
+        // none in this pass: a held tile has a sample left to start.
+        let mut range = t.a.pixel_samples(t.pixel);
+        while t.within >= range.len() as u32 {
+            t.pixel += 1;
+            t.within = 0;
+            range = t.a.pixel_samples(t.pixel);
+        }
+        let (index, (x, y)) = (t.next, t.a.pixel(t.pixel));
+        let sample = range.start + t.within;
         t.next += 1;
+        t.within += 1;
         if t.next as usize >= t.values.len() {
             self.fresh.pop_front();
         }
-        let spp = a.pass_samples();
-        let (x, y) = a.pixel(index / spp);
         let slot = self.alloc(Slot::Sample { tile: ti, index });
         self.samples_open += 1;
         Some(NewSample {
             x,
             y,
-            sample: a.samples[0] + index % spp,
+            sample,
             reply: ReplyTo {
                 worker: self.me,
                 slot,
@@ -465,10 +490,13 @@ impl Slots {
             .take()
             .expect("a tile with samples in flight is held");
         self.held -= 1;
-        let sums = t
-            .values
-            .chunks(t.a.pass_samples() as usize)
-            .map(|samples| pass_sum(0..samples.len() as u32, st, |s, _| samples[s as usize]))
+        let mut rest = &t.values[..];
+        let sums = (0..t.a.pixels())
+            .map(|p| {
+                let (samples, after) = rest.split_at(t.a.pixel_samples(p).len());
+                rest = after;
+                pass_sum(0..samples.len() as u32, st, |s, _| samples[s as usize])
+            })
             .collect();
         TileResult {
             job: self.job,
@@ -485,6 +513,7 @@ mod tests {
     use locus_core::geometry::Ray;
     use locus_core::integrator::ShadowRay;
     use locus_core::passes::Moments;
+    use locus_protocol::control::PassSamples;
 
     /// Tile `tile` of `w` by `h` pixels, samples 2 and 3 of 4.
     fn tile(tile: u32, w: u32, h: u32) -> TileAssignment {
@@ -492,7 +521,7 @@ mod tests {
             job: 9,
             tile,
             pass: 2,
-            samples: [2, 4],
+            samples: PassSamples::Even([2, 4]),
             x0: 10,
             y0: 20,
             x1: 10 + w,
@@ -525,11 +554,11 @@ mod tests {
         for t in [
             tile(0, 60, 1),
             TileAssignment {
-                samples: [2, 5],
+                samples: PassSamples::Even([2, 5]),
                 ..tile(0, 1, 1)
             },
             TileAssignment {
-                samples: [3, 3],
+                samples: PassSamples::Even([3, 3]),
                 ..tile(0, 1, 1)
             },
         ] {
@@ -616,11 +645,54 @@ mod tests {
     }
 
     #[test]
+    fn a_spread_pass_starts_each_pixels_own_samples() {
+        let mut s = Slots::new(0, 9, IMAGE);
+        // Three pixels: 2 samples from 5, none, 1 from 9 (past the 4 spp:
+        // a spread pixel may take up to MAX_SHARE times it).
+        let spread = TileAssignment {
+            samples: PassSamples::Spread {
+                first: vec![5, 7, 9],
+                count: vec![2, 0, 1],
+            },
+            ..tile(6, 3, 1)
+        };
+        assert_eq!(s.add_tile(spread.clone()), Ok(None));
+        let started: Vec<NewSample> = std::iter::from_fn(|| s.start_sample()).collect();
+        let xs: Vec<(u32, u32, u32)> = started.iter().map(|n| (n.x, n.y, n.sample)).collect();
+        assert_eq!(xs, [(10, 20, 5), (10, 20, 6), (12, 20, 9)]);
+        let (mut fx, mut st) = (Vec::new(), TraceStats::default());
+        for (k, n) in started.iter().enumerate() {
+            let l = Answer::Radiance(Vec3::splat(k as f32 + 1.0));
+            s.answer(0, n.reply.slot, l, &mut fx, &mut st).unwrap();
+        }
+        let Effect::TileDone(t) = &fx[0] else {
+            panic!("{fx:?}")
+        };
+        let m = |sum: f64, squares: f64| Moments {
+            sum: [sum; 3],
+            squares: [squares; 3],
+        };
+        assert_eq!(t.sums, vec![m(3.0, 5.0), m(0.0, 0.0), m(3.0, 9.0)]);
+        assert_eq!(s.tiles_held().0, 0);
+        // A pass that gives the tile no samples is done when it arrives.
+        let none = TileAssignment {
+            samples: PassSamples::Spread {
+                first: vec![5, 7, 9],
+                count: vec![0; 3],
+            },
+            ..spread
+        };
+        let done = s.add_tile(none).unwrap().expect("done at once");
+        assert_eq!((done.tile, done.sums), (6, vec![Moments::default(); 3]));
+        assert_eq!((s.tiles_held().0, s.start_sample()), (0, None));
+    }
+
+    #[test]
     fn chains_cascade_and_reply_once() {
         let mut s = Slots::new(1, 9, IMAGE);
         s.add_tile(TileAssignment {
             pass: 3,
-            samples: [3, 4],
+            samples: PassSamples::Even([3, 4]),
             ..tile(0, 1, 1)
         })
         .unwrap();

@@ -294,7 +294,9 @@ impl<'a> Engine<'a> {
             Input::Tile(a) => {
                 self.tiles_asked = self.tiles_asked.saturating_sub(1);
                 self.queue_share = Some(a.queue_share);
-                self.slots.add_tile(a).map_err(EngineError::BadTile)?
+                if let Some(empty) = self.slots.add_tile(a).map_err(EngineError::BadTile)? {
+                    self.tile_done(empty)?;
+                }
             }
             Input::NoMoreTiles => {
                 self.no_more_tiles = true;
