@@ -270,44 +270,53 @@ fn a_stopped_worker_is_fenced_out_and_rejoins_when_resumed() {
     );
 }
 
-/// The scheduler killed (`kill -9`) a third of the way into a job and
-/// started again on the same address and state directory: the workers
-/// register again, the client attaches again, and the job resumes with
-/// the tiles the store held, ending with the single-machine bits.
-#[test]
-fn a_scheduler_restarted_on_its_state_resumes_the_job() {
-    // Long enough that a kill after the store's first commits of tiles
-    // (at most `COMMIT_EVERY` apart) still lands mid-job.
-    let scene = scene_of(320, 240);
-    let reference = common::single_machine(&scene);
-    let dir = std::env::temp_dir().join(format!("locus-state-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let state = dir.to_str().expect("a UTF-8 temp dir").to_string();
-    let args = |listen: &str| {
-        [
+/// A scheduler with a state directory: how to start it on an address.
+struct Stateful {
+    dir: std::path::PathBuf,
+}
+
+impl Stateful {
+    fn new(tag: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("locus-state-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        Self { dir }
+    }
+
+    fn spawn(&self, listen: &str) -> (Daemon, String) {
+        let state = self.dir.to_str().expect("a UTF-8 temp dir");
+        Daemon::spawn(&[
             "scheduler",
             "--listen",
             listen,
             "--worker-timeout",
             "2",
             "--state",
-            &state,
-        ]
-        .map(String::from)
-    };
-    let spawn = |listen: &str| {
-        let a = args(listen);
-        Daemon::spawn(&a.iter().map(String::as_str).collect::<Vec<_>>())
-    };
-    let (sched, addr) = spawn("127.0.0.1:0");
+            state,
+        ])
+    }
+}
+
+impl Drop for Stateful {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// Runs `scene` on two workers and a scheduler with a state directory,
+/// kills the scheduler (`kill -9`) once `kill_at` pixel samples are in and
+/// the store has had time for three commits since the first tile (it
+/// commits at most every `COMMIT_EVERY`, and loses what came since its
+/// last commit), starts it again on the same address and state, and
+/// waits for the job: its result and the restarted scheduler.
+fn killed_mid_job(
+    state: &Stateful,
+    scene: &locus_core::scene::Scene,
+    kill_at: u64,
+) -> (JobResult, Daemon) {
+    let (sched, addr) = state.spawn("127.0.0.1:0");
     let _workers: Vec<Daemon> = (0..2).map(|_| Daemon::worker(&addr)).collect();
     let done = Arc::new(AtomicU64::new(0));
-    let rx = submit_watched(&addr, &scene, 2, done.clone());
-    // 300 tiles of 16x16 in 5 passes of 1, 1, 2, 4 and 8 samples: kill once
-    // a quarter of the samples are in (the first three passes, 900 tile
-    // passes), and not before the store has had time for three commits
-    // since the first tile came: it commits at most every `COMMIT_EVERY`,
-    // and loses what came since its last commit.
+    let rx = submit_watched(&addr, scene, 2, done.clone());
     let t = Instant::now();
     let mut first = None;
     loop {
@@ -317,7 +326,7 @@ fn a_scheduler_restarted_on_its_state_resumes_the_job() {
         }
         let settled =
             first.is_some_and(|f| f.elapsed() >= 3 * locus_scheduler::store::COMMIT_EVERY);
-        if d * 4 >= 320 * 240 * 16 && settled {
+        if d >= kill_at && settled {
             break;
         }
         assert!(
@@ -332,14 +341,14 @@ fn a_scheduler_restarted_on_its_state_resumes_the_job() {
     // The same address again (a restarted daemon behind the same name).
     let mut again = None;
     for _ in 0..50 {
-        let (d, a) = spawn(&addr);
+        let (d, a) = state.spawn(&addr);
         if a == addr {
             again = Some(d);
             break;
         }
         std::thread::sleep(Duration::from_millis(100));
     }
-    let _sched = again.expect("the scheduler restarts on its address");
+    let sched = again.expect("the scheduler restarts on its address");
     let r = wait(&rx);
     eprintln!(
         "scheduler restarted: job done {:.2} s after the kill, {} tile passes kept from the store, {} attempts",
@@ -347,6 +356,24 @@ fn a_scheduler_restarted_on_its_state_resumes_the_job() {
         r.report.recovery.tile_passes_kept,
         r.report.recovery.attempts
     );
+    (r, sched)
+}
+
+/// The scheduler killed (`kill -9`) a quarter of the way into a job and
+/// started again on the same address and state directory: the workers
+/// register again, the client attaches again, and the job resumes with
+/// the tiles the store held, ending with the single-machine bits.
+#[test]
+fn a_scheduler_restarted_on_its_state_resumes_the_job() {
+    // Long enough that a kill after the store's first commits of tiles
+    // (at most `COMMIT_EVERY` apart) still lands mid-job.
+    let scene = scene_of(320, 240);
+    let reference = common::single_machine(&scene);
+    let state = Stateful::new("even");
+    // 300 tiles of 16x16 in 5 passes of 1, 1, 2, 4 and 8 samples: killed
+    // once a quarter of the samples are in (the first three passes, 900
+    // tile passes).
+    let (r, sched) = killed_mid_job(&state, &scene, 320 * 240 * 16 / 4);
     assert_eq!(
         common::bits(&r),
         reference,
@@ -361,10 +388,9 @@ fn a_scheduler_restarted_on_its_state_resumes_the_job() {
     );
     // Killed once more after the job finished: the result is in the store,
     // and a client attaching to the restarted scheduler gets it.
-    let sched = _sched;
     sched.signal("-KILL");
     drop(sched);
-    let (_third, addr) = spawn("127.0.0.1:0");
+    let (_third, addr) = state.spawn("127.0.0.1:0");
     let rt = common::runtime();
     let again = rt
         .block_on(locus_scheduler::client::attach_to(
@@ -375,7 +401,41 @@ fn a_scheduler_restarted_on_its_state_resumes_the_job() {
         ))
         .expect("the finished job's result outlives a restart");
     assert_eq!(common::bits(&again), reference, "the stored result differs");
-    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Adaptive sampling through a scheduler killed in its spread pass, some
+/// tiles' share of it in the store and others not: the restarted film
+/// hands out the spread it kept, and the job ends with one machine's bits
+/// and counts.
+#[test]
+fn a_scheduler_restarted_in_a_spread_pass_keeps_one_machines_bits() {
+    let mut scene = scene_of(320, 240);
+    scene.settings.spp = 32;
+    scene.settings.adaptive_sampling = true;
+    let one = common::single_machine_output(&scene);
+    let counts = one.sample_counts.as_deref().expect("counted");
+    let state = Stateful::new("adaptive");
+    // 32 spp: a pilot of 8 (passes of 1, 1, 2 and 4 samples, 1,200 tile
+    // passes), then spread passes of 8 and 16 samples' worth, a quarter
+    // and a half of the job: killed 65% of the way in, which the store,
+    // a commit or two behind, holds in a spread pass.
+    let (r, _sched) = killed_mid_job(&state, &scene, 320 * 240 * 32 * 13 / 20);
+    let (got, want) = (common::bits(&r), one.image.to_bits());
+    let differ = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+    assert_eq!(
+        (got.len(), differ),
+        (want.len(), 0),
+        "pixel channels differing from one machine's"
+    );
+    assert_eq!(
+        r.report.sample_counts,
+        locus_core::report::SampleCounts::of(counts)
+    );
+    let kept = r.report.recovery.tile_passes_kept;
+    assert!(
+        (1201..1800).contains(&kept),
+        "the store kept {kept} tile passes: not in a spread pass"
+    );
 }
 
 /// Runs `c`, which must succeed; its output.
