@@ -603,4 +603,23 @@ fn adaptive_sampling_on_the_farm_keeps_one_machines_bits() {
             farm.stop().await.expect("clean stop");
         }
     });
+
+    // With a noise target too: the film judges after each pass, the
+    // spread ones included, and stops where one machine stops.
+    let full = one.error_estimate.expect("estimated").rel_mse;
+    scene.settings.target_rel_mse = Some(full * 2.5);
+    let one = common::single_machine_output(&scene);
+    assert_eq!(one.spp, 16, "met after the first spread pass");
+    rt.block_on(async {
+        let farm = locus::farm::LocalFarm::start(2, 1).await.expect("farm");
+        let req = locus_scheduler::client::request(&scene, options(2, FetchPolicy::Forward));
+        let r = farm.render(req, &|_, _| {}).await.expect("job");
+        assert_eq!(bits(&r), one.image.to_bits());
+        assert_eq!(r.report.spp_rendered, 16);
+        let counts = one.sample_counts.as_deref().expect("counted");
+        let spread = locus_core::report::SampleCounts::of(counts);
+        assert_eq!(r.report.sample_counts, spread);
+        assert_eq!(r.report.totals.trace.samples, 40 * 32 * 16);
+        farm.stop().await.expect("clean stop");
+    });
 }
