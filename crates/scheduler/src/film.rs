@@ -42,17 +42,22 @@ pub struct Unit {
 }
 
 /// A tile as the store keeps it: its passes in so far, its pixels' sums
-/// over them and how many samples each has. With adaptive sampling, once
-/// the tile's next pass is open, `next` holds the samples each of its
-/// pixels takes in it (empty otherwise): a scheduler restarted while some
-/// tiles were a pass ahead of it cannot compute that spread again, since
-/// it was made from their sums before that pass.
+/// over them and how many samples each has.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileSums {
     pub passes: u32,
     pub sums: Vec<Moments>,
     pub counts: Vec<u32>,
-    pub next: Vec<u32>,
+}
+
+/// With adaptive sampling, the open pass whose samples are spread and the
+/// samples each pixel takes in it (row-major), as the film made it and
+/// the store keeps it: a scheduler restarted once some tiles hold that
+/// pass cannot make it again, since it came from their sums before it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PassSpread {
+    pub pass: u32,
+    pub given: Vec<u32>,
 }
 
 /// Why a tile's pass was not taken.
@@ -88,11 +93,10 @@ pub struct Film {
     kept: Option<u32>,
     /// Adaptive sampling ([`spread`]).
     adaptive: bool,
-    /// With adaptive sampling, the open pass whose samples are spread, and
-    /// the samples each pixel takes in it.
-    spread: Option<(u32, Vec<u32>)>,
-    /// Tiles' `next` spreads as the store kept them, until [`Film::resume`].
-    stored_next: BTreeMap<u32, Vec<u32>>,
+    /// With adaptive sampling, the open pass's spread, if it is spread.
+    spread: Option<PassSpread>,
+    /// The spread the store kept, until [`Film::resume`].
+    stored_spread: Option<PassSpread>,
 }
 
 impl Film {
@@ -115,7 +119,7 @@ impl Film {
             kept: None,
             adaptive: false,
             spread: None,
-            stored_next: BTreeMap::new(),
+            stored_spread: None,
         }
     }
 
@@ -182,35 +186,41 @@ impl Film {
         let budget = pass.len() as u64 * self.sums.len() as u64;
         let cap = self.spp.saturating_mul(spread::MAX_SHARE);
         let given = spread::spread(self.width, height, &self.sums, &self.counts, budget, cap);
-        self.spread = Some((k, given));
+        self.spread = Some(PassSpread { pass: k, given });
+    }
+
+    /// The open pass's spread, with adaptive sampling once one is open:
+    /// what the store keeps when it opens.
+    pub fn pass_spread(&self) -> Option<&PassSpread> {
+        self.spread.as_ref()
+    }
+
+    /// Puts back the spread the store kept, for [`Film::resume`], if it
+    /// fits the film.
+    pub fn restore_spread(&mut self, kept: PassSpread) -> bool {
+        let fits = self.adaptive && kept.given.len() == self.sums.len();
+        if fits {
+            self.stored_spread = Some(kept);
+        }
+        fits
     }
 
     /// After tiles were restored from the store: judges the film as the
     /// running job would have when its last complete pass came in, and
-    /// with adaptive sampling opens the next pass's spread: as the store
-    /// kept it for the tiles still to render it when every one of them has
-    /// it (some tiles may hold that pass already, and the spread was made
-    /// before they did), or else from the film as restored.
+    /// with adaptive sampling opens the next pass's spread: the one the
+    /// store kept if it is that pass's (some tiles may hold the pass
+    /// already, and the spread was made before they did), or else one made
+    /// from the film as restored (the same where no tile holds the pass).
     pub fn resume(&mut self) {
         let k = self.pass();
         self.judge(k);
         self.open_spread(k);
-        let stored = std::mem::take(&mut self.stored_next);
-        let Some((_, mut given)) = self.spread.take() else {
-            return;
-        };
-        let lagging: Vec<u32> = (0..self.tiles.len() as u32)
-            .filter(|&t| self.passes_in[t as usize] == k)
-            .collect();
-        if lagging.iter().all(|t| stored.contains_key(t)) {
-            for t in lagging {
-                let mut from = stored[&t].iter();
-                for i in self.rows(self.tiles[t as usize]).flatten() {
-                    given[i] = *from.next().expect("its length checked at restore");
-                }
-            }
+        let kept = self.stored_spread.take();
+        if let (Some(open), Some(kept)) = (&mut self.spread, kept)
+            && kept.pass == k
+        {
+            *open = kept;
         }
-        self.spread = Some((k, given));
     }
 
     pub fn tiles(&self) -> &[Tile] {
@@ -228,13 +238,17 @@ impl Film {
         let t = self.tiles[u.tile as usize];
         let samples = match &self.spread {
             // The tile's pixels have the passes before this one.
-            Some((k, given)) if *k == u.pass => PassSamples::Spread {
+            Some(sp) if sp.pass == u.pass => PassSamples::Spread {
                 first: self
                     .rows(t)
                     .flat_map(|row| &self.counts[row])
                     .copied()
                     .collect(),
-                count: self.rows(t).flat_map(|row| &given[row]).copied().collect(),
+                count: self
+                    .rows(t)
+                    .flat_map(|row| &sp.given[row])
+                    .copied()
+                    .collect(),
             },
             _ => PassSamples::Even([r.start, r.end]),
         };
@@ -337,7 +351,7 @@ impl Film {
         let pass = self.passes_in[tile as usize];
         let even = self.passes[pass as usize].len() as u32;
         let given = match &self.spread {
-            Some((k, g)) if *k == pass => Some(g),
+            Some(sp) if sp.pass == pass => Some(&sp.given),
             _ => None,
         };
         let mut from = sums.iter();
@@ -384,17 +398,10 @@ impl Film {
             .flat_map(|row| &self.counts[row])
             .copied()
             .collect();
-        let next = match &self.spread {
-            Some((k, given)) if *k == self.passes_in[tile as usize] => {
-                self.rows(t).flat_map(|row| &given[row]).copied().collect()
-            }
-            _ => Vec::new(),
-        };
         TileSums {
             passes: self.passes_in[tile as usize],
             sums,
             counts,
-            next,
         }
     }
 
@@ -409,7 +416,6 @@ impl Film {
             || kept.passes as usize > self.passes.len()
             || kept.sums.len() != pixels
             || kept.counts.len() != pixels
-            || !(kept.next.is_empty() || kept.next.len() == pixels)
             || self.passes_in[tile as usize] != 0
         {
             return false;
@@ -435,9 +441,6 @@ impl Film {
         self.samples_done += kept.counts.iter().map(|&n| u64::from(n)).sum::<u64>();
         for c in &mut self.complete[..kept.passes as usize] {
             *c += 1;
-        }
-        if self.adaptive && !kept.next.is_empty() {
-            self.stored_next.insert(tile, kept.next);
         }
         true
     }
@@ -645,7 +648,6 @@ mod tests {
                 passes: 9,
                 sums: vec![Moments::default(); 9],
                 counts: vec![13; 9],
-                next: Vec::new(),
             }
         ));
         // Pass 0 of 13 spp is 2 samples a pixel: a count that says
@@ -654,7 +656,6 @@ mod tests {
             passes: 1,
             sums: vec![Moments::default(); 9],
             counts,
-            next: Vec::new(),
         };
         let mut fresh = film();
         assert!(!fresh.restore(0, one_pass(vec![3; 9])));
@@ -838,8 +839,8 @@ mod tests {
         assert_eq!(f.error_estimate(), estimate);
 
         // A scheduler restarted in the first spread pass, tile 0 having
-        // rendered it and the others not: the spread kept with each tile
-        // gives the others the samples they would have had.
+        // rendered it and the others not: the spread the store kept gives
+        // the others the samples they would have had.
         let mut part = film();
         while part.pass() < 4 {
             add_open(&mut part);
@@ -849,15 +850,15 @@ mod tests {
         assert!(matches!(a.samples, PassSamples::Spread { .. }), "{a:?}");
         let s = render(&part, u);
         part.add(u, s).unwrap();
-        let restart = |strip: bool| {
+        let restart = |keep_spread: bool| {
             let mut again = film();
             for t in 0..part.tiles().len() as u32 {
-                let mut kept = part.tile_sums(t);
-                assert_eq!(kept.next.is_empty(), t == 0, "tile {t}");
-                if strip && t == 1 {
-                    kept.next.clear();
-                }
-                assert!(again.restore(t, kept));
+                assert!(again.restore(t, part.tile_sums(t)));
+            }
+            let spread = part.pass_spread().cloned().expect("pass 4 is spread");
+            assert_eq!(spread.pass, 4);
+            if keep_spread {
+                assert!(again.restore_spread(spread));
             }
             again.resume();
             while !again.is_complete() {
@@ -865,12 +866,12 @@ mod tests {
             }
             again
         };
-        let again = restart(false);
+        let again = restart(true);
         assert_eq!(again.image().pixels, want);
         assert_eq!(again.sample_counts(), Some(&counts[..]));
-        // Without a tile's spread the pass is spread again from the film
-        // as restored: every pixel still gets its pilot and more.
-        let spread_again = restart(true);
+        // Without it the pass is spread again from the film as restored:
+        // every pixel still gets its pilot and more.
+        let spread_again = restart(false);
         let c = spread_again.sample_counts().unwrap();
         assert!(c.iter().all(|&n| n >= spread::pilot_end(SPP)), "{c:?}");
         assert_ne!(c, &counts[..]);

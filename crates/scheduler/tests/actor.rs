@@ -655,7 +655,6 @@ async fn a_job_restored_whole_ends_without_a_tile() {
                 passes: 1,
                 sums: vec![one; 256],
                 counts: vec![1; 256],
-                next: Vec::new(),
             };
             s.write(Write::Tile { job: 5, tile, sums });
         }

@@ -328,20 +328,19 @@ impl Actor {
         };
         let opened = j.film.open_passes() > open;
         if let Some(s) = &self.store {
-            // A spread pass that opened is kept with every tile that has
-            // yet to render it (all of them): a restart cannot make it
-            // again once some tile holds it.
-            let spread = opened && j.film.sample_counts().is_some();
-            let tiles = match (spread, changed) {
-                (true, _) => 0..j.film.tiles().len() as u32,
-                (false, true) => r.tile..r.tile + 1,
-                (false, false) => 0..0,
-            };
-            for tile in tiles {
+            if changed {
                 s.write(Write::Tile {
                     job: j.id,
-                    tile,
-                    sums: j.film.tile_sums(tile),
+                    tile: r.tile,
+                    sums: j.film.tile_sums(r.tile),
+                });
+            }
+            // A spread pass that opened is kept before any tile holds it:
+            // a restart cannot make it again once one does.
+            if opened && let Some(spread) = j.film.pass_spread() {
+                s.write(Write::Spread {
+                    job: j.id,
+                    spread: spread.clone(),
                 });
             }
         }

@@ -28,7 +28,7 @@ mod recovery;
 
 pub(crate) use clients::Client;
 
-use crate::film::{Film, TileSums};
+use crate::film::{Film, PassSpread, TileSums};
 use crate::job;
 use crate::metrics::Metrics;
 use crate::status::{EndedJob, Status};
@@ -116,6 +116,8 @@ pub(crate) struct Queued {
     /// Tiles already rendered, some passes of them (a job restored from
     /// the store).
     tiles: Vec<(u32, TileSums)>,
+    /// The open pass's spread the store kept (adaptive sampling).
+    spread: Option<PassSpread>,
 }
 
 /// How long a job may wait for the workers it asks for to register (a farm
@@ -338,6 +340,7 @@ impl Actor {
                 client: Client::none(),
                 since: tokio::time::Instant::now(),
                 tiles: r.tiles,
+                spread: r.spread,
             });
         }
         self.store = Some(store);
@@ -542,6 +545,7 @@ impl Actor {
                 client: Client::some(client),
                 since: tokio::time::Instant::now(),
                 tiles: Vec::new(),
+                spread: None,
             });
             self.try_start();
         }
@@ -609,6 +613,14 @@ impl Actor {
                     "a stored tile does not fit the job; rendered again"
                 );
             }
+        }
+        if let Some(s) = q.spread
+            && !film.restore_spread(s)
+        {
+            warn!(
+                job = id,
+                "a stored spread does not fit the job; spread again"
+            );
         }
         film.resume();
         let before = film.done();

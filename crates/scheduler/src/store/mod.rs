@@ -21,7 +21,7 @@ mod results;
 
 pub use results::Kept;
 
-use crate::film::TileSums;
+use crate::film::{PassSpread, TileSums};
 use locus_core::image_io::Image;
 use locus_protocol::report::FarmReport;
 use locus_protocol::submit::JobRequest;
@@ -39,6 +39,9 @@ const JOBS: TableDefinition<u64, &[u8]> = TableDefinition::new("jobs");
 /// (job, tile) to the tile's passes in and pixel sums ([`TileSums`],
 /// postcard).
 const TILES: TableDefinition<(u64, u32), &[u8]> = TableDefinition::new("tile_sums");
+/// Job id to its open spread pass ([`PassSpread`], postcard), for a job
+/// with adaptive sampling once one is open.
+const SPREADS: TableDefinition<u64, &[u8]> = TableDefinition::new("spreads");
 /// "next_job": the next job id, so ids are never reused across restarts.
 const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 
@@ -59,6 +62,8 @@ pub enum Write {
     Job { id: u64, request: Vec<u8> },
     /// A tile's state in the film, replacing what was kept of it.
     Tile { job: u64, tile: u32, sums: TileSums },
+    /// The spread of a pass that opened, replacing the one before.
+    Spread { job: u64, spread: PassSpread },
     /// The job ended (done, failed, cancelled): forget it.
     End { job: u64 },
     /// A job's result, kept for clients that attach late (the last
@@ -79,6 +84,8 @@ pub struct Restored {
     pub id: u64,
     pub req: Box<JobRequest>,
     pub tiles: Vec<(u32, TileSums)>,
+    /// The open pass's spread, with adaptive sampling.
+    pub spread: Option<PassSpread>,
 }
 
 /// The actor's handle: sends writes, never waits.
@@ -183,6 +190,7 @@ fn read(db: &Database) -> anyhow::Result<(u64, Vec<Restored>)> {
                                 id,
                                 req: Box::new(req),
                                 tiles: Vec::new(),
+                                spread: None,
                             },
                         );
                     }
@@ -204,6 +212,23 @@ fn read(db: &Database) -> anyhow::Result<(u64, Vec<Restored>)> {
                 match postcard::from_bytes::<TileSums>(v.value()) {
                     Ok(p) => j.tiles.push((tile, p)),
                     Err(e) => warn!(job, tile, "stored tile does not decode ({e}); dropped"),
+                }
+            }
+        }
+        Err(redb::TableError::TableDoesNotExist(_)) => {}
+        Err(e) => return Err(e.into()),
+    }
+    match txn.open_table(SPREADS) {
+        Ok(t) => {
+            for row in t.iter()? {
+                let (k, v) = row?;
+                let job = k.value();
+                let Some(j) = jobs.get_mut(&job) else {
+                    continue;
+                };
+                match postcard::from_bytes::<PassSpread>(v.value()) {
+                    Ok(p) => j.spread = Some(p),
+                    Err(e) => warn!(job, "stored spread does not decode ({e}); dropped"),
                 }
             }
         }
@@ -250,7 +275,7 @@ impl Batch {
             }
             Write::End { job } => self.tiles.retain(|k, _| k.0 != *job),
             Write::Synced(_) => self.awaited = true,
-            Write::Job { .. } | Write::Finished { .. } => {}
+            Write::Job { .. } | Write::Spread { .. } | Write::Finished { .. } => {}
         }
         self.writes.push(w);
     }
@@ -301,6 +326,7 @@ fn commit(db: &Database, batch: Vec<Write>) -> anyhow::Result<()> {
     {
         let mut jobs = txn.open_table(JOBS)?;
         let mut tiles = txn.open_table(TILES)?;
+        let mut spreads = txn.open_table(SPREADS)?;
         let mut meta = txn.open_table(META)?;
         for w in batch {
             match w {
@@ -312,11 +338,15 @@ fn commit(db: &Database, batch: Vec<Write>) -> anyhow::Result<()> {
                 Write::Tile { job, tile, sums } => {
                     tiles.insert((job, tile), postcard::to_allocvec(&sums)?.as_slice())?;
                 }
+                Write::Spread { job, spread } => {
+                    spreads.insert(job, postcard::to_allocvec(&spread)?.as_slice())?;
+                }
                 Write::Finished { job, image, report } => {
                     results::put(&txn, job, &image, &report)?;
                 }
                 Write::End { job } => {
                     jobs.remove(job)?;
+                    spreads.remove(job)?;
                     remove_rows(&mut tiles, job)?;
                 }
                 Write::Synced(ack) => acks.push(ack),
@@ -370,7 +400,6 @@ mod tests {
                 passes,
                 sums: Vec::new(),
                 counts: Vec::new(),
-                next: Vec::new(),
             },
         };
         let mut b = Batch::default();
@@ -501,7 +530,17 @@ mod tests {
                             4
                         ],
                         counts: vec![passes * 3, 4, 5, 6],
-                        next: vec![passes; 4],
+                    },
+                });
+            }
+            // A job's open spread: the later one is kept, and a job's end
+            // drops its own.
+            for (job, pass) in [(3, 4), (3, 5), (4, 4)] {
+                s.write(Write::Spread {
+                    job,
+                    spread: PassSpread {
+                        pass,
+                        given: vec![pass; 6],
                     },
                 });
             }
@@ -515,7 +554,6 @@ mod tests {
                         squares: [1.5, 0.0, f64::MAX],
                     }],
                     counts: vec![2],
-                    next: Vec::new(),
                 },
             });
             s.write(Write::End { job: 4 });
@@ -538,9 +576,13 @@ mod tests {
                 4
             ],
             counts: vec![6, 4, 5, 6],
-            next: vec![2; 4],
         };
         assert_eq!(jobs[0].tiles, vec![(7, kept)]);
+        let spread = PassSpread {
+            pass: 5,
+            given: vec![5; 6],
+        };
+        assert_eq!(jobs[0].spread, Some(spread));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
