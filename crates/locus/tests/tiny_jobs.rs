@@ -16,7 +16,7 @@
 //!
 //! 500 jobs of random sizes (1x1 to 16x16), worker counts (1 to 8), fetch
 //! policies, partitioners and tile sizes, with random polling on in every
-//! third, each under a timeout, must all finish with the single machine's
+//! third and adaptive sampling in every fifth, each under a timeout, must all finish with the single machine's
 //! bits on the embedded farm, and 60 more on a farm of daemon processes.
 
 mod common;
@@ -27,7 +27,7 @@ use locus_protocol::submit::{FetchPolicy, JobOptions, Partitioner};
 use std::time::Duration;
 
 /// The job `i` of a run seeded `seed`: a small Cornell box of random size
-/// at 1 spp and its options (at most `max_workers` workers, a random fetch
+/// at 1 spp (every fifth at 16 with adaptive sampling) and its options (at most `max_workers` workers, a random fetch
 /// policy, partitioner and tile size, random polling in every third), and
 /// a line that names it.
 fn tiny_job(i: u64, seed: u64, max_workers: usize) -> (Scene, JobOptions, String) {
@@ -43,6 +43,13 @@ fn tiny_job(i: u64, seed: u64, max_workers: usize) -> (Scene, JobOptions, String
     };
     let mut scene = common::small_cornell(w, h, i);
     scene.settings.spp = 1;
+    // Every fifth spreads its samples: 16 spp, a pilot of 8 and one spread
+    // pass, in which a tile of one dark pixel may get no sample at all.
+    let adaptive = i % 5 == 4;
+    if adaptive {
+        scene.settings.spp = 16;
+        scene.settings.adaptive_sampling = true;
+    }
     let mut opts = JobOptions {
         workers: workers as u32,
         partitioner,
@@ -53,7 +60,7 @@ fn tiny_job(i: u64, seed: u64, max_workers: usize) -> (Scene, JobOptions, String
     let polling = i.is_multiple_of(3);
     opts.tuning.random_polling = polling;
     let what = format!(
-        "job {i} (seed {seed}): {w}x{h}, {workers} workers, {fetch:?}, {partitioner:?}, random polling {polling}"
+        "job {i} (seed {seed}): {w}x{h}, {workers} workers, {fetch:?}, {partitioner:?}, random polling {polling}, adaptive sampling {adaptive}"
     );
     (scene, opts, what)
 }
