@@ -9,7 +9,7 @@
 //! may hold a later pass than the others when one is judged, so the
 //! scheduler hands out a pass only once the one before is complete
 //! ([`Film::open_passes`]): a barrier at each pass end, paid only by jobs
-//! with a target.
+//! with a target or adaptive sampling.
 //!
 //! With adaptive sampling, a pass after the pilot gives its samples to
 //! the pixels by [`locus_core::spread::spread`] of the film's sums when
