@@ -243,13 +243,21 @@ impl std::fmt::Display for ErrorMetrics {
     }
 }
 
+impl ErrorEstimate {
+    /// The estimate in words, read from the spread of `samples` (such as
+    /// "16 samples a pixel").
+    pub fn read_from(&self, samples: &str) -> String {
+        format!(
+            "RMSE {:.6e}  relMSE {:.6e} (from the spread of {samples})",
+            self.rmse, self.rel_mse
+        )
+    }
+}
+
 impl std::fmt::Display for ErrorEstimate {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "RMSE {:.6e}  relMSE {:.6e} (from the spread of {} samples a pixel)",
-            self.rmse, self.rel_mse, self.samples
-        )
+        let samples = format!("{} samples a pixel", self.samples);
+        f.write_str(&self.read_from(&samples))
     }
 }
 

@@ -226,7 +226,12 @@ pub(crate) fn write_farm_result(
         );
     }
     print_sample_counts(f.sample_counts);
-    print_error(f.error_estimate.as_ref(), &f.sampler, error.as_ref());
+    print_error(
+        f.error_estimate.as_ref(),
+        f.sample_counts,
+        &f.sampler,
+        error.as_ref(),
+    );
     print_target(
         f.target_rel_mse,
         f.error_estimate.as_ref(),
@@ -240,6 +245,7 @@ pub(crate) fn write_farm_result(
 /// and against the reference when one was given.
 pub(crate) fn print_error(
     estimate: Option<&ErrorEstimate>,
+    counts: Option<locus_core::report::SampleCounts>,
     sampler: &str,
     reference: Option<&ErrorMetrics>,
 ) {
@@ -251,6 +257,14 @@ pub(crate) fn print_error(
             "; an upper estimate with the Sobol sampler, whose stratified samples usually leave less"
         } else {
             ""
+        };
+        // An adaptive render's pixels each have their own count.
+        let e = match counts {
+            Some(c) => e.read_from(&format!(
+                "{} to {} samples a pixel, {:.2} on average",
+                c.min, c.max, c.mean
+            )),
+            None => e.to_string(),
         };
         println!("estimated error: {e}{note}");
     }

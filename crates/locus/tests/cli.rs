@@ -291,6 +291,11 @@ fn adaptive_sampling_reports_its_counts_on_one_machine_and_the_farm() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(out.contains("adaptive sampling:"), "{out}");
+    let mean = "samples a pixel, 16.00 on average)";
+    assert!(
+        out.contains("estimated error: RMSE") && out.contains(mean),
+        "{out}"
+    );
     assert_eq!(json("b.json")["farm"]["sample_counts"], *c);
     assert_eq!(bits(&b), bits(&a), "the farm's image is one machine's");
 

@@ -238,6 +238,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     crate::output::print_error(
         out.error_estimate.as_ref(),
+        report.sample_counts,
         opts.sampler.name(),
         error.as_ref(),
     );
