@@ -1,5 +1,6 @@
 //! What a render writes, on one machine or on the farm alike: the EXR, its
-//! PNG preview and the JSON report beside it, and the summary printed.
+//! PNG preview and the JSON report beside it (with adaptive sampling, the
+//! samples each pixel got as an EXR too), and the summary printed.
 
 use anyhow::{Context, Result};
 use locus_core::image_io::Image;
@@ -11,16 +12,20 @@ use std::path::{Path, PathBuf};
 /// What [`write_image`] wrote, and the error against the reference.
 pub(crate) struct Written {
     pub(crate) png: PathBuf,
+    /// With adaptive sampling, the samples each pixel got, as an EXR.
+    pub(crate) samples: Option<PathBuf>,
     /// Where the caller's JSON report goes.
     pub(crate) json: PathBuf,
     pub(crate) error: Option<ErrorMetrics>,
 }
 
 /// Writes `image` as the EXR `output` (creating its folder) and its sRGB
-/// PNG preview beside it, and measures it against `reference`: the one
-/// writer of both one machine's and the farm's images.
+/// PNG preview beside it, with adaptive sampling each pixel's count as
+/// `NAME.samples.exr` (the count in every channel), and measures it against
+/// `reference`: the one writer of both one machine's and the farm's images.
 pub(crate) fn write_image(
     image: &Image,
+    counts: Option<&[u32]>,
     output: &Path,
     exposure: f32,
     reference: Option<&Image>,
@@ -31,12 +36,25 @@ pub(crate) fn write_image(
     image.write_exr(output)?;
     let png = sibling(output, "png");
     image.write_png(&png, exposure)?;
+    let samples = match counts {
+        Some(c) => {
+            let path = sibling(output, "samples.exr");
+            let mut img = Image::new(image.width, image.height);
+            for (p, &n) in img.pixels.iter_mut().zip(c) {
+                *p = [n as f32; 3];
+            }
+            img.write_exr(&path)?;
+            Some(path)
+        }
+        None => None,
+    };
     let error = match reference {
         Some(re) => Some(compare(image, re)?),
         None => None,
     };
     Ok(Written {
         png,
+        samples,
         json: sibling(output, "json"),
         error,
     })
@@ -71,7 +89,18 @@ pub(crate) fn write_farm_result(
     r: &JobResult,
     reference: Option<&Image>,
 ) -> Result<()> {
-    let Written { png, json, error } = write_image(&image_of(r), output, exposure, reference)?;
+    let Written {
+        png,
+        samples,
+        json,
+        error,
+    } = write_image(
+        &image_of(r),
+        r.sample_counts.as_deref(),
+        output,
+        exposure,
+        reference,
+    )?;
     let out = FarmOutput {
         scene: scene.display().to_string(),
         image: output.display().to_string(),
@@ -225,7 +254,7 @@ pub(crate) fn write_farm_result(
             w.measured_cost_share * 100.0
         );
     }
-    print_sample_counts(f.sample_counts);
+    print_sample_counts(f.sample_counts, samples.as_deref());
     print_error(
         f.error_estimate.as_ref(),
         f.sample_counts,
@@ -273,12 +302,19 @@ pub(crate) fn print_error(
     }
 }
 
-/// With adaptive sampling, the spread of the samples over the pixels.
-pub(crate) fn print_sample_counts(counts: Option<locus_core::report::SampleCounts>) {
-    if let Some(c) = counts {
+/// With adaptive sampling, the spread of the samples over the pixels, and
+/// the image of them.
+pub(crate) fn print_sample_counts(
+    counts: Option<locus_core::report::SampleCounts>,
+    image: Option<&Path>,
+) {
+    if let (Some(c), Some(image)) = (counts, image) {
         println!(
-            "  adaptive sampling: {} to {} samples a pixel, {:.2} on average",
-            c.min, c.max, c.mean
+            "  adaptive sampling: {} to {} samples a pixel, {:.2} on average ({})",
+            c.min,
+            c.max,
+            c.mean,
+            image.display()
         );
     }
 }

@@ -281,6 +281,19 @@ fn adaptive_sampling_reports_its_counts_on_one_machine_and_the_farm() {
     );
     assert_eq!(report["options"]["adaptive"].as_bool(), Some(true));
     let bits = |p: &Path| locus_core::image_io::Image::read_exr(p).unwrap().to_bits();
+    // Each pixel's count, as an image beside the render: the report's
+    // range and mean.
+    let counts = locus_core::image_io::Image::read_exr(&d.join("a.samples.exr")).unwrap();
+    let n: Vec<f32> = counts.pixels.iter().map(|p| p[0]).collect();
+    assert!(counts.pixels.iter().all(|p| p[0] == p[1] && p[1] == p[2]));
+    let (lo, hi) = n
+        .iter()
+        .fold((f32::MAX, 0f32), |(a, b), &x| (a.min(x), b.max(x)));
+    assert_eq!(
+        (lo as u64, hi as u64),
+        (c["min"].as_u64().unwrap(), c["max"].as_u64().unwrap())
+    );
+    assert_eq!(n.iter().map(|&x| x as u64).sum::<u64>(), 16 * pixels);
 
     let b = d.join("b.exr");
     let o = render(
@@ -298,6 +311,9 @@ fn adaptive_sampling_reports_its_counts_on_one_machine_and_the_farm() {
     );
     assert_eq!(json("b.json")["farm"]["sample_counts"], *c);
     assert_eq!(bits(&b), bits(&a), "the farm's image is one machine's");
+    let samples = |name: &str| bits(&d.join(name));
+    assert_eq!(samples("b.samples.exr"), samples("a.samples.exr"));
+    assert!(out.contains("b.samples.exr"), "{out}");
 
     // The scene file's setting, with the mesh found where it lies.
     let text = std::fs::read_to_string(&scene).unwrap();
@@ -315,6 +331,11 @@ fn adaptive_sampling_reports_its_counts_on_one_machine_and_the_farm() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(json("e.json")["sample_counts"], *c);
     assert_eq!(bits(&e), bits(&a));
+    // An even render writes no counts.
+    let f = d.join("f.exr");
+    let o = render(&scene, &f, &["--spp", "2", "--threads", "2"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!d.join("f.samples.exr").exists());
     std::fs::remove_dir_all(&d).ok();
 }
 

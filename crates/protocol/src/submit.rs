@@ -215,6 +215,13 @@ pub enum SchedulerToClient {
         offset: u64,
         tris: Vec<[(Vec3, Vec3); 3]>,
     },
+    /// With adaptive sampling, a run of the samples each pixel got,
+    /// row-major from `offset`, after the image's runs and before `Done`.
+    Counts {
+        job: u64,
+        offset: u64,
+        counts: Vec<u32>,
+    },
 }
 
 /// Triangles per [`SchedulerToClient::Mesh`] message: 18 MiB.
@@ -224,6 +231,9 @@ pub const RESULT_CHUNK_TRIANGLES: usize = 1 << 18;
 /// the frame limit.
 pub const RESULT_CHUNK_PIXELS: usize = 1 << 20;
 
+/// Counts per [`SchedulerToClient::Counts`] message: at most 5 MiB.
+pub const RESULT_CHUNK_COUNTS: usize = 1 << 20;
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobResult {
     pub job: u64,
@@ -231,6 +241,9 @@ pub struct JobResult {
     pub height: u32,
     pub pixels: Vec<[f32; 3]>,
     pub report: FarmReport,
+    /// With adaptive sampling, the samples each pixel got (row-major; they
+    /// arrive in [`SchedulerToClient::Counts`] runs).
+    pub sample_counts: Option<Vec<u32>>,
     /// A radiosity job's solution report (its mesh came in
     /// [`SchedulerToClient::Mesh`] runs).
     pub radiosity: Option<Box<crate::radiosity::RadiosityReport>>,

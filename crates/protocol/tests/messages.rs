@@ -236,7 +236,8 @@ proptest! {
         for m in [
             SchedulerToClient::Accepted { job: seed, workers },
             SchedulerToClient::Progress { job: seed, samples_done: seed / 2, samples: seed, pass: workers / 3, passes: workers },
-            SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report, radiosity: None })),
+            SchedulerToClient::Done(Box::new(JobResult { job: seed, width: 2, height: 1, pixels: vec![[1.0, 2.0, 3.0]; 2], report, sample_counts: None, radiosity: None })),
+            SchedulerToClient::Counts { job: seed, offset: seed, counts: vec![workers; workers as usize % 5] },
             SchedulerToClient::Mesh { job: seed, offset: seed / 5, tris: vec![[(Vec3::X, Vec3::splat(n as f32)); 3]; n % 7] },
             SchedulerToClient::Failed { job: seed, reason: reason.clone() },
             SchedulerToClient::Pixels { job: seed, offset: seed, pixels: vec![[f32::MIN_POSITIVE, -1e30, f32::INFINITY]; workers as usize % 5] },

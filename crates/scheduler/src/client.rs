@@ -38,6 +38,9 @@ pub fn request_owned(mut scene: Scene, options: JobOptions, load_s: f64) -> JobR
 /// more.
 pub struct Collector {
     pixels: Vec<[f32; 3]>,
+    /// With adaptive sampling, each pixel's samples, as their runs arrive
+    /// (bounded as the pixels are).
+    counts: Vec<u32>,
     /// Pixels the job asked for; None when attaching by id, where runs are
     /// bounded by the largest image a job may ask for and the whole is
     /// checked against the size `Done` gives.
@@ -59,6 +62,7 @@ impl Collector {
     pub fn new(width: u32, height: u32) -> Self {
         Self {
             pixels: Vec::new(),
+            counts: Vec::new(),
             expected: Some(width as usize * height as usize),
             job: None,
             mesh: Vec::new(),
@@ -80,6 +84,7 @@ impl Collector {
     pub fn any_size() -> Self {
         Self {
             pixels: Vec::new(),
+            counts: Vec::new(),
             expected: None,
             job: None,
             mesh: Vec::new(),
@@ -91,6 +96,7 @@ impl Collector {
     /// whole image again.
     pub fn reattached(&mut self) {
         self.pixels = Vec::new();
+        self.counts = Vec::new();
         self.mesh = Vec::new();
     }
 
@@ -134,6 +140,22 @@ impl Collector {
                 self.pixels.extend_from_slice(&pixels);
                 None
             }
+            Some(SchedulerToClient::Counts {
+                job,
+                offset,
+                counts,
+            }) => {
+                let bound = self.expected.unwrap_or(MAX_IMAGE_PIXELS);
+                if offset != self.counts.len() as u64 || self.counts.len() + counts.len() > bound {
+                    return Some(Err(anyhow::anyhow!(
+                        "job {job}: sample counts {offset}..{} arrived after {} of {bound}",
+                        offset + counts.len() as u64,
+                        self.counts.len(),
+                    )));
+                }
+                self.counts.extend_from_slice(&counts);
+                None
+            }
             Some(SchedulerToClient::Mesh { job, offset, tris }) => {
                 let bound = self.mesh_bound;
                 if offset != self.mesh.len() as u64 || self.mesh.len() + tris.len() > bound {
@@ -162,6 +184,18 @@ impl Collector {
                         "job {}: the image has {} pixels, {want} were asked for",
                         r.job,
                         r.pixels.len(),
+                    )));
+                }
+                if r.sample_counts.is_none() && !self.counts.is_empty() {
+                    r.sample_counts = Some(std::mem::take(&mut self.counts));
+                }
+                if let Some(c) = &r.sample_counts
+                    && c.len() != want
+                {
+                    return Some(Err(anyhow::anyhow!(
+                        "job {}: {} sample counts for {want} pixels",
+                        r.job,
+                        c.len(),
                     )));
                 }
                 Some(Ok(r))
@@ -403,6 +437,7 @@ mod tests {
             height: 2,
             pixels: Vec::new(),
             report: FarmReport::default(),
+            sample_counts: None,
             radiosity: None,
         })))
     }
@@ -428,5 +463,40 @@ mod tests {
         assert!(c.take(pixels(0, 5), none).is_none());
         let e = c.take(done(), none).unwrap().unwrap_err();
         assert!(e.to_string().contains("5 pixels, 6 were asked"), "{e}");
+    }
+
+    fn counts(offset: u64, n: usize) -> Option<SchedulerToClient> {
+        Some(SchedulerToClient::Counts {
+            job: 1,
+            offset,
+            counts: (0..n as u32).map(|i| offset as u32 + i + 8).collect(),
+        })
+    }
+
+    /// An adaptive job's sample counts arrive in runs after the image, as
+    /// its pixels do, and must number the pixels.
+    #[test]
+    fn sample_counts_assemble_like_the_pixels() {
+        let none = &|_, _| {};
+        let mut c = Collector::new(3, 2);
+        for m in [pixels(0, 6), counts(0, 2), counts(2, 4)] {
+            assert!(c.take(m, none).is_none());
+        }
+        let r = c.take(done(), none).unwrap().unwrap();
+        assert_eq!(r.sample_counts, Some(vec![8, 9, 10, 11, 12, 13]));
+        let mut c = Collector::new(3, 2);
+        assert!(c.take(counts(0, 4), none).is_none());
+        let e = c.take(counts(5, 1), none).unwrap().unwrap_err();
+        assert!(e.to_string().contains("arrived after 4 of 6"), "{e}");
+        let mut c = Collector::new(3, 2);
+        for m in [pixels(0, 6), counts(0, 5)] {
+            assert!(c.take(m, none).is_none());
+        }
+        let e = c.take(done(), none).unwrap().unwrap_err();
+        assert!(e.to_string().contains("5 sample counts for 6"), "{e}");
+        // An even job sends none.
+        let mut c = Collector::new(3, 2);
+        assert!(c.take(pixels(0, 6), none).is_none());
+        assert_eq!(c.take(done(), none).unwrap().unwrap().sample_counts, None);
     }
 }

@@ -127,8 +127,9 @@ pub(crate) fn cmd_radiosity(a: RadiosityArgs) -> Result<()> {
         )
     });
     let image_s = t.elapsed().as_secs_f64();
-    let Written { png, json, error } =
-        write_image(&image, &a.output, a.exposure, reference.as_ref())?;
+    let Written {
+        png, json, error, ..
+    } = write_image(&image, None, &a.output, a.exposure, reference.as_ref())?;
     let ply = sibling(&a.output, "ply");
     write_ply(&solver, &ply, a.exposure).with_context(|| format!("writing {}", ply.display()))?;
     let svg = a.output.with_extension("convergence.svg");
@@ -195,7 +196,9 @@ pub(crate) fn write_farm_solution(
     rad: &locus_protocol::radiosity::RadiosityReport,
     reference: Option<&Image>,
 ) -> Result<()> {
-    let Written { png, json, error } = write_image(&image_of(r), output, exposure, reference)?;
+    let Written {
+        png, json, error, ..
+    } = write_image(&image_of(r), None, output, exposure, reference)?;
     let ply = sibling(output, "ply");
     write_mesh_ply(&rad.mesh, &ply, exposure)
         .with_context(|| format!("writing {}", ply.display()))?;

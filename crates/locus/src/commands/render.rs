@@ -150,8 +150,18 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
     if let Some(pb) = pb {
         pb.finish_and_clear();
     }
-    let Written { png, json, error } =
-        write_image(&out.image, &a.output, a.exposure, reference.as_ref())?;
+    let Written {
+        png,
+        samples,
+        json,
+        error,
+    } = write_image(
+        &out.image,
+        out.sample_counts.as_deref(),
+        &a.output,
+        a.exposure,
+        reference.as_ref(),
+    )?;
     let st = out.stats;
     let report = RenderReport {
         scene: a.scene.display().to_string(),
@@ -211,7 +221,7 @@ pub(crate) fn cmd_render(a: RenderArgs) -> Result<()> {
         report.samples_per_second,
         report.rays_per_second / 1e6
     );
-    crate::output::print_sample_counts(report.sample_counts);
+    crate::output::print_sample_counts(report.sample_counts, samples.as_deref());
     if let (Some(m), c) = (out.cache_memory, st.cache) {
         println!(
             "  directional cache: {} local, {} global, {} lookups (hit ratio {:.1}%), {} nodes in {} leaves, {:.1} MiB",

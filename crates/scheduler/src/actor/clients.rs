@@ -10,7 +10,7 @@ use locus_core::radiosity::output::MeshCorner;
 use locus_protocol::radiosity::RadiosityReport;
 use locus_protocol::report::FarmReport;
 use locus_protocol::submit::{
-    JobResult, RESULT_CHUNK_PIXELS, RESULT_CHUNK_TRIANGLES, SchedulerToClient,
+    JobResult, RESULT_CHUNK_COUNTS, RESULT_CHUNK_PIXELS, RESULT_CHUNK_TRIANGLES, SchedulerToClient,
 };
 use std::sync::Arc;
 use std::time::Duration;
@@ -63,23 +63,25 @@ impl Client {
 }
 
 /// A finished job's result.
+#[derive(Clone)]
 pub(crate) struct Finished {
     pub id: u64,
     pub image: Arc<Image>,
     pub report: Arc<FarmReport>,
+    /// With adaptive sampling, the samples each pixel got.
+    pub counts: Option<Arc<Vec<u32>>>,
 }
 
-/// Sends a finished image in runs, then `Done` without pixels, waiting for
-/// room: a dedicated task, since the image can be large. `Done` waits for
+/// Sends a finished image in runs (and its pixels' sample counts, with
+/// adaptive sampling), then `Done` without them, waiting for room: a
+/// dedicated task, since the image can be large. `Done` waits for
 /// `stored` too, where the result goes to the state store.
 pub(crate) fn send_result(
     client: mpsc::Sender<SchedulerToClient>,
-    image: Arc<Image>,
-    report: Arc<FarmReport>,
-    job: u64,
+    f: Finished,
     stored: Option<oneshot::Receiver<()>>,
 ) {
-    send_result_with(client, image, report, job, stored, None)
+    send_result_with(client, f, stored, None)
 }
 
 /// A radiosity job's meshed solution and report, sent with its image.
@@ -89,12 +91,16 @@ pub(crate) type RadiosityPart = (Vec<[MeshCorner; 3]>, Box<RadiosityReport>);
 /// and report.
 pub(crate) fn send_result_with(
     client: mpsc::Sender<SchedulerToClient>,
-    image: Arc<Image>,
-    report: Arc<FarmReport>,
-    job: u64,
+    f: Finished,
     stored: Option<oneshot::Receiver<()>>,
     radiosity: Option<RadiosityPart>,
 ) {
+    let Finished {
+        id: job,
+        image,
+        report,
+        counts,
+    } = f;
     tokio::spawn(async move {
         let pixels = |offset, run: &[[f32; 3]]| SchedulerToClient::Pixels {
             job,
@@ -103,6 +109,16 @@ pub(crate) fn send_result_with(
         };
         if !send_runs(&client, &image.pixels, RESULT_CHUNK_PIXELS, pixels).await {
             return;
+        }
+        if let Some(c) = counts {
+            let run = |offset, run: &[u32]| SchedulerToClient::Counts {
+                job,
+                offset,
+                counts: run.to_vec(),
+            };
+            if !send_runs(&client, &c, RESULT_CHUNK_COUNTS, run).await {
+                return;
+            }
         }
         let mut part = None;
         if let Some((mesh, r)) = radiosity {
@@ -122,6 +138,7 @@ pub(crate) fn send_result_with(
             height: image.height,
             pixels: Vec::new(),
             report: (*report).clone(),
+            sample_counts: None,
             radiosity: part,
         };
         drop(image);
@@ -176,7 +193,7 @@ impl Actor {
             q.client = Client::some(tx);
         } else if let Some(f) = self.finished.iter().find(|f| f.id == job) {
             info!(job, "client attached to a finished job");
-            send_result(tx, f.image.clone(), f.report.clone(), job, None);
+            send_result(tx, f.clone(), None);
         } else {
             let reason = format!(
                 "no job {job} here: it failed, or finished more than {FINISHED_KEPT} jobs ago, \
@@ -195,6 +212,7 @@ impl Actor {
                 job: f.id,
                 image: f.image.clone(),
                 report: f.report.clone(),
+                counts: f.counts.clone(),
             });
             queued.then(|| s.synced())
         });

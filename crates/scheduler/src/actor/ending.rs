@@ -102,13 +102,15 @@ impl Actor {
         let image = Arc::new(j.film.image());
         let report = Arc::new(report);
         self.forget(j.id);
-        let stored = self.keep_finished(Finished {
+        let f = Finished {
             id: j.id,
-            image: image.clone(),
-            report: report.clone(),
-        });
+            image,
+            report,
+            counts: j.film.sample_counts().map(|c| Arc::new(c.to_vec())),
+        };
+        let stored = self.keep_finished(f.clone());
         if let Some(tx) = j.client.take() {
-            send_result(tx, image, report, j.id, stored);
+            send_result(tx, f, stored);
         }
         self.try_start();
     }

@@ -328,6 +328,7 @@ impl Actor {
                 id: k.id,
                 image: Arc::new(k.image),
                 report: Arc::new(k.report),
+                counts: k.counts.map(Arc::new),
             });
         }
         self.finished.truncate(FINISHED_KEPT);

@@ -307,20 +307,15 @@ impl Actor {
             ..Default::default()
         };
         let (image, farm) = (Arc::new(image), Arc::new(farm));
-        let stored = self.keep_finished(Finished {
+        let f = Finished {
             id: r.id,
-            image: image.clone(),
-            report: farm.clone(),
-        });
+            image,
+            report: farm,
+            counts: None,
+        };
+        let stored = self.keep_finished(f.clone());
         if let Some(tx) = r.client.take() {
-            send_result_with(
-                tx,
-                image,
-                farm,
-                r.id,
-                stored,
-                Some((mesh, Box::new(report))),
-            );
+            send_result_with(tx, f, stored, Some((mesh, Box::new(report))));
         }
         self.try_start();
     }

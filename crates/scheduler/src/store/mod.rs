@@ -72,6 +72,8 @@ pub enum Write {
         job: u64,
         image: Arc<Image>,
         report: Arc<FarmReport>,
+        /// With adaptive sampling, each pixel's samples.
+        counts: Option<Arc<Vec<u32>>>,
     },
     /// Answered once every write before it is committed (or dropped if a
     /// commit fails), so a job's client is told it is done only when its
@@ -341,8 +343,13 @@ fn commit(db: &Database, batch: Vec<Write>) -> anyhow::Result<()> {
                 Write::Spread { job, spread } => {
                     spreads.insert(job, postcard::to_allocvec(&spread)?.as_slice())?;
                 }
-                Write::Finished { job, image, report } => {
-                    results::put(&txn, job, &image, &report)?;
+                Write::Finished {
+                    job,
+                    image,
+                    report,
+                    counts,
+                } => {
+                    results::put(&txn, job, &image, &report, counts.as_deref())?;
                 }
                 Write::End { job } => {
                     jobs.remove(job)?;
@@ -478,6 +485,7 @@ mod tests {
                     job,
                     image: Arc::new(image(job)),
                     report: Arc::new(report),
+                    counts: (job % 2 == 0).then(|| Arc::new(vec![job as u32 + 7; n])),
                 });
             }
         }
@@ -492,6 +500,8 @@ mod tests {
         for k in &kept {
             assert_eq!(k.image.pixels, image(k.id).pixels);
             assert_eq!(k.report.scene, format!("scene {}", k.id));
+            let counts = (k.id % 2 == 0).then(|| vec![k.id as u32 + 7; n]);
+            assert_eq!(k.counts, counts, "job {}", k.id);
         }
         assert!(next >= 1);
         let _ = std::fs::remove_dir_all(&dir);
