@@ -53,7 +53,7 @@ fn main() {
         normals: vec![[glam::Vec3::Z; 3]; 2],
     })
     .unwrap());
-    put(postcard::to_allocvec(&SchedulerToWorker::Tile(tile)).unwrap());
+    put(postcard::to_allocvec(&SchedulerToWorker::Tile(tile.clone())).unwrap());
     put(postcard::to_allocvec(&SchedulerToWorker::NoMoreTiles { job: 3 }).unwrap());
     put(
         postcard::to_allocvec(&WorkerToScheduler::TileDone(TileResult {
@@ -85,6 +85,22 @@ fn main() {
         pixels: vec![[1.0; 3]; 3],
     })
     .unwrap());
+    put(postcard::to_allocvec(&SchedulerToClient::Counts {
+        job: 3,
+        offset: 0,
+        counts: vec![8, 0, 40],
+    })
+    .unwrap());
+    put(
+        postcard::to_allocvec(&SchedulerToWorker::Tile(TileAssignment {
+            samples: PassSamples::Spread {
+                first: vec![8; 16],
+                count: (0..16).collect(),
+            },
+            ..tile.clone()
+        }))
+        .unwrap(),
+    );
     put(postcard::to_allocvec(&PeerMsg::Hello { job: 3, from: 1 }).unwrap());
     put(postcard::to_allocvec(&PeerMsg::Fetch(vec![1, 2, 3])).unwrap());
     println!("{n} seeds in {}", dir.display());
