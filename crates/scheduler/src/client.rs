@@ -130,15 +130,8 @@ impl Collector {
                 pixels,
             }) => {
                 let bound = self.expected.unwrap_or(MAX_IMAGE_PIXELS);
-                if offset != self.pixels.len() as u64 || self.pixels.len() + pixels.len() > bound {
-                    return Some(Err(anyhow::anyhow!(
-                        "job {job}: pixels {offset}..{} arrived after {} of {bound}",
-                        offset + pixels.len() as u64,
-                        self.pixels.len(),
-                    )));
-                }
-                self.pixels.extend_from_slice(&pixels);
-                None
+                append_run(&mut self.pixels, offset, &pixels, bound)
+                    .map(|e| Err(anyhow::anyhow!("job {job}: pixels {e}")))
             }
             Some(SchedulerToClient::Counts {
                 job,
@@ -146,27 +139,12 @@ impl Collector {
                 counts,
             }) => {
                 let bound = self.expected.unwrap_or(MAX_IMAGE_PIXELS);
-                if offset != self.counts.len() as u64 || self.counts.len() + counts.len() > bound {
-                    return Some(Err(anyhow::anyhow!(
-                        "job {job}: sample counts {offset}..{} arrived after {} of {bound}",
-                        offset + counts.len() as u64,
-                        self.counts.len(),
-                    )));
-                }
-                self.counts.extend_from_slice(&counts);
-                None
+                append_run(&mut self.counts, offset, &counts, bound)
+                    .map(|e| Err(anyhow::anyhow!("job {job}: sample counts {e}")))
             }
             Some(SchedulerToClient::Mesh { job, offset, tris }) => {
-                let bound = self.mesh_bound;
-                if offset != self.mesh.len() as u64 || self.mesh.len() + tris.len() > bound {
-                    return Some(Err(anyhow::anyhow!(
-                        "job {job}: mesh triangles {offset}..{} arrived after {} of at most {bound}",
-                        offset + tris.len() as u64,
-                        self.mesh.len(),
-                    )));
-                }
-                self.mesh.extend_from_slice(&tris);
-                None
+                append_run(&mut self.mesh, offset, &tris, self.mesh_bound)
+                    .map(|e| Err(anyhow::anyhow!("job {job}: mesh triangles {e}")))
             }
             Some(SchedulerToClient::Done(r)) => {
                 let mut r = *r;
@@ -208,6 +186,21 @@ impl Collector {
             ))),
         }
     }
+}
+
+/// Appends a result's run `run`, said to start at `offset`, to `to`, if it
+/// follows what came and keeps within `bound` items; otherwise says what
+/// arrived after what ("3..5 arrived after 4 of 6").
+fn append_run<T: Clone>(to: &mut Vec<T>, offset: u64, run: &[T], bound: usize) -> Option<String> {
+    if offset != to.len() as u64 || to.len() + run.len() > bound {
+        return Some(format!(
+            "{offset}..{} arrived after {} of {bound}",
+            offset + run.len() as u64,
+            to.len(),
+        ));
+    }
+    to.extend_from_slice(run);
+    None
 }
 
 pub fn request(scene: &Scene, options: JobOptions) -> JobRequest {
